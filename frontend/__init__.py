@@ -1,0 +1,1 @@
+"""Logged traverses in, odometry out, keyframes, and simulated traverses."""

@@ -1,0 +1,25 @@
+"""The one record that crosses from a data source into the pipeline."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class Frame:
+    """One synchronised instant of a traverse; every sensor field is optional.
+
+    image: HxWx3 uint8 RGB. points: Nx3 float64 in the sensor frame. point_times: N
+    per-point times (seconds, relative to the sweep) or None. Poses are 4x4 float64
+    sensor-to-world transforms.
+    """
+
+    index: int
+    timestamp: float
+    image: np.ndarray | None = None
+    points: np.ndarray | None = None
+    point_times: np.ndarray | None = None
+    logged_pose: np.ndarray | None = None
+    gt_pose: np.ndarray | None = None

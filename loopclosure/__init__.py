@@ -1,0 +1,1 @@
+"""SSM-VPR (Camara & Preucil, ECMR 2019) place recognition, usable on its own."""
