@@ -1,0 +1,209 @@
+"""Every tunable of the front end, as pydantic models (kiss-icp's config style).
+
+The application nests :class:`FrontendConfig` in its own settings; each sub-model can also
+be used on its own (``McapSourceConfig()``, ``KissIcpConfig(voxel_size=0.5)``). Unknown
+keys are rejected so that a typo in a YAML preset fails loudly instead of being ignored.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+# Topic value meaning "do not read / write this stream at all".
+TOPIC_OFF = ""
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+# --------------------------------------------------------------------------- sources
+
+
+class McapWriterConfig(_Model):
+    """How :class:`~frontend.sources.mcap_writer.McapFrameWriter` lays out a log."""
+
+    camera_topic: str = "/camera/image_raw"
+    compressed_camera_topic: str = "/camera/image_raw/compressed"
+    lidar_topic: str = "/lidar/points"
+    odom_topic: str = "/odom"
+    gt_topic: str = "/ground_truth"
+    image_format: Literal["raw", "jpeg", "png"] = "raw"
+    jpeg_quality: int = Field(90, ge=1, le=100)
+    png_compression: int = Field(3, ge=0, le=9)
+    world_frame_id: str = "map"
+    body_frame_id: str = "base_link"
+    camera_frame_id: str = "camera"
+    lidar_frame_id: str = "lidar"
+    chunk_size: int = Field(1024 * 1024, gt=0, description="bytes per MCAP chunk")
+    compression: Literal["zstd", "lz4", "none"] = "zstd"
+    rotation_tolerance: float = Field(
+        1e-3, gt=0.0, description="a pose whose |R^T R - I| exceeds this is refused"
+    )
+
+
+class McapSourceConfig(_Model):
+    """How an MCAP log is read and its streams associated into frames.
+
+    A topic left ``None`` is found by message type; ``""`` switches the stream off.
+    """
+
+    camera_topic: str | None = None
+    lidar_topic: str | None = None
+    odom_topic: str | None = None
+    gt_topic: str | None = None
+    drive: Literal["auto", "camera", "lidar"] = Field(
+        "auto", description="stream whose messages become frames; auto = camera if present"
+    )
+    association_tolerance_s: float = Field(
+        0.05, ge=0.0, description="max |dt| between a frame and an associated message"
+    )
+    max_latency_s: float = Field(
+        0.5,
+        ge=0.0,
+        description="how far (in stamp time) other streams may lag the driving stream",
+    )
+    max_pending_frames: int = Field(64, ge=1, description="frames held while waiting")
+    max_buffered_messages: int = Field(64, ge=2, description="per-stream look-back buffer")
+    use_header_stamp: bool = Field(
+        True, description="associate by header.stamp (log_time when the stamp is zero)"
+    )
+    strict: bool = Field(
+        True, description="truncated/corrupt log: raise (True) or warn once and stop (False)"
+    )
+    skip_undecodable_images: bool = Field(
+        True, description="count and skip a compressed image cv2 cannot decode"
+    )
+
+
+class KittiSourceConfig(_Model):
+    """A KITTI odometry sequence folder (``sequences/XX``)."""
+
+    camera: Literal["auto", "image_2", "image_0", "none"] = "auto"
+    load_points: bool = True
+    poses_file: str | None = Field(None, description="explicit ground-truth poses file")
+    gt_frame: Literal["auto", "lidar", "camera"] = Field(
+        "auto", description="body frame of gt_pose; auto = lidar when velodyne/ exists"
+    )
+
+
+class FolderSourceConfig(_Model):
+    """A folder of images with an optional TUM or KITTI poses file."""
+
+    image_dir: str | None = Field(None, description="sub-folder with the images (auto)")
+    poses_file: str | None = Field(None, description="poses file (auto: poses.txt, ...)")
+    times_file: str | None = Field(None, description="one timestamp per image (auto)")
+    pose_role: Literal["gt", "logged", "both"] = "gt"
+    association_tolerance_s: float = Field(
+        0.02, ge=0.0, description="image time vs TUM pose time, when both are timestamps"
+    )
+    frame_period_s: float = Field(
+        0.1, gt=0.0, description="timestamp step when no times are known"
+    )
+
+
+class SourceConfig(_Model):
+    """Which data source :func:`~frontend.sources.open_source` builds, and its settings."""
+
+    kind: Literal["auto", "mcap", "kitti", "folder"] = "auto"
+    mcap: McapSourceConfig = Field(default_factory=McapSourceConfig)
+    kitti: KittiSourceConfig = Field(default_factory=KittiSourceConfig)
+    folder: FolderSourceConfig = Field(default_factory=FolderSourceConfig)
+
+
+# --------------------------------------------------------------------------- odometry
+
+
+class KissIcpConfig(_Model):
+    """kiss-icp's ``KISSConfig`` fields, flattened, plus our input guards."""
+
+    max_range: float = Field(100.0, gt=0.0)
+    min_range: float = Field(0.0, ge=0.0)
+    deskew: bool = Field(True, description="used only when a scan has real per-point times")
+    voxel_size: float | None = Field(None, gt=0.0, description="None: max_range / 100")
+    max_points_per_voxel: int = Field(20, ge=1)
+    max_num_iterations: int = Field(500, ge=1)
+    convergence_criterion: float = Field(1e-4, gt=0.0)
+    max_num_threads: int = Field(0, ge=0, description="0 = all cores")
+    fixed_threshold: float | None = Field(None, gt=0.0)
+    initial_threshold: float = Field(2.0, gt=0.0)
+    min_motion_th: float = Field(0.1, ge=0.0)
+    min_points: int = Field(
+        20, ge=1, description="fewer valid in-range points: skip the scan, predict the pose"
+    )
+    predict_on_skip: bool = Field(
+        True, description="skipped scan: constant-velocity prediction (else hold the pose)"
+    )
+
+    @model_validator(mode="after")
+    def _check_ranges(self) -> KissIcpConfig:
+        if self.min_range >= self.max_range:
+            raise ValueError(f"min_range {self.min_range} must be < max_range {self.max_range}")
+        return self
+
+
+class DriftConfig(_Model):
+    """Seeded drift injected into logged poses, so loop closures have something to fix.
+
+    Per step of length d metres: translation scaled by (1 + translation_scale_error),
+    yaw rotated by yaw_bias_per_m * d, and Gaussian random walks whose standard deviations
+    grow with sqrt(d).
+    """
+
+    enabled: bool = False
+    seed: int = 0
+    translation_scale_error: float = Field(0.0, gt=-1.0)
+    yaw_bias_per_m: float = Field(0.0, description="rad per metre travelled")
+    translation_noise_per_sqrt_m: float = Field(0.0, ge=0.0, description="m / sqrt(m)")
+    rotation_noise_per_sqrt_m: float = Field(0.0, ge=0.0, description="rad / sqrt(m)")
+
+
+class LoggedOdometryConfig(_Model):
+    """Odometry read from the log's poses (optionally degraded by :class:`DriftConfig`)."""
+
+    pose_source: Literal["logged", "gt"] = "logged"
+    drift: DriftConfig = Field(default_factory=DriftConfig)
+
+
+class OdometryConfig(_Model):
+    """Which odometry :func:`~frontend.odometry.make_odometry` builds."""
+
+    kind: Literal["kiss_icp", "logged"] = "kiss_icp"
+    kiss_icp: KissIcpConfig = Field(default_factory=KissIcpConfig)
+    logged: LoggedOdometryConfig = Field(default_factory=LoggedOdometryConfig)
+
+
+# --------------------------------------------------------------------------- pose files
+
+
+class PoseFileConfig(_Model):
+    """Reading and writing TUM / KITTI trajectory files (:mod:`frontend.poses_io`)."""
+
+    rotation_tolerance: float = Field(
+        1e-3, gt=0.0, description="max |R^T R - I| (or |q| - 1) before a line is rejected"
+    )
+    timestamp_decimals: int = Field(9, ge=0, le=12)
+    value_digits: int = Field(10, ge=6, le=17, description="significant digits per value")
+
+
+# --------------------------------------------------------------------------- keyframes
+
+
+class KeyframeConfig(_Model):
+    """A frame becomes a keyframe when any enabled threshold is reached (None = off)."""
+
+    min_distance_m: float | None = Field(1.0, gt=0.0)
+    min_angle_deg: float | None = Field(10.0, gt=0.0)
+    max_interval_s: float | None = Field(None, gt=0.0)
+
+
+class FrontendConfig(_Model):
+    """Everything the front end needs; nested into the application's settings."""
+
+    source: SourceConfig = Field(default_factory=SourceConfig)
+    writer: McapWriterConfig = Field(default_factory=McapWriterConfig)
+    odometry: OdometryConfig = Field(default_factory=OdometryConfig)
+    keyframes: KeyframeConfig = Field(default_factory=KeyframeConfig)
+    pose_files: PoseFileConfig = Field(default_factory=PoseFileConfig)

@@ -1,0 +1,77 @@
+"""What every data source is: an iterable of Frames with counters and a description."""
+
+from __future__ import annotations
+
+import logging
+from abc import ABC, abstractmethod
+from collections import Counter
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+
+from frontend.frame import Frame
+
+log = logging.getLogger("frontend.sources")
+
+
+@dataclass
+class SourceStats:
+    """Per-source counters: how many frames came out, and what was skipped and why."""
+
+    frames_yielded: int = 0
+    skipped: Counter[str] = field(default_factory=Counter)
+    notes: Counter[str] = field(default_factory=Counter)  # e.g. unmatched_lidar
+    warned: set[str] = field(default_factory=set)
+
+    def skip(self, reason: str, detail: str) -> None:
+        """Count a skip; log the first of each reason (a long log must not flood the console)."""
+        self.skipped[reason] += 1
+        if reason not in self.warned:
+            self.warned.add(reason)
+            log.warning("%s (further '%s' skips are only counted)", detail, reason)
+
+    def summary(self) -> str:
+        """One line for logs and reports."""
+        skips = ", ".join(f"{k}={v}" for k, v in sorted(self.skipped.items())) or "none"
+        notes = ", ".join(f"{k}={v}" for k, v in sorted(self.notes.items()))
+        return f"{self.frames_yielded} frames yielded; skipped: {skips}" + (
+            f"; {notes}" if notes else ""
+        )
+
+
+class Source(ABC):
+    """A logged traverse, iterable over :class:`~frontend.frame.Frame` in time order.
+
+    ``len()`` works when the number of frames is known up front (it raises TypeError
+    otherwise; use :attr:`length` to ask without raising). ``topics`` maps each role
+    (camera, lidar, logged_pose, gt_pose) to where it comes from.
+    """
+
+    def __init__(self) -> None:
+        self.stats = SourceStats()
+
+    @abstractmethod
+    def __iter__(self) -> Iterator[Frame]: ...
+
+    def reset_stats(self) -> None:
+        """Start counting afresh (each iteration re-reads the traverse from the start)."""
+        self.stats = SourceStats()
+
+    @property
+    def length(self) -> int | None:
+        """Number of frames when known before reading, else None."""
+        return None
+
+    def __len__(self) -> int:
+        if self.length is None:
+            raise TypeError(f"{type(self).__name__}: number of frames is not known up front")
+        return self.length
+
+    @property
+    @abstractmethod
+    def topics(self) -> dict[str, str]:
+        """Role -> topic / folder / file that feeds it (roles absent from the log are left out)."""
+
+    @property
+    @abstractmethod
+    def description(self) -> str:
+        """One human-readable line: what is being read."""

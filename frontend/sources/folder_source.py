@@ -1,0 +1,170 @@
+"""A folder of images, optionally with a TUM or KITTI poses file and a times file.
+
+Images: ``image_dir`` or the first of ``images/``, ``image/``, ``rgb/``, ``image_2/``,
+``image_0/`` or the folder itself holding image files, sorted by name. Times: ``times_file``
+or ``times.txt`` (one per image); else the file names when they all parse as numbers
+(``1305031102.175304.png``); else the TUM poses' times when there is one pose per image;
+else ``index * frame_period_s``. Poses: ``poses_file`` or the first of ``poses.txt``,
+``groundtruth.txt``, ``poses_tum.txt``, ``poses_kitti.txt``, ``gt.txt``, format detected.
+TUM poses with real image times are matched by nearest time; otherwise poses pair with
+images by index and the counts must agree.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from frontend.config import FolderSourceConfig, PoseFileConfig
+from frontend.errors import FrontendInputError
+from frontend.frame import Frame
+from frontend.poses_io import PoseFile, read_poses
+from frontend.sources.base import Source
+from frontend.sources.images import list_images, read_rgb
+
+IMAGE_DIR_NAMES = ("images", "image", "rgb", "image_2", "image_0")
+POSES_NAMES = ("poses.txt", "groundtruth.txt", "poses_tum.txt", "poses_kitti.txt", "gt.txt")
+TIMES_NAME = "times.txt"
+
+
+class FolderSource(Source):
+    """Frames from an image folder (+ poses); images are read lazily."""
+
+    def __init__(
+        self,
+        path: str | Path,
+        config: FolderSourceConfig | None = None,
+        pose_config: PoseFileConfig | None = None,
+    ) -> None:
+        super().__init__()
+        self.path = Path(path)
+        self.config = config or FolderSourceConfig()
+        if not self.path.is_dir():
+            raise FrontendInputError(f"{self.path}: image folder not found")
+        self.image_dir = self._image_dir()
+        self.images = list_images(self.image_dir)
+        if not self.images:
+            raise FrontendInputError(f"{self.image_dir}: no image files")
+        self.poses_path = self._find(self.config.poses_file, POSES_NAMES, "poses file")
+        self.pose_file: PoseFile | None = (
+            read_poses(self.poses_path, config=pose_config) if self.poses_path else None
+        )
+        self.times_path = self._find(self.config.times_file, (TIMES_NAME,), "times file")
+        self.times, real_times = self._times()
+        self.poses = self._match_poses(real_times)
+
+    # ---------------------------------------------------------------- layout
+
+    def _image_dir(self) -> Path:
+        if self.config.image_dir is not None:
+            folder = self.path / self.config.image_dir
+            if not folder.is_dir():
+                raise FrontendInputError(f"{folder}: image folder not found")
+            return folder
+        for name in IMAGE_DIR_NAMES:
+            if (self.path / name).is_dir() and list_images(self.path / name):
+                return self.path / name
+        return self.path
+
+    def _find(self, explicit: str | None, names: tuple[str, ...], what: str) -> Path | None:
+        if explicit is not None:
+            path = Path(explicit)
+            path = path if path.is_absolute() or path.exists() else self.path / path
+            if not path.is_file():
+                raise FrontendInputError(f"{path}: {what} not found")
+            return path
+        return next((self.path / n for n in names if (self.path / n).is_file()), None)
+
+    def _times(self) -> tuple[np.ndarray, bool]:
+        """Per-image times, and whether they are real (usable to match TUM poses)."""
+        count = len(self.images)
+        if self.times_path is not None:
+            try:
+                times = np.loadtxt(self.times_path, dtype=np.float64, ndmin=1)
+            except ValueError as error:
+                raise FrontendInputError(f"{self.times_path}: unreadable ({error})") from None
+            if times.ndim != 1 or len(times) != count or not np.all(np.isfinite(times)):
+                raise FrontendInputError(
+                    f"{self.times_path}: need {count} finite times (one per image), got {times.size}"
+                )
+            return times, True
+        try:
+            stems = np.array([float(p.stem) for p in self.images])
+            if np.all(np.isfinite(stems)) and np.all(np.diff(stems) > 0):
+                return stems, True
+        except ValueError:
+            pass
+        tum = self.pose_file is not None and self.pose_file.timestamps is not None
+        if tum and len(self.pose_file.poses) == count:
+            return self.pose_file.timestamps.copy(), False
+        return np.arange(count) * self.config.frame_period_s, False
+
+    def _match_poses(self, real_times: bool) -> list[np.ndarray | None] | None:
+        if self.pose_file is None:
+            return None
+        poses, stamps = self.pose_file.poses, self.pose_file.timestamps
+        if stamps is not None and real_times:
+            return self._nearest(stamps, poses)
+        if len(poses) != len(self.images):
+            raise FrontendInputError(
+                f"{self.poses_path}: {len(poses)} poses for {len(self.images)} images "
+                "(without timestamps to match, poses pair with images by index)"
+            )
+        return list(poses)
+
+    def _nearest(self, stamps: np.ndarray, poses: np.ndarray) -> list[np.ndarray | None]:
+        if len(stamps) == 0:
+            return [None] * len(self.times)
+        order = np.argsort(stamps)
+        stamps, poses = stamps[order], poses[order]
+        right = np.searchsorted(stamps, self.times).clip(0, len(stamps) - 1)
+        left = (right - 1).clip(0)
+        closer_left = np.abs(stamps[left] - self.times) <= np.abs(stamps[right] - self.times)
+        pick = np.where(closer_left, left, right)
+        within = np.abs(stamps[pick] - self.times) <= self.config.association_tolerance_s
+        return [poses[i] if ok else None for i, ok in zip(pick, within)]
+
+    # ---------------------------------------------------------------- Source API
+
+    @property
+    def length(self) -> int:
+        return len(self.images)
+
+    @property
+    def topics(self) -> dict[str, str]:
+        topics = {"camera": str(self.image_dir)}
+        if self.poses_path is not None:
+            roles = {"gt": ["gt_pose"], "logged": ["logged_pose"], "both": ["gt_pose", "logged_pose"]}
+            topics.update({role: str(self.poses_path) for role in roles[self.config.pose_role]})
+        return topics
+
+    @property
+    def description(self) -> str:
+        poses = (
+            f"{self.pose_file.format} poses as {self.config.pose_role}" if self.pose_file else "no poses"
+        )
+        return f"image folder {self.image_dir}: {len(self)} images, {poses}"
+
+    def __iter__(self) -> Iterator[Frame]:
+        self.reset_stats()
+        role = self.config.pose_role
+        last = float("-inf")
+        for index, (path, time) in enumerate(zip(self.images, self.times)):
+            if time <= last:
+                self.stats.skip("non_monotonic", f"{path}: time {time} is not after {last}; skipped")
+                continue
+            last = time
+            pose = self.poses[index] if self.poses is not None else None
+            if self.poses is not None and pose is None:
+                self.stats.notes["unmatched_pose"] += 1
+            frame = Frame(
+                index=self.stats.frames_yielded,
+                timestamp=float(time),
+                image=read_rgb(path),
+                logged_pose=pose.copy() if pose is not None and role in ("logged", "both") else None,
+                gt_pose=pose.copy() if pose is not None and role in ("gt", "both") else None,
+            )
+            self.stats.frames_yielded += 1
+            yield frame

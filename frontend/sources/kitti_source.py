@@ -1,0 +1,198 @@
+"""A KITTI odometry sequence folder (``dataset/sequences/XX``) as Frames.
+
+Layout: ``times.txt`` (required), ``image_2/*.png`` (colour) or ``image_0/*.png`` (grey),
+``velodyne/*.bin`` (float32 x, y, z, intensity), optional ``calib.txt`` and ground truth
+from ``poses_file`` or ``poses/XX.txt`` (searched beside and two levels above the folder).
+
+KITTI ground truth is the pose of camera 0 in the frame of camera 0 at the first scan.
+With ``gt_frame="lidar"`` (the default when scans are read) it is moved to the LiDAR frame,
+``T_lidar = Tr^-1 @ T_cam @ Tr``, where ``Tr`` (from ``calib.txt``) maps LiDAR points into
+camera 0: exactly what kiss-icp's poses are comparable to. Without ``calib.txt``, ``Tr``
+is taken as the identity (the gt is then the camera trajectory, labelled as LiDAR).
+KITTI logs carry no odometry, so ``logged_pose`` is None; use ``pose_source="gt"`` for
+logged-pose odometry. Scans carry no per-point times (KITTI scans are already deskewed).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from frontend.config import KittiSourceConfig, PoseFileConfig
+from frontend.errors import FrontendInputError
+from frontend.frame import Frame
+from frontend.poses_io import KITTI_COLUMNS, read_kitti
+from frontend.sources.base import Source
+from frontend.sources.images import list_images, read_rgb
+
+log = logging.getLogger("frontend.sources.kitti")
+
+KITTI_POINT_COLUMNS = 4  # x, y, z, intensity
+CAMERA_FOLDERS = ("image_2", "image_0")
+
+
+def read_velodyne(path: Path) -> np.ndarray:
+    """Nx3 float64 points of a KITTI ``.bin`` scan (intensity dropped)."""
+    raw = np.fromfile(path, dtype=np.float32)
+    if raw.size % KITTI_POINT_COLUMNS:
+        raise FrontendInputError(f"{path}: {raw.size} floats is not a multiple of 4 (x y z i)")
+    return raw.reshape(-1, KITTI_POINT_COLUMNS)[:, :3].astype(np.float64)
+
+
+def read_calib_tr(path: Path) -> np.ndarray | None:
+    """4x4 LiDAR->camera-0 transform from the ``Tr:`` line of ``calib.txt`` (None if absent)."""
+    if not path.is_file():
+        return None
+    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
+        key, _, values = line.partition(":")
+        if key.strip() == "Tr":
+            try:
+                numbers = [float(v) for v in values.split()]
+            except ValueError:
+                raise FrontendInputError(f"{path}:{lineno}: non-numeric value in Tr") from None
+            if len(numbers) != KITTI_COLUMNS or not np.all(np.isfinite(numbers)):
+                raise FrontendInputError(f"{path}:{lineno}: Tr needs 12 finite values")
+            tr = np.eye(4)
+            tr[:3, :4] = np.reshape(numbers, (3, 4))
+            return tr
+    return None
+
+
+class KittiSource(Source):
+    """Frames of one KITTI odometry sequence, read lazily file by file."""
+
+    def __init__(
+        self,
+        path: str | Path,
+        config: KittiSourceConfig | None = None,
+        pose_config: PoseFileConfig | None = None,
+    ) -> None:
+        super().__init__()
+        self.path = Path(path)
+        self.config = config or KittiSourceConfig()
+        if not self.path.is_dir():
+            raise FrontendInputError(f"{self.path}: KITTI sequence folder not found")
+        self.times = self._read_times(self.path / "times.txt")
+        self.camera_folder = self._camera_folder()
+        self.images = list_images(self.path / self.camera_folder) if self.camera_folder else []
+        velodyne = self.path / "velodyne"
+        self.scans = (
+            sorted(velodyne.glob("*.bin")) if self.config.load_points and velodyne.is_dir() else []
+        )
+        if not self.images and not self.scans:
+            raise FrontendInputError(
+                f"{self.path}: no images ({'/'.join(CAMERA_FOLDERS)}) and no velodyne/*.bin scans"
+            )
+        self._check_count(self.images, self.camera_folder)
+        self._check_count(self.scans, "velodyne")
+        self.tr = read_calib_tr(self.path / "calib.txt")
+        self.gt_frame = self._gt_frame()
+        self.poses_path = self._poses_path()
+        self.gt_poses = self._read_gt(pose_config)
+
+    def _read_times(self, path: Path) -> np.ndarray:
+        if not path.is_file():
+            raise FrontendInputError(f"{path}: KITTI times.txt not found")
+        try:
+            times = np.loadtxt(path, dtype=np.float64, ndmin=1)
+        except ValueError as error:
+            raise FrontendInputError(f"{path}: unreadable ({error})") from None
+        if times.ndim != 1 or not np.all(np.isfinite(times)):
+            raise FrontendInputError(f"{path}: need one finite time per line")
+        return times
+
+    def _camera_folder(self) -> str | None:
+        choice = self.config.camera
+        if choice == "none":
+            return None
+        if choice != "auto":
+            if not (self.path / choice).is_dir():
+                raise FrontendInputError(f"{self.path / choice}: camera folder not found")
+            return choice
+        return next((c for c in CAMERA_FOLDERS if (self.path / c).is_dir()), None)
+
+    def _check_count(self, files: list[Path], what: str | None) -> None:
+        if files and len(files) != len(self.times):
+            raise FrontendInputError(
+                f"{self.path / str(what)}: {len(files)} files but times.txt has {len(self.times)} lines"
+            )
+
+    def _gt_frame(self) -> str:
+        if self.config.gt_frame != "auto":
+            return self.config.gt_frame
+        return "lidar" if self.scans else "camera"
+
+    def _poses_path(self) -> Path | None:
+        if self.config.poses_file is not None:
+            path = Path(self.config.poses_file)
+            if not path.is_file():
+                raise FrontendInputError(f"{path}: poses file not found")
+            return path
+        name = f"{self.path.name}.txt"
+        candidates = [
+            self.path / "poses.txt",
+            self.path / "poses" / name,
+            self.path.parent.parent / "poses" / name,
+        ]
+        return next((p for p in candidates if p.is_file()), None)
+
+    def _read_gt(self, pose_config: PoseFileConfig | None) -> np.ndarray | None:
+        if self.poses_path is None:
+            return None
+        poses = read_kitti(self.poses_path, pose_config).poses
+        if len(poses) != len(self.times):
+            raise FrontendInputError(
+                f"{self.poses_path}: {len(poses)} poses but times.txt has {len(self.times)} lines"
+            )
+        if self.gt_frame == "lidar":
+            tr = self.tr if self.tr is not None else np.eye(4)
+            poses = np.linalg.inv(tr) @ poses @ tr
+        return poses
+
+    # ---------------------------------------------------------------- Source API
+
+    @property
+    def length(self) -> int:
+        return len(self.times)
+
+    @property
+    def topics(self) -> dict[str, str]:
+        topics = {}
+        if self.images:
+            topics["camera"] = str(self.path / str(self.camera_folder))
+        if self.scans:
+            topics["lidar"] = str(self.path / "velodyne")
+        if self.poses_path is not None:
+            topics["gt_pose"] = str(self.poses_path)
+        return topics
+
+    @property
+    def description(self) -> str:
+        calib = "calib Tr" if self.tr is not None else "no calib.txt (Tr = identity)"
+        return (
+            f"KITTI {self.path.name}: {len(self)} frames, {', '.join(self.topics)}; "
+            f"gt in {self.gt_frame} frame, {calib}"
+        )
+
+    def __iter__(self) -> Iterator[Frame]:
+        self.reset_stats()
+        last = float("-inf")
+        for index, timestamp in enumerate(self.times):
+            if timestamp <= last:
+                self.stats.skip(
+                    "non_monotonic", f"{self.path}/times.txt line {index + 1}: time not increasing"
+                )
+                continue
+            last = timestamp
+            frame = Frame(
+                index=self.stats.frames_yielded,
+                timestamp=float(timestamp),
+                image=read_rgb(self.images[index]) if self.images else None,
+                points=read_velodyne(self.scans[index]) if self.scans else None,
+                gt_pose=self.gt_poses[index].copy() if self.gt_poses is not None else None,
+            )
+            self.stats.frames_yielded += 1
+            yield frame

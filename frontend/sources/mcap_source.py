@@ -1,0 +1,330 @@
+"""Stream Frames out of a ROS 2 MCAP log, never holding more than a bounded window.
+
+Topics are found by message type (or named in the config); the camera stream drives the
+frames (the LiDAR when there is no camera) and the other streams are matched by nearest
+timestamp (:mod:`frontend.sources.association`). An indexed log is read in log-time order
+through its chunk index; a log without a usable summary (still being written, or cut off)
+is read linearly in file order, and a cut is reported after every frame before it.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+from mcap.exceptions import McapError
+from mcap.reader import NonSeekingReader, SeekingReader
+from mcap.records import Channel, Message, Schema
+from mcap.stream_reader import StreamReader
+from mcap_ros2.decoder import DecoderFactory
+
+from frontend.config import McapSourceConfig, McapWriterConfig, PoseFileConfig
+from frontend.errors import FrontendInputError
+from frontend.frame import Frame
+from frontend.poses_io import pose_problem
+from frontend.sources import ros_convert
+from frontend.sources.association import Associated, StreamAssociator
+from frontend.sources.base import Source
+from frontend.sources.ros_msgdefs import (
+    COMPRESSED_IMAGE,
+    IMAGE,
+    ODOMETRY,
+    POINT_CLOUD2,
+    POSE_STAMPED,
+    normalise_type,
+)
+
+log = logging.getLogger("frontend.sources.mcap")
+
+POSE_WITH_COVARIANCE_STAMPED = "geometry_msgs/msg/PoseWithCovarianceStamped"
+_POSE_TYPES = (ODOMETRY, POSE_STAMPED, POSE_WITH_COVARIANCE_STAMPED)
+# role -> (types accepted when the topic is named, types auto-detected, default topic names)
+_WRITER = McapWriterConfig()
+ROLES: dict[str, tuple[tuple[str, ...], tuple[str, ...], tuple[str, ...]]] = {
+    "camera": (
+        (IMAGE, COMPRESSED_IMAGE),
+        (IMAGE, COMPRESSED_IMAGE),
+        (_WRITER.camera_topic, _WRITER.compressed_camera_topic),
+    ),
+    "lidar": ((POINT_CLOUD2,), (POINT_CLOUD2,), (_WRITER.lidar_topic,)),
+    "logged_pose": (_POSE_TYPES, (ODOMETRY,), (_WRITER.odom_topic,)),
+    "gt_pose": (_POSE_TYPES, (POSE_STAMPED,), (_WRITER.gt_topic,)),
+}
+ROLE_CONFIG_FIELD = {
+    "camera": "camera_topic",
+    "lidar": "lidar_topic",
+    "logged_pose": "odom_topic",
+    "gt_pose": "gt_topic",
+}
+
+
+@dataclass
+class _Topic:
+    role: str
+    name: str
+    type: str
+
+
+class McapSource(Source):
+    """Frames from an MCAP log; see the module docstring for how streams are combined."""
+
+    def __init__(
+        self,
+        path: str | Path,
+        config: McapSourceConfig | None = None,
+        pose_config: PoseFileConfig | None = None,
+    ) -> None:
+        super().__init__()
+        self.path = Path(path)
+        self.config = config or McapSourceConfig()
+        self._rotation_tolerance = (pose_config or PoseFileConfig()).rotation_tolerance
+        if not self.path.is_file():
+            raise FrontendInputError(f"{self.path}: MCAP file not found")
+        self._indexed, channels, counts = self._discover()
+        present = {c.topic: t for c, t in channels}
+        self._roles = self._select_topics(present)
+        self.driver = self._pick_driver()
+        self._length = counts.get(self._roles[self.driver].name) if counts else None
+
+    # ---------------------------------------------------------------- discovery
+
+    def _open(self) -> IO[bytes]:
+        try:
+            return open(self.path, "rb")
+        except OSError as error:
+            raise FrontendInputError(f"{self.path}: cannot open MCAP ({error})") from None
+
+    def _discover(self) -> tuple[bool, list[tuple[Channel, str]], dict[str, int]]:
+        """Channels and their types, from the summary or (unindexed log) a linear scan."""
+        with self._open() as stream:
+            try:
+                reader = SeekingReader(stream)
+            except McapError as error:  # bad or missing magic bytes
+                raise FrontendInputError(f"{self.path}: not an MCAP file ({error})") from None
+            try:
+                summary = reader.get_summary()
+            except Exception as error:  # missing/cut footer, corrupt summary: read linearly
+                log.debug("%s: no usable summary (%s)", self.path, error)
+                summary = None
+            if summary is not None and summary.chunk_indexes:
+                types = {c.id: self._type(summary.schemas.get(c.schema_id)) for c in summary.channels.values()}
+                counts: dict[str, int] = {}
+                if summary.statistics is not None:
+                    for cid, n in summary.statistics.channel_message_counts.items():
+                        topic = summary.channels[cid].topic
+                        counts[topic] = counts.get(topic, 0) + n
+                return True, [(c, types[c.id]) for c in summary.channels.values()], counts
+            stream.seek(0)
+            return False, self._scan_channels(stream), {}
+
+    def _scan_channels(self, stream: IO[bytes]) -> list[tuple[Channel, str]]:
+        schemas: dict[int, Schema] = {}
+        channels: list[tuple[Channel, str]] = []
+        try:
+            for record in StreamReader(stream).records:
+                if isinstance(record, Schema):
+                    schemas[record.id] = record
+                elif isinstance(record, Channel):
+                    channels.append((record, self._type(schemas.get(record.schema_id))))
+        except Exception as error:  # cut or corrupt: report it while reading frames
+            log.debug("%s: channel scan stopped early: %s", self.path, error)
+        return channels
+
+    @staticmethod
+    def _type(schema: Schema | None) -> str:
+        return normalise_type(schema.name) if schema is not None else "(no schema)"
+
+    def _select_topics(self, present: dict[str, str]) -> dict[str, _Topic]:
+        listing = ", ".join(f"{t} ({present[t]})" for t in sorted(present)) or "none"
+        chosen: dict[str, _Topic] = {}
+        for role, (accepted, auto_types, defaults) in ROLES.items():
+            requested = getattr(self.config, ROLE_CONFIG_FIELD[role])
+            if requested == "":
+                continue
+            if requested is not None:
+                if requested not in present:
+                    raise FrontendInputError(
+                        f"{self.path}: {role} topic '{requested}' not found; topics present: {listing}"
+                    )
+                if present[requested] not in accepted:
+                    raise FrontendInputError(
+                        f"{self.path}: {role} topic '{requested}' has type {present[requested]}, "
+                        f"expected one of {', '.join(accepted)}"
+                    )
+                chosen[role] = _Topic(role, requested, present[requested])
+                continue
+            candidates = [t for t in present if present[t] in auto_types]
+            if not candidates:
+                continue
+            # Prefer our writer's names, then type order (raw before compressed), then name.
+            candidates.sort(
+                key=lambda t: (t not in defaults, auto_types.index(present[t]), t)
+            )
+            if len(candidates) > 1:
+                log.info("%s: %s candidates %s; using %s", self.path, role, candidates, candidates[0])
+            chosen[role] = _Topic(role, candidates[0], present[candidates[0]])
+        if "camera" not in chosen and "lidar" not in chosen:
+            raise FrontendInputError(
+                f"{self.path}: no camera (Image/CompressedImage) or LiDAR (PointCloud2) topic; "
+                f"topics present: {listing}"
+            )
+        return chosen
+
+    def _pick_driver(self) -> str:
+        drive = self.config.drive
+        if drive == "auto":
+            return "camera" if "camera" in self._roles else "lidar"
+        if drive not in self._roles:
+            raise FrontendInputError(f"{self.path}: drive='{drive}' but the log has no {drive} topic")
+        return drive
+
+    # ---------------------------------------------------------------- Source API
+
+    @property
+    def length(self) -> int | None:
+        """Messages on the driving topic (an upper bound: skipped messages make no frame)."""
+        return self._length
+
+    @property
+    def topics(self) -> dict[str, str]:
+        return {role: f"{t.name} ({t.type})" for role, t in self._roles.items()}
+
+    @property
+    def description(self) -> str:
+        streams = ", ".join(f"{r}={t.name}" for r, t in self._roles.items())
+        return f"MCAP {self.path.name}: driven by {self.driver}; {streams}"
+
+    def __iter__(self) -> Iterator[Frame]:
+        self.reset_stats()
+        cfg = self.config
+        aux = [r for r in self._roles if r != self.driver]
+        associator = StreamAssociator(
+            aux,
+            cfg.association_tolerance_s,
+            cfg.max_latency_s,
+            cfg.max_pending_frames,
+            cfg.max_buffered_messages,
+            self.stats,
+        )
+        by_topic = {t.name: t for t in self._roles.values()}
+        last_time: dict[str, float] = {}
+        factory = DecoderFactory()
+        failure: str | None = None
+        with self._open() as stream:
+            messages = self._raw_messages(stream, list(by_topic))
+            while True:
+                try:
+                    item = next(messages)
+                except StopIteration:
+                    break
+                except Exception as error:  # the reader hit a cut or corrupt record
+                    failure = f"{type(error).__name__}: {error}" if str(error) else type(error).__name__
+                    break
+                schema, channel, message = item
+                topic = by_topic[channel.topic]
+                decoded = self._decode(factory, schema, channel, message)
+                if decoded is None:
+                    continue
+                time = self._time(decoded, message)
+                if time <= last_time.get(topic.name, float("-inf")):
+                    self.stats.skip(
+                        f"non_monotonic_{topic.role}",
+                        f"{self.path}: {topic.name} time {time:.9f} is not after "
+                        f"{last_time[topic.name]:.9f}; message skipped",
+                    )
+                    continue
+                last_time[topic.name] = time
+                payload = self._convert(topic, decoded)
+                if payload is None:
+                    continue
+                if topic.role == self.driver:
+                    ready = associator.add_driver(time, payload)
+                else:
+                    ready = associator.add_aux(topic.role, time, payload)
+                yield from self._frames(ready)
+        yield from self._frames(associator.flush())
+        if failure is not None:
+            message = (
+                f"{self.path}: log is truncated or corrupt after {self.stats.frames_yielded} "
+                f"frames ({failure})"
+            )
+            if cfg.strict:
+                raise FrontendInputError(message)
+            self.stats.skip("truncated", message + "; stopping (strict=False)")
+
+    # ---------------------------------------------------------------- helpers
+
+    def _raw_messages(
+        self, stream: IO[bytes], topics: list[str]
+    ) -> Iterator[tuple[Schema | None, Channel, Message]]:
+        if self._indexed:
+            return SeekingReader(stream).iter_messages(topics=topics, log_time_order=True)
+        # File order: sorting an unindexed log by time would load all of it into memory.
+        return NonSeekingReader(stream).iter_messages(topics=topics, log_time_order=False)
+
+    def _decode(self, factory: DecoderFactory, schema: Schema | None, channel: Channel, message: Message) -> Any:
+        try:
+            decoder = factory.decoder_for(channel.message_encoding, schema)
+            if decoder is None:
+                raise FrontendInputError(
+                    f"{self.path}: {channel.topic} uses encoding '{channel.message_encoding}' "
+                    "without a ros2msg schema; only ROS 2 CDR messages are supported"
+                )
+            return decoder(message.data)
+        except FrontendInputError:
+            raise
+        except Exception as error:
+            self.stats.skip(
+                "undecodable_message", f"{self.path}: cannot decode a {channel.topic} message ({error})"
+            )
+            return None
+
+    def _time(self, decoded: Any, message: Message) -> float:
+        header = getattr(decoded, "header", None)
+        if self.config.use_header_stamp and header is not None:
+            stamp = ros_convert.stamp_seconds(header.stamp)
+            if stamp > 0:
+                return stamp
+        return message.log_time / ros_convert.NANOSECONDS
+
+    def _convert(self, topic: _Topic, decoded: Any) -> Any:
+        """Message -> numpy payload for the Frame; None (counted) when unusable."""
+        where = f"{self.path}: {topic.name}"
+        if topic.type == IMAGE:
+            return ros_convert.decode_image(decoded, where)
+        if topic.type == COMPRESSED_IMAGE:
+            image = ros_convert.decode_compressed_image(decoded, where)
+            if image is None:
+                if not self.config.skip_undecodable_images:
+                    raise FrontendInputError(f"{where}: compressed image cannot be decoded")
+                self.stats.skip("undecodable_image", f"{where}: compressed image cannot be decoded; skipped")
+            return image
+        if topic.type == POINT_CLOUD2:
+            return ros_convert.decode_point_cloud(decoded, where)
+        pose = ros_convert.decode_pose(decoded, where)
+        problem = pose_problem(pose, self._rotation_tolerance)
+        if problem is not None:
+            self.stats.skip(f"invalid_{topic.role}", f"{where}: {problem}; message skipped")
+            return None
+        return pose
+
+    def _frames(self, ready: list[Associated]) -> Iterator[Frame]:
+        for item in ready:
+            parts = dict(item.matches)
+            parts[self.driver] = item.payload
+            points, times = parts.get("lidar", (None, None))
+            frame = Frame(
+                index=self.stats.frames_yielded,
+                timestamp=item.time,
+                image=parts.get("camera"),
+                points=points,
+                point_times=times,
+                logged_pose=parts.get("logged_pose"),
+                gt_pose=parts.get("gt_pose"),
+            )
+            self.stats.frames_yielded += 1
+            yield frame

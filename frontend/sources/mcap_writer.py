@@ -1,0 +1,173 @@
+"""Write Frames as a standard ROS 2 MCAP log (opens in Foxglove, reads back with McapSource).
+
+Schemas are ros2msg text, messages CDR. The log is written to a temp file beside the
+target and renamed into place on a clean close, so an interrupted run never leaves a
+truncated log under the final name.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from types import TracebackType
+from typing import Any
+
+import cv2
+import numpy as np
+from mcap.records import Schema
+from mcap.writer import CompressionType
+from mcap_ros2.writer import Writer
+
+from frontend.config import McapWriterConfig
+from frontend.errors import FrontendInputError
+from frontend.frame import Frame
+from frontend.poses_io import pose_problem
+from frontend.sources import ros_convert, ros_msgdefs
+
+_COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+
+
+class McapFrameWriter:
+    """Context manager: ``with McapFrameWriter(path) as w: w.write(frame)``.
+
+    Camera -> ``camera_topic`` (Image rgb8) or ``compressed_camera_topic`` (CompressedImage
+    jpeg/png), points -> ``lidar_topic`` (PointCloud2, float32 x y z [t]), logged pose ->
+    ``odom_topic`` (Odometry), gt pose -> ``gt_topic`` (PoseStamped). Absent Frame fields
+    are not written. Frame timestamps become both header stamps and log times.
+    """
+
+    def __init__(self, path: str | Path, config: McapWriterConfig | None = None) -> None:
+        self.path = Path(path)
+        self.config = config or McapWriterConfig()
+        self.frames_written = 0
+        self._last_time: float | None = None
+        self._tmp_path: Path | None = None
+        self._file: Any = None
+        self._writer: Writer | None = None
+        self._schemas: dict[str, Schema] = {}
+
+    # ---------------------------------------------------------------- lifecycle
+
+    def open(self) -> McapFrameWriter:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=self.path.parent, prefix=f".{self.path.name}.", suffix=".tmp")
+        self._tmp_path = Path(tmp)
+        self._file = os.fdopen(fd, "wb")
+        self._writer = Writer(
+            self._file,
+            chunk_size=self.config.chunk_size,
+            compression=_COMPRESSION[self.config.compression],
+        )
+        return self
+
+    def close(self) -> None:
+        """Finish the log and move it to its final name."""
+        if self._writer is None:
+            return
+        self._writer.finish()
+        self._file.flush()
+        os.fsync(self._file.fileno())
+        self._file.close()
+        os.replace(self._tmp_path, self.path)
+        self._writer = None
+
+    def abort(self) -> None:
+        """Drop the partial log (nothing appears under the final name)."""
+        if self._file is not None and not self._file.closed:
+            self._file.close()
+        if self._tmp_path is not None:
+            self._tmp_path.unlink(missing_ok=True)
+        self._writer = None
+
+    def __enter__(self) -> McapFrameWriter:
+        return self.open()
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+    # ---------------------------------------------------------------- writing
+
+    def _schema(self, datatype: str) -> Schema:
+        if datatype not in self._schemas:
+            self._schemas[datatype] = self._writer.register_msgdef(
+                datatype, ros_msgdefs.MSGDEFS[datatype]
+            )
+        return self._schemas[datatype]
+
+    def _put(self, topic: str, datatype: str, message: dict[str, Any], nanoseconds: int) -> None:
+        self._writer.write_message(
+            topic, self._schema(datatype), message, log_time=nanoseconds, publish_time=nanoseconds
+        )
+
+    def _fail(self, frame: Frame, why: str) -> FrontendInputError:
+        return FrontendInputError(f"{self.path}: frame {frame.index} not written: {why}")
+
+    def write(self, frame: Frame) -> None:
+        """Append one frame; timestamps must be non-negative and increasing."""
+        if self._writer is None:
+            raise RuntimeError("McapFrameWriter.write called outside 'with' (or after close)")
+        cfg = self.config
+        t = float(frame.timestamp)
+        try:
+            ns = ros_convert.seconds_to_nanoseconds(t)
+        except ValueError as error:
+            raise self._fail(frame, str(error)) from None
+        if self._last_time is not None and t <= self._last_time:
+            raise self._fail(frame, f"timestamp {t} is not after the previous {self._last_time}")
+        self._last_time = t
+
+        if frame.image is not None:
+            self._write_image(frame, t, ns)
+        if frame.points is not None:
+            points = np.asarray(frame.points, dtype=np.float64)
+            if points.ndim != 2 or points.shape[1] != 3:
+                raise self._fail(frame, f"points have shape {points.shape}, expected (N, 3)")
+            times = frame.point_times
+            if times is not None and len(times) != len(points):
+                raise self._fail(frame, f"{len(times)} point_times for {len(points)} points")
+            msg = ros_convert.point_cloud_message(points, times, t, cfg.lidar_frame_id)
+            self._put(cfg.lidar_topic, ros_msgdefs.POINT_CLOUD2, msg, ns)
+        if frame.logged_pose is not None:
+            self._check_pose(frame, frame.logged_pose, "logged_pose")
+            msg = ros_convert.odometry_message(
+                frame.logged_pose, t, cfg.world_frame_id, cfg.body_frame_id
+            )
+            self._put(cfg.odom_topic, ros_msgdefs.ODOMETRY, msg, ns)
+        if frame.gt_pose is not None:
+            self._check_pose(frame, frame.gt_pose, "gt_pose")
+            msg = ros_convert.pose_stamped_message(frame.gt_pose, t, cfg.world_frame_id)
+            self._put(cfg.gt_topic, ros_msgdefs.POSE_STAMPED, msg, ns)
+        self.frames_written += 1
+
+    def _check_pose(self, frame: Frame, pose: np.ndarray, name: str) -> None:
+        problem = pose_problem(pose, self.config.rotation_tolerance)
+        if problem is not None:
+            raise self._fail(frame, f"{name}: {problem}")
+
+    def _write_image(self, frame: Frame, t: float, ns: int) -> None:
+        cfg = self.config
+        image = np.asarray(frame.image)
+        if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
+            raise self._fail(frame, f"image is {image.dtype} {image.shape}, expected HxWx3 uint8")
+        if cfg.image_format == "raw":
+            msg = ros_convert.image_message(image, t, cfg.camera_frame_id)
+            self._put(cfg.camera_topic, ros_msgdefs.IMAGE, msg, ns)
+            return
+        params = (
+            [cv2.IMWRITE_JPEG_QUALITY, cfg.jpeg_quality]
+            if cfg.image_format == "jpeg"
+            else [cv2.IMWRITE_PNG_COMPRESSION, cfg.png_compression]
+        )
+        msg = ros_convert.compressed_image_message(
+            image, t, cfg.camera_frame_id, cfg.image_format, params
+        )
+        self._put(cfg.compressed_camera_topic, ros_msgdefs.COMPRESSED_IMAGE, msg, ns)

@@ -1,0 +1,126 @@
+"""ROS 2 message definitions (ros2msg text) for the schemas the writer registers.
+
+The text follows rosbag2's convention: the top-level definition, then each dependency
+after a line of ``=`` and ``MSG: pkg/Type``. Names are fully qualified so any ros2msg
+parser (mcap_ros2, Foxglove) resolves them without a package context.
+"""
+
+from __future__ import annotations
+
+_SEPARATOR = "=" * 80
+
+
+def _compose(top: str, *dependencies: tuple[str, str]) -> str:
+    parts = [top.strip()]
+    for name, body in dependencies:
+        parts.append(f"{_SEPARATOR}\nMSG: {name}\n{body.strip()}")
+    return "\n".join(parts) + "\n"
+
+
+_TIME = ("builtin_interfaces/Time", "int32 sec\nuint32 nanosec")
+_HEADER = ("std_msgs/Header", "builtin_interfaces/Time stamp\nstring frame_id")
+_POINT = ("geometry_msgs/Point", "float64 x\nfloat64 y\nfloat64 z")
+_QUATERNION = (
+    "geometry_msgs/Quaternion",
+    "float64 x 0\nfloat64 y 0\nfloat64 z 0\nfloat64 w 1",
+)
+_VECTOR3 = ("geometry_msgs/Vector3", "float64 x\nfloat64 y\nfloat64 z")
+_POSE = (
+    "geometry_msgs/Pose",
+    "geometry_msgs/Point position\ngeometry_msgs/Quaternion orientation",
+)
+_TWIST = ("geometry_msgs/Twist", "geometry_msgs/Vector3 linear\ngeometry_msgs/Vector3 angular")
+_POSE_COV = ("geometry_msgs/PoseWithCovariance", "geometry_msgs/Pose pose\nfloat64[36] covariance")
+_TWIST_COV = (
+    "geometry_msgs/TwistWithCovariance",
+    "geometry_msgs/Twist twist\nfloat64[36] covariance",
+)
+_POINT_FIELD = (
+    "sensor_msgs/PointField",
+    """
+uint8 INT8    = 1
+uint8 UINT8   = 2
+uint8 INT16   = 3
+uint8 UINT16  = 4
+uint8 INT32   = 5
+uint8 UINT32  = 6
+uint8 FLOAT32 = 7
+uint8 FLOAT64 = 8
+string name
+uint32 offset
+uint8  datatype
+uint32 count
+""",
+)
+
+IMAGE = "sensor_msgs/msg/Image"
+COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
+POINT_CLOUD2 = "sensor_msgs/msg/PointCloud2"
+ODOMETRY = "nav_msgs/msg/Odometry"
+POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+
+MSGDEFS: dict[str, str] = {
+    IMAGE: _compose(
+        """
+std_msgs/Header header
+uint32 height
+uint32 width
+string encoding
+uint8 is_bigendian
+uint32 step
+uint8[] data
+""",
+        _HEADER,
+        _TIME,
+    ),
+    COMPRESSED_IMAGE: _compose(
+        "std_msgs/Header header\nstring format\nuint8[] data", _HEADER, _TIME
+    ),
+    POINT_CLOUD2: _compose(
+        """
+std_msgs/Header header
+uint32 height
+uint32 width
+sensor_msgs/PointField[] fields
+bool    is_bigendian
+uint32  point_step
+uint32  row_step
+uint8[] data
+bool is_dense
+""",
+        _HEADER,
+        _TIME,
+        _POINT_FIELD,
+    ),
+    ODOMETRY: _compose(
+        """
+std_msgs/Header header
+string child_frame_id
+geometry_msgs/PoseWithCovariance pose
+geometry_msgs/TwistWithCovariance twist
+""",
+        _HEADER,
+        _TIME,
+        _POSE_COV,
+        _POSE,
+        _POINT,
+        _QUATERNION,
+        _TWIST_COV,
+        _TWIST,
+        _VECTOR3,
+    ),
+    POSE_STAMPED: _compose(
+        "std_msgs/Header header\ngeometry_msgs/Pose pose",
+        _HEADER,
+        _TIME,
+        _POSE,
+        _POINT,
+        _QUATERNION,
+    ),
+}
+
+
+def normalise_type(name: str) -> str:
+    """``pkg/msg/Type`` for both ``pkg/Type`` and ``pkg/msg/Type`` spellings."""
+    parts = name.split("/")
+    return f"{parts[0]}/msg/{parts[-1]}" if len(parts) == 2 else name
