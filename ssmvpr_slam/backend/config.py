@@ -1,0 +1,189 @@
+"""Tunables of the back end: pose graph (iSAM2, noise, robust kernels, GNC) and loop registration.
+
+Every number the back end uses lives here so that YAML presets can override it. Noise sigmas
+are in GTSAM's Pose3 tangent order: rotation (rad) first, then translation (m).
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+RobustKernelKind = Literal["cauchy", "huber", "dcs", "geman_mcclure", "tukey", "none"]
+
+
+class _Strict(BaseModel):
+    """Unknown keys are errors: a typo in a preset must not be silently ignored."""
+
+    model_config = ConfigDict(extra="forbid")
+
+
+class PriorNoiseConfig(_Strict):
+    """Anchors the first keyframe; tight so the graph has no gauge freedom."""
+
+    rot_sigma: float = Field(1e-3, gt=0, description="rad")
+    trans_sigma: float = Field(1e-3, gt=0, description="m")
+
+
+class OdometryNoiseConfig(_Strict):
+    """Odometry factor sigmas: a floor plus an optional part proportional to distance travelled."""
+
+    rot_sigma: float = Field(0.01, gt=0, description="rad per odometry edge")
+    trans_sigma: float = Field(0.05, gt=0, description="m per odometry edge")
+    rot_sigma_per_m: float = Field(0.0, ge=0, description="rad added per metre travelled")
+    trans_sigma_per_m: float = Field(0.0, ge=0, description="m added per metre travelled")
+
+
+class LoopNoiseConfig(_Strict):
+    """Default loop factor sigmas, used when the caller gives no sigmas / information."""
+
+    rot_sigma: float = Field(0.05, gt=0, description="rad")
+    trans_sigma: float = Field(0.2, gt=0, description="m")
+
+
+class RobustKernelConfig(_Strict):
+    """M-estimator wrapped around every loop factor (odometry stays Gaussian)."""
+
+    kind: RobustKernelKind = "cauchy"
+    scale: float = Field(
+        1.0, gt=0, description="kernel parameter (k or c) on the whitened error norm"
+    )
+
+
+class ISAM2Config(_Strict):
+    """Incremental solver settings."""
+
+    relinearize_threshold: float = Field(0.01, gt=0)
+    relinearize_skip: int = Field(1, ge=1)
+    extra_updates_after_loop: int = Field(
+        3, ge=0, description="extra iSAM2 iterations after a loop is added or removed"
+    )
+
+
+class GncConfig(_Strict):
+    """Optional final batch pass with graduated non-convexity over the whole graph."""
+
+    enabled: bool = False
+    loss: Literal["tls", "gm"] = "tls"
+    inlier_probability: float = Field(
+        0.99, gt=0, lt=1, description="chi2 quantile that sets the inlier cost threshold"
+    )
+    weight_threshold: float = Field(
+        0.5, ge=0, le=1, description="loops whose final GNC weight is at least this are inliers"
+    )
+    max_iterations: int = Field(100, ge=1)
+    init: Literal["odometry", "current"] = Field(
+        "odometry", description="start from the odometry chain or the current iSAM2 estimate"
+    )
+
+
+class PoseGraphConfig(_Strict):
+    """Everything `PoseGraph` needs."""
+
+    prior: PriorNoiseConfig = PriorNoiseConfig()
+    odometry: OdometryNoiseConfig = OdometryNoiseConfig()
+    loop: LoopNoiseConfig = LoopNoiseConfig()
+    robust: RobustKernelConfig = RobustKernelConfig()
+    isam2: ISAM2Config = ISAM2Config()
+    gnc: GncConfig = GncConfig()
+    rotation_tolerance: float = Field(
+        1e-4, gt=0, description="max |R^T R - I| and |det R - 1| accepted for an input pose"
+    )
+
+
+class IcpStageConfig(_Strict):
+    """One pass of kiss-icp's point-to-point ICP; stages run coarse to fine."""
+
+    max_correspondence_distance: float = Field(gt=0, description="m")
+    kernel: float = Field(gt=0, description="kiss-icp robust kernel scale, m")
+
+
+def _default_stages() -> list[IcpStageConfig]:
+    return [
+        IcpStageConfig(max_correspondence_distance=3.0, kernel=1.0),
+        IcpStageConfig(max_correspondence_distance=1.0, kernel=0.3),
+    ]
+
+
+class LidarRegistrationConfig(_Strict):
+    """Scan-to-(local)map registration of a loop with kiss-icp."""
+
+    voxel_size: float = Field(0.5, gt=0, description="m; kiss-icp map voxel size")
+    map_downsample_factor: float = Field(0.5, gt=0, description="x voxel_size, as kiss-icp")
+    source_downsample_factor: float = Field(1.5, gt=0, description="x voxel_size, as kiss-icp")
+    max_points_per_voxel: int = Field(20, ge=1)
+    max_range: float = Field(100.0, gt=0, description="m; points farther away are dropped")
+    max_iterations: int = Field(500, ge=1)
+    convergence_criterion: float = Field(1e-4, gt=0)
+    max_threads: int = Field(0, ge=0, description="0 = all cores")
+    stages: list[IcpStageConfig] = Field(default_factory=_default_stages, min_length=1)
+    yaw_seed_offsets_deg: list[float] = Field(
+        default_factory=lambda: [0.0, 30.0, -30.0, 60.0, -60.0, 90.0, -90.0, 180.0],
+        min_length=1,
+        description="yaw seeds tried around the caller's guess",
+    )
+    inlier_distance: float = Field(0.3, gt=0, description="m; NN distance counted as inlier")
+    min_inlier_ratio: float = Field(0.6, ge=0, le=1)
+    max_rmse: float = Field(0.2, gt=0, description="m; RMSE of the inlier distances")
+    min_points: int = Field(50, ge=3, description="after down-sampling, per cloud")
+    local_map_half_window: int = Field(
+        2, ge=0, description="keyframes m-k..m+k make the target local map"
+    )
+    rot_sigma: float = Field(0.02, gt=0, description="rad; factor sigma of an accepted ICP loop")
+    trans_sigma: float = Field(0.1, gt=0, description="m; factor sigma of an accepted ICP loop")
+
+
+def _optical_to_flu() -> list[list[float]]:
+    # Camera optical frame (x right, y down, z forward) expressed in a body frame
+    # (x forward, y left, z up): body_x = cam_z, body_y = -cam_x, body_z = -cam_y.
+    return [[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]
+
+
+class TwoViewConfig(_Strict):
+    """Place prior without LiDAR: rotation from two-view geometry, translation from a radius."""
+
+    fx: float | None = Field(None, gt=0, description="px; None = from hfov_deg and image width")
+    fy: float | None = Field(None, gt=0, description="px; None = fx")
+    cx: float | None = Field(None, description="px; None = image centre")
+    cy: float | None = Field(None, description="px; None = image centre")
+    hfov_deg: float = Field(60.0, gt=0, lt=180, description="used only when fx is None")
+    body_from_camera: list[list[float]] = Field(
+        default_factory=_optical_to_flu, description="3x3 rotation, camera axes in body frame"
+    )
+    orb_features: int = Field(2000, ge=8)
+    ratio_test: float = Field(0.8, gt=0, le=1, description="Lowe ratio for ORB matches")
+    ransac_confidence: float = Field(0.999, gt=0, lt=1)
+    ransac_threshold_px: float = Field(1.0, gt=0)
+    min_inliers: int = Field(30, ge=5, description="below this the yaw guess is used")
+    homography_share: float = Field(
+        0.9, gt=0, le=1, description="H inliers / E inliers above which pure rotation is tested"
+    )
+    rotation_singular_tol: float = Field(
+        0.05, gt=0, description="K^-1 H K counts as a rotation if s_min/s_max >= 1 - tol"
+    )
+    translation_sigma: float = Field(2.0, gt=0, description="m; the place radius")
+    rot_sigma: float = Field(0.05, gt=0, description="rad; when two-view geometry succeeded")
+    yaw_prior_yaw_sigma: float = Field(0.35, gt=0, description="rad; fallback yaw sigma")
+    yaw_prior_tilt_sigma: float = Field(0.1, gt=0, description="rad; fallback roll/pitch")
+
+    @field_validator("body_from_camera")
+    @classmethod
+    def _is_3x3(cls, value: list[list[float]]) -> list[list[float]]:
+        if len(value) != 3 or any(len(row) != 3 for row in value):
+            raise ValueError("body_from_camera must be a 3x3 matrix")
+        return value
+
+
+class LoopRegistrationConfig(_Strict):
+    """Both registration paths."""
+
+    lidar: LidarRegistrationConfig = LidarRegistrationConfig()
+    two_view: TwoViewConfig = TwoViewConfig()
+
+
+class BackendConfig(_Strict):
+    """Root of the back end's configuration."""
+
+    pose_graph: PoseGraphConfig = PoseGraphConfig()
+    registration: LoopRegistrationConfig = LoopRegistrationConfig()

@@ -1,0 +1,310 @@
+"""Incremental pose graph over GTSAM iSAM2: odometry chain plus robust loop factors.
+
+Conventions
+-----------
+* Poses are 4x4 float64 body-to-world matrices; one `Pose3` variable ``x<kf_id>`` per keyframe.
+* A relative pose ``T_ij`` is the pose of keyframe j expressed in the frame of keyframe i,
+  ``T_ij = inv(T_i) @ T_j`` (GTSAM's ``BetweenFactorPose3(i, j, T_ij)``, ``T_i.between(T_j)``).
+* Sigmas are in Pose3 tangent order: (rx, ry, rz) in rad, then (tx, ty, tz) in m.
+
+Changes (keyframes, loops, loop removals) are queued and applied by `update()`; the read
+methods (`optimized_poses`, `loop_residuals`) flush the queue first so they always describe
+the current graph.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import gtsam
+import numpy as np
+
+from ssmvpr_slam.backend import noise
+from ssmvpr_slam.backend.config import PoseGraphConfig
+from ssmvpr_slam.backend.se3 import as_pose, relative
+
+_KEY_CHAR = "x"
+
+
+def _key(kf_id: int) -> int:
+    return gtsam.symbol(_KEY_CHAR, kf_id)
+
+
+def _check_kf_id(name: str, kf_id: object) -> int:
+    if isinstance(kf_id, bool) or not isinstance(kf_id, (int, np.integer)):
+        raise ValueError(f"{name}: keyframe id must be an int, got {type(kf_id).__name__}")
+    if kf_id < 0:
+        raise ValueError(f"{name}: keyframe id must be >= 0, got {kf_id}")
+    return int(kf_id)
+
+
+@dataclass(frozen=True)
+class LoopResidual:
+    """How well the current estimate agrees with one loop factor."""
+
+    handle: int
+    i: int
+    j: int
+    chi2: float
+    """Squared Mahalanobis distance of the (non-robust) factor error."""
+    whitened_norm: float
+    """sqrt(chi2): the quantity the robust kernel sees."""
+    weight: float
+    """Robust kernel weight at this error (1.0 without a kernel)."""
+
+
+@dataclass(frozen=True)
+class GncResult:
+    """Outcome of the batch GNC pass; handles refer to `add_loop`'s return values."""
+
+    poses: dict[int, np.ndarray]
+    inliers: list[int]
+    outliers: list[int]
+    weights: dict[int, float]
+
+
+@dataclass
+class _Edge:
+    i: int
+    j: int
+    measured: np.ndarray
+    gaussian: gtsam.noiseModel.Base
+
+
+@dataclass
+class _Loop(_Edge):
+    factor: gtsam.BetweenFactorPose3
+    index: int | None = None  # iSAM2 factor index once applied
+
+
+class PoseGraph:
+    """Keyframe pose graph solved incrementally with iSAM2."""
+
+    def __init__(self, config: PoseGraphConfig | None = None) -> None:
+        self.config = config or PoseGraphConfig()
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(self.config.isam2.relinearize_threshold)
+        params.relinearizeSkip = self.config.isam2.relinearize_skip
+        self._isam = gtsam.ISAM2(params)
+        self._kernel = noise.make_kernel(self.config.robust)
+        self._odom: dict[int, np.ndarray] = {}
+        self._order: list[int] = []
+        self._prior: tuple[int, np.ndarray, gtsam.noiseModel.Base] | None = None
+        self._odom_edges: list[_Edge] = []
+        self._loops: dict[int, _Loop] = {}
+        self._next_handle = 0
+        self._pending_factors: list[tuple[gtsam.NonlinearFactor, int | None]] = []
+        self._pending_values = gtsam.Values()
+        self._pending_removals: list[int] = []
+        self._estimate = gtsam.Values()
+
+    # ------------------------------------------------------------------ building
+    @property
+    def keyframe_ids(self) -> list[int]:
+        """Keyframe ids in insertion order."""
+        return list(self._order)
+
+    @property
+    def loop_handles(self) -> list[int]:
+        """Handles of the loops currently in the graph (applied or queued)."""
+        return list(self._loops)
+
+    def loop_edge(self, handle: int) -> tuple[int, int, np.ndarray]:
+        """(i, j, T_ij) of a loop."""
+        loop = self._get_loop(handle)
+        return loop.i, loop.j, loop.measured.copy()
+
+    def add_keyframe(self, kf_id: int, odom_pose: np.ndarray) -> None:
+        """Add a keyframe with its odometry pose (body-to-world, odometry frame).
+
+        The first keyframe is anchored by a prior at its odometry pose; each later one is
+        linked to the previous keyframe by the odometry displacement between them. Ids must
+        increase.
+        """
+        kf_id = _check_kf_id("kf_id", kf_id)
+        pose = as_pose(f"odom_pose of keyframe {kf_id}", odom_pose, self.config.rotation_tolerance)
+        if kf_id in self._odom:
+            raise ValueError(f"kf_id: keyframe {kf_id} was already added")
+        if self._order and kf_id <= self._order[-1]:
+            raise ValueError(
+                f"kf_id: keyframe ids must increase, got {kf_id} after {self._order[-1]}"
+            )
+        key = _key(kf_id)
+        if not self._order:
+            pcfg = self.config.prior
+            prior_noise = noise.gaussian(noise.sigmas6(pcfg.rot_sigma, pcfg.trans_sigma))
+            self._prior = (kf_id, pose, prior_noise)
+            self._pending_factors.append((gtsam.PriorFactorPose3(key, gtsam.Pose3(pose), prior_noise), None))
+            self._pending_values.insert(key, gtsam.Pose3(pose))
+        else:
+            prev = self._order[-1]
+            delta = relative(self._odom[prev], pose)
+            odom_noise = noise.gaussian(self._odometry_sigmas(float(np.linalg.norm(delta[:3, 3]))))
+            self._odom_edges.append(_Edge(prev, kf_id, delta, odom_noise))
+            factor = gtsam.BetweenFactorPose3(_key(prev), key, gtsam.Pose3(delta), odom_noise)
+            self._pending_factors.append((factor, None))
+            guess = self._current_pose(prev) @ delta
+            self._pending_values.insert(key, gtsam.Pose3(guess))
+        self._odom[kf_id] = pose
+        self._order.append(kf_id)
+
+    def add_loop(
+        self,
+        i: int,
+        j: int,
+        T_ij: np.ndarray,
+        sigmas: Sequence[float] | np.ndarray | None = None,
+        information: np.ndarray | None = None,
+    ) -> int:
+        """Queue a robust loop factor saying keyframe j sits at ``T_ij = inv(T_i) @ T_j``.
+
+        `sigmas` (6, tangent order) or `information` (6x6) override the configured loop noise;
+        giving both is an error. Returns a handle for `remove_loop` and the residual reports.
+        """
+        i = _check_kf_id("i", i)
+        j = _check_kf_id("j", j)
+        for name, kf in (("i", i), ("j", j)):
+            if kf not in self._odom:
+                raise ValueError(f"{name}: keyframe {kf} has not been added")
+        if i == j:
+            raise ValueError(f"i, j: a loop needs two different keyframes, got {i} twice")
+        measured = as_pose("T_ij", T_ij, self.config.rotation_tolerance)
+        if sigmas is not None and information is not None:
+            raise ValueError("sigmas, information: give one of them, not both")
+        if information is not None:
+            base = noise.gaussian_from_information(noise.check_information("information", information))
+        else:
+            if sigmas is None:
+                lcfg = self.config.loop
+                sig = noise.sigmas6(lcfg.rot_sigma, lcfg.trans_sigma)
+            else:
+                sig = noise.check_sigmas("sigmas", sigmas)
+            base = noise.gaussian(sig)
+        factor = gtsam.BetweenFactorPose3(
+            _key(i), _key(j), gtsam.Pose3(measured), noise.robustify(base, self._kernel)
+        )
+        handle = self._next_handle
+        self._next_handle += 1
+        self._loops[handle] = _Loop(i, j, measured, base, factor)
+        self._pending_factors.append((factor, handle))
+        return handle
+
+    def remove_loop(self, handle: int) -> None:
+        """Take a loop out of the graph (applied at the next `update()`)."""
+        loop = self._get_loop(handle)
+        del self._loops[handle]
+        if loop.index is None:
+            self._pending_factors = [(f, h) for f, h in self._pending_factors if h != handle]
+        else:
+            self._pending_removals.append(loop.index)
+
+    # ------------------------------------------------------------------ solving
+    def update(self) -> None:
+        """One incremental iSAM2 step with everything queued; extra steps after loop changes."""
+        if not self._order:
+            return
+        graph = gtsam.NonlinearFactorGraph()
+        loop_slots: list[tuple[int, int]] = []
+        for factor, handle in self._pending_factors:
+            if handle is not None:
+                loop_slots.append((graph.size(), handle))
+            graph.add(factor)
+        loops_changed = bool(loop_slots or self._pending_removals)
+        result = self._isam.update(graph, self._pending_values, self._pending_removals)
+        new_indices = list(result.getNewFactorsIndices())
+        for slot, handle in loop_slots:
+            self._loops[handle].index = int(new_indices[slot])
+        self._pending_factors = []
+        self._pending_values = gtsam.Values()
+        self._pending_removals = []
+        if loops_changed:
+            for _ in range(self.config.isam2.extra_updates_after_loop):
+                self._isam.update()
+        self._estimate = self._isam.calculateEstimate()
+
+    def optimized_poses(self) -> dict[int, np.ndarray]:
+        """Current estimate of every keyframe pose (world frame of the first odometry pose)."""
+        self._flush()
+        return {kf: self._estimate.atPose3(_key(kf)).matrix() for kf in self._order}
+
+    def loop_residuals(self) -> list[LoopResidual]:
+        """Per-loop chi2 / whitened error of the current estimate, in handle order."""
+        self._flush()
+        out = []
+        for handle, loop in self._loops.items():
+            pred = relative(self._pose_of(loop.i), self._pose_of(loop.j))
+            err = gtsam.Pose3(loop.measured).localCoordinates(gtsam.Pose3(pred))
+            white = np.asarray(loop.gaussian.whiten(err))
+            chi2 = float(white @ white)
+            norm = float(np.sqrt(chi2))
+            weight = 1.0 if self._kernel is None else float(self._kernel.weight(norm))
+            out.append(LoopResidual(handle, loop.i, loop.j, chi2, norm, weight))
+        return out
+
+    def batch_gnc(self) -> GncResult:
+        """Batch pass with `GncLMOptimizer` over the full graph; classifies loops.
+
+        Odometry and prior factors are known inliers; loop factors enter with their Gaussian
+        noise (GNC supplies the robust loss). Does not change the iSAM2 state.
+        """
+        from ssmvpr_slam.backend.gnc import run_gnc  # local: keeps the GNC details apart
+
+        self._flush()
+        if self._prior is None:
+            return GncResult({}, [], [], {})
+        return run_gnc(
+            prior=self._prior,
+            odom_edges=[(e.i, e.j, e.measured, e.gaussian) for e in self._odom_edges],
+            loops={h: (lp.i, lp.j, lp.measured, lp.gaussian) for h, lp in self._loops.items()},
+            initial=self._initial_for_gnc(),
+            key=_key,
+            config=self.config.gnc,
+        )
+
+    def finalize(self) -> dict[int, np.ndarray]:
+        """Final poses: iSAM2's estimate, or, with `gnc.enabled`, the GNC solution after the
+        loops GNC rejects are removed from the iSAM2 graph too."""
+        if not self.config.gnc.enabled:
+            return self.optimized_poses()
+        result = self.batch_gnc()
+        for handle in result.outliers:
+            self.remove_loop(handle)
+        self._flush()
+        return result.poses
+
+    # ------------------------------------------------------------------ internals
+    def _odometry_sigmas(self, distance: float) -> np.ndarray:
+        ocfg = self.config.odometry
+        return noise.sigmas6(
+            ocfg.rot_sigma + ocfg.rot_sigma_per_m * distance,
+            ocfg.trans_sigma + ocfg.trans_sigma_per_m * distance,
+        )
+
+    def _flush(self) -> None:
+        if self._pending_factors or self._pending_removals or self._pending_values.size():
+            self.update()
+
+    def _current_pose(self, kf_id: int) -> np.ndarray:
+        key = _key(kf_id)
+        if self._pending_values.exists(key):
+            return self._pending_values.atPose3(key).matrix()
+        return self._estimate.atPose3(key).matrix()
+
+    def _pose_of(self, kf_id: int) -> np.ndarray:
+        return self._estimate.atPose3(_key(kf_id)).matrix()
+
+    def _initial_for_gnc(self) -> gtsam.Values:
+        values = gtsam.Values()
+        for kf in self._order:
+            pose = self._odom[kf] if self.config.gnc.init == "odometry" else self._pose_of(kf)
+            values.insert(_key(kf), gtsam.Pose3(pose))
+        return values
+
+    def _get_loop(self, handle: int) -> _Loop:
+        if isinstance(handle, bool) or not isinstance(handle, (int, np.integer)):
+            raise ValueError(f"handle: expected an int loop handle, got {type(handle).__name__}")
+        try:
+            return self._loops[int(handle)]
+        except KeyError:
+            raise ValueError(f"handle: no loop with handle {handle} in the graph") from None
