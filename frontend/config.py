@@ -156,6 +156,9 @@ class DriftConfig(_Model):
     seed: int = 0
     translation_scale_error: float = Field(0.0, gt=-1.0)
     yaw_bias_per_m: float = Field(0.0, description="rad per metre travelled")
+    yaw_axis: Literal["x", "y", "z"] = Field(
+        "z", description="body axis of yaw: z for z-up robots, y for KITTI's camera frame"
+    )
     translation_noise_per_sqrt_m: float = Field(0.0, ge=0.0, description="m / sqrt(m)")
     rotation_noise_per_sqrt_m: float = Field(0.0, ge=0.0, description="rad / sqrt(m)")
 

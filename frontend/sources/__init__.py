@@ -5,7 +5,7 @@ from frontend.sources.factory import detect_kind, open_source
 from frontend.sources.folder_source import FolderSource
 from frontend.sources.kitti_source import KittiSource
 from frontend.sources.mcap_source import McapSource
-from frontend.sources.mcap_writer import McapFrameWriter
+from frontend.sources.mcap_writer import McapFrameWriter, write_frames
 
 __all__ = [
     "FolderSource",
@@ -16,4 +16,5 @@ __all__ = [
     "SourceStats",
     "detect_kind",
     "open_source",
+    "write_frames",
 ]

@@ -6,11 +6,13 @@ in log order, each stream strictly increasing in time. A pending frame at time t
 decided for a stream as soon as that stream has a message at or after t (later messages
 can only be further away), or once the newest time seen anywhere passes
 t + tolerance + max_latency (the stream is late or silent). Buffers stay bounded: pending
-frames are capped, and a full look-back buffer forces the oldest pending frame out.
+frames are capped; a full look-back buffer is first thinned to the messages that can still
+be nearest to a pending or future frame, and only then forces the oldest pending frame out.
 """
 
 from __future__ import annotations
 
+from bisect import bisect_left, bisect_right
 from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
@@ -48,15 +50,19 @@ class StreamAssociator:
         self._buffers: dict[str, deque[tuple[float, Any]]] = {r: deque() for r in aux_roles}
         self._newest: dict[str, float] = {}
         self._clock = float("-inf")
+        self._last_driver = float("-inf")
 
     def add_driver(self, time: float, payload: Any) -> list[Associated]:
         self._pending.append((time, payload))
+        self._last_driver = time
         self._clock = max(self._clock, time)
         return self._drain()
 
     def add_aux(self, role: str, time: float, payload: Any) -> list[Associated]:
         ready: list[Associated] = []
         buffer = self._buffers[role]
+        if len(buffer) >= self.max_buffered:
+            self._thin(buffer)
         while len(buffer) >= self.max_buffered and self._pending:
             self.stats.notes["association_forced"] += 1
             ready.append(self._decide())
@@ -70,6 +76,18 @@ class StreamAssociator:
     def flush(self) -> list[Associated]:
         """Decide every pending frame with what has arrived (end of log)."""
         return [self._decide() for _ in range(len(self._pending))]
+
+    def _thin(self, buffer: deque[tuple[float, Any]]) -> None:
+        """Keep only messages that can still be the nearest one to some frame: around each
+        pending frame, the last one at or before the newest driving time, and all after it."""
+        times = [item[0] for item in buffer]
+        keep = set(range(bisect_right(times, self._last_driver), len(times)))
+        for anchor in [t for t, _ in self._pending] + [self._last_driver]:
+            before, after = bisect_right(times, anchor) - 1, bisect_left(times, anchor)
+            keep.update(i for i in (before, after) if 0 <= i < len(times))
+        kept = [item for i, item in enumerate(buffer) if i in keep]
+        buffer.clear()
+        buffer.extend(kept)
 
     def _ready(self, time: float) -> bool:
         if self._clock >= time + self.tolerance + self.max_latency:

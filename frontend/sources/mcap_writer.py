@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import tempfile
+from collections.abc import Iterable
 from pathlib import Path
 from types import TracebackType
 from typing import Any
@@ -171,3 +172,13 @@ class McapFrameWriter:
             image, t, cfg.camera_frame_id, cfg.image_format, params
         )
         self._put(cfg.compressed_camera_topic, ros_msgdefs.COMPRESSED_IMAGE, msg, ns)
+
+
+def write_frames(
+    frames: Iterable[Frame], path: str | Path, config: McapWriterConfig | None = None
+) -> int:
+    """Write every frame of an iterable (e.g. a Source) to one MCAP log; returns the count."""
+    with McapFrameWriter(path, config) as writer:
+        for frame in frames:
+            writer.write(frame)
+    return writer.frames_written

@@ -1,0 +1,114 @@
+"""LiDAR odometry: kiss-icp, behind input checks its C++ core does not do itself.
+
+kiss-icp aborts the whole process (SOPHUS_ENSURE) when deskewing with all-equal per-point
+times, and NaN points poison its voxel map. So every scan is cleaned here first: non-finite
+points dropped, range-filtered, and too-small scans skipped with a constant-velocity
+prediction; per-point times are handed over only when they are real (finite, one per
+point, not all equal), otherwise kiss-icp gets none and does not deskew that scan.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from frontend.config import KissIcpConfig
+from frontend.errors import FrontendInputError
+from frontend.frame import Frame
+from frontend.odometry.base import OdometryStats
+
+NO_TIMES = np.zeros(0, dtype=np.float64)
+
+
+def kiss_config(config: KissIcpConfig):  # -> kiss_icp.config.KISSConfig
+    """kiss-icp's own config object from ours (voxel size defaults to max_range / 100)."""
+    from kiss_icp.config import KISSConfig
+    from kiss_icp.config.config import (
+        AdaptiveThresholdConfig,
+        DataConfig,
+        MappingConfig,
+        RegistrationConfig,
+    )
+
+    # kiss-icp's rule of thumb when no voxel size is given (see kiss_icp.config.load_config).
+    voxel_size = config.voxel_size or config.max_range / 100.0
+    return KISSConfig(
+        data=DataConfig(max_range=config.max_range, min_range=config.min_range, deskew=config.deskew),
+        mapping=MappingConfig(voxel_size=voxel_size, max_points_per_voxel=config.max_points_per_voxel),
+        registration=RegistrationConfig(
+            max_num_iterations=config.max_num_iterations,
+            convergence_criterion=config.convergence_criterion,
+            max_num_threads=config.max_num_threads,
+        ),
+        adaptive_threshold=AdaptiveThresholdConfig(
+            fixed_threshold=config.fixed_threshold,
+            initial_threshold=config.initial_threshold,
+            min_motion_th=config.min_motion_th,
+        ),
+    )
+
+
+class KissIcpOdometry:
+    """``update(frame)`` registers ``frame.points`` with kiss-icp; returns the LiDAR pose."""
+
+    def __init__(self, config: KissIcpConfig | None = None) -> None:
+        from kiss_icp.kiss_icp import KissICP  # heavy C++ extension: imported on use
+
+        self.config = config or KissIcpConfig()
+        self.stats = OdometryStats()
+        self._kiss = KissICP(kiss_config(self.config))
+
+    @property
+    def pose(self) -> np.ndarray:
+        """Latest pose (identity before the first frame)."""
+        return self._kiss.last_pose.copy()
+
+    def update(self, frame: Frame) -> np.ndarray:
+        self.stats.updates += 1
+        points, times = self._clean(frame)
+        if points is None:
+            return self._predict()
+        previous_pose, previous_delta = self._kiss.last_pose.copy(), self._kiss.last_delta.copy()
+        self._kiss.register_frame(points, times)
+        if not np.all(np.isfinite(self._kiss.last_pose)):
+            self.stats.skip("registration_failed", f"frame {frame.index}: kiss-icp returned a non-finite pose")
+            self._kiss.last_pose, self._kiss.last_delta = previous_pose, previous_delta
+            return self._predict()
+        return self._kiss.last_pose.copy()
+
+    def _predict(self) -> np.ndarray:
+        """Pose for a skipped scan; kiss-icp's state follows so the next guess stays right."""
+        if self.config.predict_on_skip:
+            self._kiss.last_pose = self._kiss.last_pose @ self._kiss.last_delta
+        return self._kiss.last_pose.copy()
+
+    def _clean(self, frame: Frame) -> tuple[np.ndarray | None, np.ndarray]:
+        """Finite, in-range float64 points and usable per-point times (or None to skip)."""
+        where = f"frame {frame.index} (t={frame.timestamp})"
+        if frame.points is None:
+            self.stats.skip("no_points", f"{where}: no LiDAR scan; pose predicted")
+            return None, NO_TIMES
+        points = np.asarray(frame.points)
+        if points.ndim != 2 or points.shape[1] != 3:
+            raise FrontendInputError(f"{where}: points have shape {points.shape}, expected (N, 3)")
+        points = points.astype(np.float64, copy=False)
+        keep = np.all(np.isfinite(points), axis=1)
+        ranges = np.linalg.norm(np.where(keep[:, None], points, 0.0), axis=1)
+        keep &= (ranges >= self.config.min_range) & (ranges <= self.config.max_range)
+        if keep.sum() < self.config.min_points:
+            reason = "empty_scan" if len(points) == 0 else "too_few_valid_points"
+            self.stats.skip(
+                reason,
+                f"{where}: {int(keep.sum())} of {len(points)} points finite and in range "
+                f"(< min_points={self.config.min_points}); pose predicted",
+            )
+            return None, NO_TIMES
+        times = NO_TIMES
+        if self.config.deskew and frame.point_times is not None:
+            raw = np.asarray(frame.point_times, dtype=np.float64).ravel()
+            if raw.shape[0] == points.shape[0] and np.all(np.isfinite(raw[keep])):
+                candidate = raw[keep]
+                if candidate.max() > candidate.min():
+                    times = np.ascontiguousarray(candidate)
+            if times is NO_TIMES:
+                self.stats.note("deskew_off", f"{where}: per-point times unusable; not deskewed")
+        return np.ascontiguousarray(points[keep]), times

@@ -1,0 +1,253 @@
+"""MCAP writer -> reader round trips, for every message type and layout we support."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from mcap_ros2.writer import Writer
+
+from frontend.config import McapSourceConfig, McapWriterConfig
+from frontend.errors import FrontendInputError
+from frontend.frame import Frame
+from frontend.sources import McapFrameWriter, McapSource, open_source, write_frames
+from frontend.sources import ros_convert, ros_msgdefs
+
+
+def _pose(x: float, yaw: float = 0.0) -> np.ndarray:
+    pose = np.eye(4)
+    c, s = np.cos(yaw), np.sin(yaw)
+    pose[:3, :3] = [[c, -s, 0], [s, c, 0], [0, 0, 1]]
+    pose[:3, 3] = [x, 0.5 * x, -0.1 * x]
+    return pose
+
+
+def _frames(n: int, rng: np.random.Generator, with_times: bool = True) -> list[Frame]:
+    frames = []
+    for i in range(n):
+        points = rng.normal(size=(50 + i, 3)) * 10
+        frames.append(
+            Frame(
+                index=i,
+                timestamp=100.0 + 0.1 * i,
+                image=rng.integers(0, 256, (24, 32, 3), dtype=np.uint8),
+                points=points,
+                point_times=np.linspace(0.0, 0.1, len(points)) if with_times else None,
+                logged_pose=_pose(i, 0.1 * i),
+                gt_pose=_pose(i + 0.5, -0.1 * i),
+            )
+        )
+    return frames
+
+
+def test_full_round_trip_raw_images(tmp_path: Path) -> None:
+    rng = np.random.default_rng(0)
+    frames = _frames(6, rng)
+    path = tmp_path / "log.mcap"
+    assert write_frames(frames, path) == 6
+    source = open_source(path)
+    assert isinstance(source, McapSource)
+    assert len(source) == 6
+    assert set(source.topics) == {"camera", "lidar", "logged_pose", "gt_pose"}
+    out = list(source)
+    assert len(out) == 6
+    assert source.stats.frames_yielded == 6 and not source.stats.skipped
+    for want, got in zip(frames, out):
+        assert got.index == want.index
+        assert got.timestamp == pytest.approx(want.timestamp, abs=1e-9)
+        assert got.image.dtype == np.uint8 and np.array_equal(got.image, want.image)
+        np.testing.assert_allclose(got.points, want.points, rtol=1e-6, atol=1e-5)
+        np.testing.assert_allclose(got.point_times, want.point_times, atol=1e-7)
+        np.testing.assert_allclose(got.logged_pose, want.logged_pose, atol=1e-9)
+        np.testing.assert_allclose(got.gt_pose, want.gt_pose, atol=1e-9)
+
+
+def test_cloud_without_time_field_and_missing_streams(tmp_path: Path) -> None:
+    rng = np.random.default_rng(1)
+    frames = _frames(3, rng, with_times=False)
+    for frame in frames:
+        frame.image = None  # LiDAR drives when there is no camera
+        frame.gt_pose = None
+    path = tmp_path / "lidar.mcap"
+    write_frames(frames, path)
+    source = McapSource(path)
+    assert source.driver == "lidar"
+    out = list(source)
+    assert [f.index for f in out] == [0, 1, 2]
+    assert all(f.point_times is None and f.image is None and f.gt_pose is None for f in out)
+    np.testing.assert_allclose(out[2].points, frames[2].points, rtol=1e-6, atol=1e-5)
+
+
+@pytest.mark.parametrize("fmt", ["jpeg", "png"])
+def test_compressed_images(tmp_path: Path, fmt: str) -> None:
+    yy, xx = np.mgrid[0:32, 0:48]
+    image = np.stack([xx * 5, yy * 7, (xx + yy) * 2], axis=2).astype(np.uint8)
+    path = tmp_path / f"{fmt}.mcap"
+    config = McapWriterConfig(image_format=fmt, jpeg_quality=95)
+    with McapFrameWriter(path, config) as writer:
+        writer.write(Frame(0, 1.0, image=image))
+        writer.write(Frame(1, 2.0, image=image[:, ::-1].copy()))
+    source = McapSource(path)
+    assert source.topics["camera"].startswith(config.compressed_camera_topic)
+    out = list(source)
+    assert len(out) == 2 and out[0].image.shape == image.shape
+    error = np.abs(out[0].image.astype(int) - image.astype(int)).mean()
+    assert error == 0 if fmt == "png" else error < 3  # colour order preserved, not swapped
+
+
+def _write_raw(path: Path, topic: str, datatype: str, messages: list[tuple[float, dict]]) -> None:
+    """Write hand-made ROS 2 messages (layouts our writer never produces)."""
+    with open(path, "wb") as stream:
+        writer = Writer(stream)
+        schema = writer.register_msgdef(datatype, ros_msgdefs.MSGDEFS[datatype])
+        for t, message in messages:
+            ns = ros_convert.seconds_to_nanoseconds(t)
+            writer.write_message(topic, schema, message, log_time=ns, publish_time=ns)
+        writer.finish()
+
+
+def _image(encoding: str, pixels: np.ndarray, t: float, pad: int = 0) -> dict:
+    height, width = pixels.shape[:2]
+    rows = pixels.reshape(height, -1)
+    padded = np.concatenate([rows, np.zeros((height, pad), np.uint8)], axis=1)
+    return {
+        "header": ros_convert.header_dict(t, "cam"),
+        "height": height,
+        "width": width,
+        "encoding": encoding,
+        "is_bigendian": 0,
+        "step": padded.shape[1],
+        "data": padded.tobytes(),
+    }
+
+
+@pytest.mark.parametrize("encoding", ["rgb8", "bgr8", "mono8"])
+def test_image_encodings_become_rgb(tmp_path: Path, encoding: str) -> None:
+    rgb = np.random.default_rng(2).integers(0, 256, (5, 7, 3), dtype=np.uint8)
+    if encoding == "mono8":
+        pixels, expected = rgb[:, :, 0].copy(), np.repeat(rgb[:, :, :1], 3, axis=2)
+    elif encoding == "bgr8":
+        pixels, expected = rgb[:, :, ::-1].copy(), rgb
+    else:
+        pixels, expected = rgb, rgb
+    path = tmp_path / "enc.mcap"
+    _write_raw(path, "/cam", ros_msgdefs.IMAGE, [(1.0, _image(encoding, pixels, 1.0, pad=3))])
+    (frame,) = list(McapSource(path))
+    assert frame.image.shape == (5, 7, 3) and frame.image.dtype == np.uint8
+    assert np.array_equal(frame.image, expected)
+
+
+def _cloud(fields: list[tuple[str, int, np.dtype]], values: np.ndarray, point_step: int, t: float,
+           big_endian: bool = False) -> dict:
+    """PointCloud2 with arbitrary field offsets/types and padding."""
+    order = ">" if big_endian else "<"
+    dtype = np.dtype({
+        "names": [f[0] for f in fields],
+        "formats": [np.dtype(f[2]).newbyteorder(order) for f in fields],
+        "offsets": [f[1] for f in fields],
+        "itemsize": point_step,
+    })
+    cloud = np.zeros(len(values), dtype=dtype)
+    for i, (name, _, _) in enumerate(fields):
+        cloud[name] = values[:, i]
+    codes = {np.dtype(v): k for k, v in ros_convert.POINT_FIELD_DTYPES.items()}
+    return {
+        "header": ros_convert.header_dict(t, "lidar"),
+        "height": 1,
+        "width": len(values),
+        "fields": [
+            {"name": n, "offset": o, "datatype": codes[np.dtype(d)], "count": 1} for n, o, d in fields
+        ],
+        "is_bigendian": big_endian,
+        "point_step": point_step,
+        "row_step": point_step * len(values),
+        "data": cloud.tobytes(),
+        "is_dense": True,
+    }
+
+
+@pytest.mark.parametrize(
+    ("time_name", "time_type", "scale", "big_endian"),
+    [("t", np.uint32, 1e-9, False), ("time", np.float32, 1.0, True), ("timestamp", np.float64, 1.0, False)],
+)
+def test_point_cloud_layouts(tmp_path: Path, time_name: str, time_type, scale: float, big_endian: bool) -> None:
+    rng = np.random.default_rng(3)
+    xyz = rng.normal(size=(40, 3))
+    raw_times = (np.arange(40) * 1000).astype(time_type) if scale != 1.0 else np.linspace(0, 0.1, 40)
+    # float64 xyz, intensity in between, time at the end, 4 bytes of padding
+    fields = [("x", 0, np.float64), ("y", 8, np.float64), ("intensity", 16, np.float32),
+              ("z", 20, np.float64), (time_name, 28, time_type)]
+    values = np.c_[xyz[:, :2], np.ones(40), xyz[:, 2], raw_times]
+    message = _cloud(fields, values, point_step=40, t=5.0, big_endian=big_endian)
+    path = tmp_path / "cloud.mcap"
+    _write_raw(path, "/velodyne_points", ros_msgdefs.POINT_CLOUD2, [(5.0, message)])
+    (frame,) = list(McapSource(path))
+    np.testing.assert_allclose(frame.points, xyz)
+    np.testing.assert_allclose(frame.point_times, raw_times.astype(np.float64) * scale, atol=1e-7)
+
+
+def test_point_cloud_missing_xyz_is_named(tmp_path: Path) -> None:
+    message = _cloud([("x", 0, np.float32), ("y", 4, np.float32)], np.zeros((3, 2)), 8, 1.0)
+    path = tmp_path / "bad_cloud.mcap"
+    _write_raw(path, "/points", ros_msgdefs.POINT_CLOUD2, [(1.0, message)])
+    with pytest.raises(FrontendInputError, match=r"/points.*lacks field"):
+        list(McapSource(path))
+
+
+def test_schemas_are_standard_ros2(tmp_path: Path) -> None:
+    """What Foxglove needs: ros2msg schemas with standard names, cdr messages, ros2 profile."""
+    path = tmp_path / "log.mcap"
+    write_frames(_frames(2, np.random.default_rng(4)), path)
+    with open(path, "rb") as stream:
+        reader = make_reader(stream)
+        assert reader.get_header().profile == "ros2"
+        summary = reader.get_summary()
+    names = {s.name for s in summary.schemas.values()}
+    assert names == {"sensor_msgs/msg/Image", "sensor_msgs/msg/PointCloud2",
+                     "nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseStamped"}
+    assert {s.encoding for s in summary.schemas.values()} == {"ros2msg"}
+    assert {c.message_encoding for c in summary.channels.values()} == {"cdr"}
+
+
+def test_writer_is_atomic(tmp_path: Path) -> None:
+    path = tmp_path / "out.mcap"
+    frames = _frames(3, np.random.default_rng(5))
+    with pytest.raises(RuntimeError, match="boom"):
+        with McapFrameWriter(path) as writer:
+            writer.write(frames[0])
+            raise RuntimeError("boom")
+    assert list(tmp_path.iterdir()) == []  # neither the final file nor a temp file
+    with pytest.raises(FrontendInputError, match=r"out\.mcap.*not after"):
+        with McapFrameWriter(path) as writer:
+            writer.write(frames[1])
+            writer.write(frames[0])
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_writer_rejects_bad_frames(tmp_path: Path) -> None:
+    bad_pose = np.eye(4)
+    bad_pose[0, 0] = np.nan
+    cases = [
+        Frame(0, -1.0),
+        Frame(0, 1.0, image=np.zeros((4, 4), np.uint8)),
+        Frame(0, 1.0, points=np.zeros((4, 2))),
+        Frame(0, 1.0, logged_pose=bad_pose),
+    ]
+    for frame in cases:
+        with pytest.raises(FrontendInputError, match=r"bad\.mcap: frame 0"):
+            with McapFrameWriter(tmp_path / "bad.mcap") as writer:
+                writer.write(frame)
+    assert not (tmp_path / "bad.mcap").exists()
+
+
+def test_topics_overridable(tmp_path: Path) -> None:
+    config = McapWriterConfig(camera_topic="/front/image", odom_topic="/vehicle/odom")
+    path = tmp_path / "named.mcap"
+    write_frames(_frames(2, np.random.default_rng(6)), path, config)
+    source = McapSource(path, McapSourceConfig(camera_topic="/front/image", lidar_topic=""))
+    assert source.topics["camera"].startswith("/front/image")
+    assert source.topics["logged_pose"].startswith("/vehicle/odom")
+    assert "lidar" not in source.topics
+    assert all(f.points is None and f.logged_pose is not None for f in source)
