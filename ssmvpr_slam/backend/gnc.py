@@ -64,5 +64,7 @@ def _kf_ids(prior: tuple[int, np.ndarray, object], odom_edges: list[Edge]) -> li
     return [prior[0]] + [edge[1] for edge in odom_edges]
 
 
-def _poses(values: gtsam.Values, kf_ids: list[int], key: Callable[[int], int]) -> dict[int, np.ndarray]:
+def _poses(
+    values: gtsam.Values, kf_ids: list[int], key: Callable[[int], int]
+) -> dict[int, np.ndarray]:
     return {kf: values.atPose3(key(kf)).matrix() for kf in kf_ids}

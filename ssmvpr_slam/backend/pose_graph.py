@@ -135,7 +135,8 @@ class PoseGraph:
             pcfg = self.config.prior
             prior_noise = noise.gaussian(noise.sigmas6(pcfg.rot_sigma, pcfg.trans_sigma))
             self._prior = (kf_id, pose, prior_noise)
-            self._pending_factors.append((gtsam.PriorFactorPose3(key, gtsam.Pose3(pose), prior_noise), None))
+            prior = gtsam.PriorFactorPose3(key, gtsam.Pose3(pose), prior_noise)
+            self._pending_factors.append((prior, None))
             self._pending_values.insert(key, gtsam.Pose3(pose))
         else:
             prev = self._order[-1]
@@ -173,7 +174,8 @@ class PoseGraph:
         if sigmas is not None and information is not None:
             raise ValueError("sigmas, information: give one of them, not both")
         if information is not None:
-            base = noise.gaussian_from_information(noise.check_information("information", information))
+            info = noise.check_information("information", information)
+            base = noise.gaussian_from_information(info)
         else:
             if sigmas is None:
                 lcfg = self.config.loop

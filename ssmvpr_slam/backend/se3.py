@@ -87,9 +87,11 @@ def relative(pose_i: np.ndarray, pose_j: np.ndarray) -> np.ndarray:
 
 
 def rotation_angle(rot: np.ndarray) -> float:
-    """Geodesic angle (rad) of a rotation matrix."""
+    """Geodesic angle (rad) of a rotation matrix; atan2 keeps it accurate near 0 and pi."""
+    skew = rot - rot.T
+    sin = np.linalg.norm([skew[2, 1], skew[0, 2], skew[1, 0]]) / 2.0
     cos = (np.trace(rot) - 1.0) / 2.0
-    return float(np.arccos(np.clip(cos, -1.0, 1.0)))
+    return float(np.arctan2(sin, cos))
 
 
 def yaw_of(rot: np.ndarray) -> float:
