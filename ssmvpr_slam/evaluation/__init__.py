@@ -1,0 +1,45 @@
+"""Evaluation of a run: trajectory I/O (TUM, KITTI), Umeyama alignment, ATE / RPE / drift,
+loop-closure precision / recall, and plots. Plots (matplotlib) load only when imported."""
+
+from ssmvpr_slam.evaluation.alignment import Alignment, align_trajectory, umeyama
+from ssmvpr_slam.evaluation.config import (
+    EvaluationConfig,
+    LoopMetricsConfig,
+    TrajectoryMetricsConfig,
+)
+from ssmvpr_slam.evaluation.loop_metrics import LoopEvaluation, evaluate_loops, find_revisits
+from ssmvpr_slam.evaluation.metrics import (
+    AteResult,
+    DriftResult,
+    ErrorStats,
+    RpeResult,
+    associate,
+    ate,
+    drift_per_100m,
+    rpe,
+)
+from ssmvpr_slam.evaluation.trajectory_io import read_kitti, read_tum, write_kitti, write_tum
+
+__all__ = [
+    "Alignment",
+    "AteResult",
+    "DriftResult",
+    "ErrorStats",
+    "EvaluationConfig",
+    "LoopEvaluation",
+    "LoopMetricsConfig",
+    "RpeResult",
+    "TrajectoryMetricsConfig",
+    "align_trajectory",
+    "associate",
+    "ate",
+    "drift_per_100m",
+    "evaluate_loops",
+    "find_revisits",
+    "read_kitti",
+    "read_tum",
+    "rpe",
+    "umeyama",
+    "write_kitti",
+    "write_tum",
+]

@@ -1,0 +1,58 @@
+"""Tunables of the evaluation: alignment, RPE deltas, drift segments and loop-correctness radii."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+
+class TrajectoryMetricsConfig(_Strict):
+    """ATE / RPE / drift, following evo's definitions."""
+
+    alignment: Literal["se3", "sim3", "none"] = Field(
+        "se3", description="Umeyama alignment of the estimate to the reference before ATE"
+    )
+    rpe_delta: float = Field(1.0, gt=0, description="pair distance, in rpe_unit")
+    rpe_unit: Literal["frames", "m"] = "frames"
+    rpe_all_pairs: bool = False
+    drift_segment_m: float = Field(100.0, gt=0, description="segment length for drift per 100 m")
+    association_max_dt: float = Field(
+        0.01, ge=0, description="s; max timestamp difference when associating trajectories"
+    )
+
+
+class LoopMetricsConfig(_Strict):
+    """When a keyframe is a revisit, and when an accepted loop counts as correct."""
+
+    revisit_radius: float = Field(5.0, gt=0, description="m; ground-truth revisit distance")
+    correct_radius: float = Field(
+        10.0, gt=0, description="m; an accepted loop within this distance is correct"
+    )
+    min_frame_gap: int = Field(50, ge=1, description="keyframes; q - m must be at least this")
+
+    @model_validator(mode="after")
+    def _correct_not_tighter(self) -> LoopMetricsConfig:
+        if self.correct_radius < self.revisit_radius:
+            raise ValueError("correct_radius must be >= revisit_radius")
+        return self
+
+
+class PlotConfig(_Strict):
+    """Figure output."""
+
+    dpi: int = Field(120, ge=30)
+    width_in: float = Field(7.0, gt=0)
+    height_in: float = Field(6.0, gt=0)
+
+
+class EvaluationConfig(_Strict):
+    """Root of the evaluation configuration."""
+
+    trajectory: TrajectoryMetricsConfig = TrajectoryMetricsConfig()
+    loops: LoopMetricsConfig = LoopMetricsConfig()
+    plots: PlotConfig = PlotConfig()

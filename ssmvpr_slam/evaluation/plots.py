@@ -1,0 +1,175 @@
+"""Figures of a run: top view with loop edges, translation error along the traverse, loop P/R.
+
+matplotlib runs headless (Agg) and every PNG is written atomically. Trajectories are drawn as
+given: align odometry / optimised poses to the ground truth first (e.g. `AteResult.aligned_poses`).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402  (backend must be chosen first)
+import numpy as np  # noqa: E402
+from matplotlib.figure import Figure  # noqa: E402
+
+from ssmvpr_slam.evaluation.atomic import atomic_write  # noqa: E402
+from ssmvpr_slam.evaluation.config import PlotConfig  # noqa: E402
+from ssmvpr_slam.evaluation.loop_metrics import LoopEvaluation  # noqa: E402
+
+COLOURS = {
+    "gt": "black",
+    "odometry": "tab:orange",
+    "optimised": "tab:blue",
+    "correct": "tab:green",
+    "wrong": "tab:red",
+}
+LOOP_ALPHA = 0.6
+LOOP_WIDTH = 0.8
+
+
+def save_figure(fig: Figure, path: str | os.PathLike[str], config: PlotConfig) -> Path:
+    """Render `fig` to PNG atomically and close it."""
+    try:
+        fig.tight_layout()
+        return atomic_write(path, lambda handle: fig.savefig(handle, format="png", dpi=config.dpi))
+    finally:
+        plt.close(fig)
+
+
+def _positions(name: str, poses: np.ndarray | None) -> np.ndarray | None:
+    if poses is None:
+        return None
+    arr = np.asarray(poses, dtype=np.float64)
+    if arr.ndim == 3 and arr.shape[1:] == (4, 4):
+        arr = arr[:, :3, 3]
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise ValueError(f"{name}: expected (N, 4, 4) poses or (N, 3) positions, got {arr.shape}")
+    return arr
+
+
+def plot_trajectories(
+    path: str | os.PathLike[str],
+    gt: np.ndarray | None = None,
+    odometry: np.ndarray | None = None,
+    optimised: np.ndarray | None = None,
+    loops: Sequence[tuple[int, int]] = (),
+    loop_correct: Sequence[bool] | None = None,
+    title: str = "Trajectories (top view)",
+    config: PlotConfig | None = None,
+) -> Path:
+    """Top view (x, y) of the trajectories with loop edges (q, m), green if correct, red if
+    wrong. Edges join the odometry positions when given (there they span the drift each loop
+    corrects; on the ground truth a correct loop has no length), else ground truth, else
+    optimised, with a dot at both ends."""
+    cfg = config or PlotConfig()
+    series = {
+        "ground truth": (_positions("gt", gt), COLOURS["gt"]),
+        "odometry": (_positions("odometry", odometry), COLOURS["odometry"]),
+        "optimised": (_positions("optimised", optimised), COLOURS["optimised"]),
+    }
+    if all(pos is None for pos, _ in series.values()):
+        raise ValueError("gt, odometry, optimised: give at least one trajectory")
+    if loop_correct is not None and len(loop_correct) != len(loops):
+        raise ValueError(f"loop_correct: {len(loop_correct)} flags for {len(loops)} loops")
+    fig, ax = plt.subplots(figsize=(cfg.width_in, cfg.height_in))
+    for label, (pos, colour) in series.items():
+        if pos is not None:
+            ax.plot(pos[:, 0], pos[:, 1], color=colour, label=label)
+    order = ("odometry", "ground truth", "optimised")
+    anchor = next(series[name][0] for name in order if series[name][0] is not None)
+    drawn: set[str] = set()
+    for k, (q, m) in enumerate(loops):
+        if not (0 <= q < len(anchor) and 0 <= m < len(anchor)):
+            raise ValueError(f"loops[{k}]: keyframe index outside 0..{len(anchor) - 1}")
+        ok = True if loop_correct is None else bool(loop_correct[k])
+        kind = "correct" if ok else "wrong"
+        label = f"{kind} loop" if kind not in drawn else None
+        drawn.add(kind)
+        ax.plot(
+            [anchor[q, 0], anchor[m, 0]],
+            [anchor[q, 1], anchor[m, 1]],
+            color=COLOURS[kind],
+            alpha=LOOP_ALPHA,
+            linewidth=LOOP_WIDTH,
+            marker=".",
+            label=label,
+        )
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_title(title)
+    ax.legend(loc="best")
+    ax.grid(True, alpha=0.3)
+    return save_figure(fig, path, cfg)
+
+
+def plot_translation_error(
+    path: str | os.PathLike[str],
+    odometry_errors: np.ndarray | None,
+    optimised_errors: np.ndarray | None,
+    distance_m: np.ndarray | None = None,
+    title: str = "Translation error along the traverse",
+    config: PlotConfig | None = None,
+) -> Path:
+    """Per-keyframe translation error (e.g. `AteResult.errors`) of odometry vs optimised,
+    against travelled distance when given, else keyframe index."""
+    cfg = config or PlotConfig()
+    curves = {
+        "odometry": (odometry_errors, COLOURS["odometry"]),
+        "optimised": (optimised_errors, COLOURS["optimised"]),
+    }
+    if all(err is None for err, _ in curves.values()):
+        raise ValueError("odometry_errors, optimised_errors: give at least one")
+    fig, ax = plt.subplots(figsize=(cfg.width_in, cfg.height_in / 2))
+    for label, (err, colour) in curves.items():
+        if err is None:
+            continue
+        err = np.asarray(err, dtype=np.float64).reshape(-1)
+        if distance_m is not None and len(distance_m) != len(err):
+            raise ValueError(f"distance_m: {len(distance_m)} values for {len(err)} errors")
+        x = np.arange(len(err)) if distance_m is None else np.asarray(distance_m)
+        ax.plot(x, err, color=colour, label=label)
+    ax.set_xlabel("keyframe" if distance_m is None else "distance travelled [m]")
+    ax.set_ylabel("translation error [m]")
+    ax.set_title(title)
+    ax.legend(loc="best")
+    ax.grid(True, alpha=0.3)
+    return save_figure(fig, path, cfg)
+
+
+def plot_loop_summary(
+    path: str | os.PathLike[str],
+    evaluation: LoopEvaluation,
+    title: str = "Loop closures",
+    config: PlotConfig | None = None,
+) -> Path:
+    """Precision / recall bars and the counts behind them."""
+    cfg = config or PlotConfig()
+    fig, (ax_ratio, ax_count) = plt.subplots(1, 2, figsize=(cfg.width_in, cfg.height_in / 2))
+    ratios = {"precision": evaluation.precision, "recall": evaluation.recall}
+    names = list(ratios)
+    values = [0.0 if v is None else v for v in ratios.values()]
+    bars = ax_ratio.bar(names, values, color=[COLOURS["optimised"], COLOURS["correct"]])
+    for bar, value in zip(bars, ratios.values()):
+        text = "n/a" if value is None else f"{value:.2f}"
+        centre = (bar.get_x() + bar.get_width() / 2, bar.get_height())
+        ax_ratio.annotate(text, centre, ha="center", va="bottom")
+    ax_ratio.set_ylim(0.0, 1.1)
+    ax_ratio.set_title("per query keyframe")
+    counts = {
+        "revisits": evaluation.n_revisits,
+        "recalled": evaluation.n_recalled_revisits,
+        "TP queries": evaluation.n_true_positive_queries,
+        "FP queries": evaluation.n_false_positive_queries,
+    }
+    colours = [COLOURS["gt"], COLOURS["correct"], COLOURS["correct"], COLOURS["wrong"]]
+    ax_count.bar(list(counts), list(counts.values()), color=colours)
+    ax_count.tick_params(axis="x", labelrotation=30)
+    ax_count.set_title("counts")
+    fig.suptitle(title)
+    return save_figure(fig, path, cfg)
