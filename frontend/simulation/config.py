@@ -1,0 +1,309 @@
+"""Configuration of the simulated city traverse: every tunable is a pydantic field.
+
+Units are SI (metres, seconds, radians unless a name ends in ``_deg``). Colours are linear RGB
+triples in [0, 1]. Load a YAML/JSON mapping with ``SimulationConfig.model_validate(d)`` or
+``SimulationConfig.from_yaml(path)``; a bad value raises pydantic's ``ValidationError``, whose
+message names the offending field (``route.speed_mps``, ``appearance_schedule``, ...).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from frontend.errors import FrontendInputError
+
+RGB = tuple[float, float, float]
+ROUTE_PRESETS = ("block_grid", "figure_eight")
+
+
+class _Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+def _ordered_pair(value: tuple[float, float], name: str) -> tuple[float, float]:
+    if value[0] > value[1]:
+        raise ValueError(f"{name} must be (low, high) with low <= high, got {value}")
+    return value
+
+
+class CityConfig(_Model):
+    """A Manhattan grid of streets; buildings line both sides of every street."""
+
+    streets_x: int = Field(3, ge=2, description="streets running along y (constant x), at least")
+    streets_y: int = Field(3, ge=2, description="streets running along x (constant y), at least")
+    outer_ring_blocks: int = Field(1, ge=1, description="rings of blocks beyond the outer streets")
+    block_size_m: float = Field(30.0, gt=5.0, description="block edge, kerb to kerb of the plot")
+    street_width_m: float = Field(16.0, gt=4.0, description="plot line to plot line")
+    sidewalk_width_m: float = Field(3.0, ge=0.0)
+    building_width_range_m: tuple[float, float] = (8.0, 16.0)
+    building_depth_m: float = Field(10.0, gt=1.0, description="length of the side walls")
+    setback_range_m: tuple[float, float] = Field((0.0, 2.5), description="facade behind plot line")
+    storey_height_range_m: tuple[float, float] = (3.0, 3.8)
+    ground_floor_height_range_m: tuple[float, float] = (3.6, 4.6)
+    storeys_range: tuple[int, int] = (2, 7)
+    parapet_m: float = Field(0.6, ge=0.0)
+    gap_probability: float = Field(0.15, ge=0.0, le=1.0, description="alley after a building")
+    gap_width_range_m: tuple[float, float] = (2.0, 4.0)
+    alley_depth_m: float = Field(8.0, gt=0.0, description="alley back wall behind the facade")
+    pole_spacing_m: float = Field(15.0, gt=1.0, description="lamp posts along each kerb")
+    pole_jitter_m: float = Field(3.0, ge=0.0)
+    pole_size_m: float = Field(0.35, gt=0.0)
+    pole_height_m: float = Field(5.5, gt=0.0)
+    pole_kerb_offset_m: float = Field(0.6, ge=0.0, description="pole centre behind the kerb")
+    parked_car_probability: float = Field(0.3, ge=0.0, le=1.0)
+    car_slot_length_m: float = Field(7.0, gt=1.0)
+    car_size_m: tuple[float, float, float] = Field((4.3, 1.8, 1.5), description="length width height")
+    car_kerb_gap_m: float = Field(0.3, ge=0.0)
+    intersection_clearance_m: float = Field(4.0, ge=0.0, description="no cars this close to a crossing")
+    facade_palette: list[RGB] = Field(
+        default=[
+            (0.62, 0.30, 0.22),  # brick red
+            (0.80, 0.72, 0.58),  # sandstone
+            (0.62, 0.62, 0.60),  # concrete grey
+            (0.88, 0.86, 0.80),  # white render
+            (0.55, 0.66, 0.74),  # pale blue
+            (0.78, 0.60, 0.30),  # ochre
+            (0.42, 0.32, 0.26),  # dark brown
+            (0.60, 0.70, 0.55),  # sage green
+        ],
+        min_length=1,
+    )
+    accent_palette: list[RGB] = Field(
+        default=[
+            (0.85, 0.12, 0.10),
+            (0.10, 0.35, 0.80),
+            (0.95, 0.75, 0.10),
+            (0.10, 0.60, 0.30),
+            (0.60, 0.15, 0.60),
+            (0.95, 0.45, 0.10),
+        ],
+        min_length=1,
+        description="signs, awnings, doors, parked cars",
+    )
+    colour_jitter: float = Field(0.06, ge=0.0, description="per-facade random change of the base colour")
+    sign_probability: float = Field(0.45, ge=0.0, le=1.0)
+    awning_probability: float = Field(0.3, ge=0.0, le=1.0)
+    shop_probability: float = Field(0.6, ge=0.0, le=1.0, description="glazed ground floor")
+    window_spacing_range_m: tuple[float, float] = (2.0, 3.6)
+    window_width_fraction_range: tuple[float, float] = (0.35, 0.7)
+    window_height_fraction_range: tuple[float, float] = (0.4, 0.65)
+    sign_length_range_m: tuple[float, float] = (3.0, 8.0)
+    sign_offset_range_m: tuple[float, float] = (0.5, 6.0)
+    door_offset_range_m: tuple[float, float] = (1.0, 6.0)
+
+    @field_validator(
+        "building_width_range_m",
+        "setback_range_m",
+        "storey_height_range_m",
+        "ground_floor_height_range_m",
+        "gap_width_range_m",
+        "window_spacing_range_m",
+        "window_width_fraction_range",
+        "window_height_fraction_range",
+        "sign_length_range_m",
+        "sign_offset_range_m",
+        "door_offset_range_m",
+    )
+    @classmethod
+    def _check_pair(cls, v, info):
+        if v[0] <= 0 and info.field_name != "setback_range_m":
+            raise ValueError(f"{info.field_name} must be positive, got {v}")
+        return _ordered_pair(v, info.field_name)
+
+    @field_validator("storeys_range")
+    @classmethod
+    def _check_storeys(cls, v):
+        if v[0] < 1:
+            raise ValueError(f"storeys_range must start at 1 or more, got {v}")
+        return _ordered_pair(v, "storeys_range")
+
+    @model_validator(mode="after")
+    def _check_street(self):
+        if 2 * self.sidewalk_width_m >= self.street_width_m:
+            raise ValueError("sidewalk_width_m leaves no road inside street_width_m")
+        return self
+
+    @property
+    def pitch_m(self) -> float:
+        """Distance between neighbouring street centre lines."""
+        return self.block_size_m + self.street_width_m
+
+    @property
+    def road_half_width_m(self) -> float:
+        return self.street_width_m / 2.0 - self.sidewalk_width_m
+
+
+class RouteConfig(_Model):
+    """Where the vehicle drives. ``preset`` is a named route or a TUM / KITTI poses file."""
+
+    preset: str = Field("block_grid", description="block_grid | figure_eight | path to poses file")
+    poses_format: Literal["auto", "tum", "kitti"] = "auto"
+    speed_mps: float = Field(11.0, gt=0.0)
+    speed_variation: float = Field(0.08, ge=0.0, lt=0.9, description="relative amplitude")
+    speed_variation_period_s: float = Field(25.0, gt=0.0)
+    laps: int = Field(2, ge=1, description="laps of the main loop (block_grid, figure_eight)")
+    turn_radius_m: float = Field(6.0, gt=0.0)
+    lane_offset_m: float = Field(-1.6, description="lateral offset from the centre line, + = left")
+    lateral_wander_m: float = Field(0.25, ge=0.0, description="smooth lateral weaving amplitude")
+    wander_wavelength_m: float = Field(70.0, gt=0.0)
+    path_resolution_m: float = Field(0.05, gt=0.0, description="sampling of the dense path")
+    file_heading_smoothing_m: float = Field(2.0, ge=0.0, description="poses-file routes only")
+
+    @field_validator("preset")
+    @classmethod
+    def _check_preset(cls, v: str) -> str:
+        if v in ROUTE_PRESETS:
+            return v
+        if not Path(v).is_file():
+            raise ValueError(
+                f"route preset {v!r} is neither a known preset {ROUTE_PRESETS} nor an existing poses file"
+            )
+        return v
+
+    @property
+    def is_file(self) -> bool:
+        return self.preset not in ROUTE_PRESETS
+
+
+class CameraConfig(_Model):
+    """Forward pinhole camera on the vehicle's vertical axis, looking along body x."""
+
+    enabled: bool = True
+    width: int = Field(320, ge=8)
+    height: int = Field(240, ge=8)
+    hfov_deg: float = Field(90.0, gt=1.0, lt=170.0)
+    height_m: float = Field(1.6, gt=0.0, description="above the ground")
+    layers: int = Field(3, ge=1, description="nearest walls per column considered (occlusion)")
+    max_depth_m: float = Field(400.0, gt=0.0)
+    texture_fade_distance_m: float = Field(90.0, gt=0.0, description="ground detail fades (anti-alias)")
+
+
+class LidarConfig(_Model):
+    """Spinning multi-beam LiDAR; its frame is the body frame the poses describe."""
+
+    enabled: bool = True
+    beams: int = Field(32, ge=1)
+    azimuths: int = Field(1024, ge=8)
+    vfov_deg: tuple[float, float] = (-25.0, 15.0)
+    height_m: float = Field(1.8, gt=0.0, description="above the ground (the pose's z)")
+    max_range_m: float = Field(80.0, gt=0.0)
+    min_range_m: float = Field(0.5, ge=0.0)
+    range_noise_sigma_m: float = Field(0.02, ge=0.0)
+    dropout_probability: float = Field(0.0, ge=0.0, lt=1.0)
+    scan_period_s: float | None = Field(None, gt=0.0, description="default: 1 / frame_rate_hz")
+    motion_distortion: bool = Field(True, description="each azimuth measured from the pose at its time")
+    layers: int = Field(4, ge=1, description="nearest walls per azimuth considered")
+
+    @field_validator("vfov_deg")
+    @classmethod
+    def _check_vfov(cls, v):
+        if not (-90.0 < v[0] < v[1] < 90.0):
+            raise ValueError(f"vfov_deg must be (low, high) inside (-90, 90), got {v}")
+        return v
+
+
+class OdometryDriftConfig(_Model):
+    """Error model of the logged ("wheel") odometry, integrated frame to frame."""
+
+    scale_error: float = Field(0.015, gt=-0.5, lt=0.5, description="relative distance error")
+    yaw_drift_rad_per_m: float = Field(2.5e-4, description="constant heading bias")
+    yaw_bias_walk_rad_per_m_sqrt_m: float = Field(2e-5, ge=0.0, description="random walk of the bias")
+    yaw_noise_rad_per_sqrt_m: float = Field(1e-3, ge=0.0)
+    translation_noise_m_per_sqrt_m: float = Field(0.01, ge=0.0)
+
+
+class AppearanceConfig(_Model):
+    """How one pass looks: illumination, colour cast, sensor noise, sky, lit windows."""
+
+    gain: float = Field(1.0, gt=0.0)
+    tint: RGB = (1.0, 1.0, 1.0)
+    ambient: float = Field(0.55, ge=0.0)
+    sun_strength: float = Field(0.45, ge=0.0)
+    sun_azimuth_deg: float = 35.0
+    noise_sigma: float = Field(3.0, ge=0.0, description="gaussian pixel noise, 8-bit units")
+    gamma: float = Field(1.0, gt=0.0)
+    sky_top: RGB = (0.35, 0.55, 0.90)
+    sky_horizon: RGB = (0.75, 0.85, 0.95)
+    fog_distance_m: float = Field(220.0, gt=0.0)
+    lit_window_fraction: float = Field(0.0, ge=0.0, le=1.0)
+    lit_window_colour: RGB = (1.0, 0.82, 0.45)
+    lit_window_strength: float = Field(0.0, ge=0.0)
+
+
+def _default_appearances() -> dict[str, AppearanceConfig]:
+    return {
+        "day": AppearanceConfig(),
+        "dusk": AppearanceConfig(
+            gain=0.7,
+            tint=(1.1, 0.85, 0.7),
+            ambient=0.6,
+            sun_strength=0.25,
+            sun_azimuth_deg=200.0,
+            noise_sigma=4.0,
+            sky_top=(0.30, 0.30, 0.55),
+            sky_horizon=(0.95, 0.60, 0.40),
+            fog_distance_m=160.0,
+            lit_window_fraction=0.2,
+            lit_window_strength=0.35,
+        ),
+        "night": AppearanceConfig(
+            gain=0.22,
+            tint=(0.8, 0.85, 1.1),
+            ambient=0.9,
+            sun_strength=0.0,
+            noise_sigma=6.0,
+            sky_top=(0.01, 0.01, 0.04),
+            sky_horizon=(0.06, 0.06, 0.12),
+            fog_distance_m=90.0,
+            lit_window_fraction=0.35,
+            lit_window_strength=0.85,
+        ),
+    }
+
+
+class SimulationConfig(_Model):
+    """A whole simulated traverse."""
+
+    seed: int = 0
+    frame_rate_hz: float = Field(5.0, gt=0.0)
+    start_time_s: float = Field(0.0, ge=0.0)
+    max_frames: int | None = Field(None, ge=1, description="stop early")
+    city: CityConfig = CityConfig()
+    route: RouteConfig = RouteConfig()
+    camera: CameraConfig = CameraConfig()
+    lidar: LidarConfig = LidarConfig()
+    odometry: OdometryDriftConfig = OdometryDriftConfig()
+    appearances: dict[str, AppearanceConfig] = Field(default_factory=_default_appearances)
+    appearance_schedule: list[str] = Field(
+        default=["day"], min_length=1, description="appearance per pass (loop); the last one repeats"
+    )
+
+    @model_validator(mode="after")
+    def _check_schedule(self):
+        unknown = [n for n in self.appearance_schedule if n not in self.appearances]
+        if unknown:
+            raise ValueError(
+                f"appearance_schedule names {unknown} not in appearances {sorted(self.appearances)}"
+            )
+        return self
+
+    @property
+    def scan_period_s(self) -> float:
+        return self.lidar.scan_period_s or 1.0 / self.frame_rate_hz
+
+    @classmethod
+    def from_yaml(cls, path: str | Path) -> "SimulationConfig":
+        """Read a YAML mapping; raises FrontendInputError naming the file when unreadable."""
+        import yaml
+
+        path = Path(path)
+        try:
+            data = yaml.safe_load(path.read_text()) or {}
+        except (OSError, yaml.YAMLError) as exc:
+            raise FrontendInputError(f"simulation config {path}: cannot read: {exc}") from exc
+        if not isinstance(data, dict):
+            raise FrontendInputError(f"simulation config {path}: expected a mapping at top level")
+        return cls.model_validate(data)

@@ -1,0 +1,223 @@
+"""Deterministic simulated traverses: ``simulate_traverse(config)`` streams ``Frame`` objects.
+
+Each frame carries a rendered camera image, a motion-distorted LiDAR sweep with per-point times,
+the ground-truth pose (LiDAR/body frame, x forward, y left, z up, at the end of the sweep) and a
+drifting "wheel odometry" pose. Everything is a pure function of the config (and its seed):
+frame k can be regenerated alone with ``TraverseSimulator.frame(k)``.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+
+import numpy as np
+
+from frontend.errors import FrontendInputError
+from frontend.frame import Frame
+from frontend.simulation.city import City, build_city
+from frontend.simulation.config import SimulationConfig
+from frontend.simulation.render import CameraRenderer, LidarRenderer
+from frontend.simulation.route import Route, build_route, read_poses_file
+
+# Independent random streams derived from the seed.
+_STREAM_IMAGE, _STREAM_LIDAR, _STREAM_ODOM = 11, 12, 13
+
+
+def pose_matrix(x: float, y: float, z: float, yaw: float) -> np.ndarray:
+    """4x4 sensor-to-world transform of a planar pose."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    T = np.eye(4)
+    T[:2, :2] = [[c, -s], [s, c]]
+    T[:3, 3] = [x, y, z]
+    return T
+
+
+class TraverseSimulator:
+    """A city, a route through it, and sensors; builds everything eagerly (errors surface here)."""
+
+    def __init__(self, config: SimulationConfig):
+        if not isinstance(config, SimulationConfig):
+            raise FrontendInputError(f"simulation config must be a SimulationConfig, got {type(config).__name__}")
+        self.config = config
+        cfg = config
+        poses_xy = None
+        if cfg.route.is_file:
+            _, xyz = read_poses_file(cfg.route.preset, cfg.route.poses_format)
+            poses_xy = xyz[:, :2]
+        self.city: City = build_city(cfg.city, cfg.seed, cover_xy=poses_xy)
+        self.route: Route = build_route(cfg.route, self.city, cfg.seed, cfg.scan_period_s, poses_xy)
+        # Frame times: until the route ends (or max_frames).
+        dt = 1.0 / cfg.frame_rate_hz
+        v_min = cfg.route.speed_mps * (1.0 - cfg.route.speed_variation)
+        n_upper = int((self.route.length - self.route.s_offset) / (v_min * dt)) + 2
+        t = np.arange(max(n_upper, 1)) * dt
+        s = self.route.arc_length_at(t)
+        n = int(np.searchsorted(s, self.route.length, side="right"))
+        if cfg.max_frames is not None:
+            n = min(n, cfg.max_frames)
+        if n < 1:
+            raise FrontendInputError("route is too short for a single frame (route.preset / route.speed_mps)")
+        self.times = t[:n]
+        self.arc = s[:n]
+        x, y, yaw = self.route.pose_at(self.arc)
+        self.xy_yaw = np.stack([x, y, yaw], axis=1)
+        self.passes = self.route.pass_index(self.arc)
+        self.camera = CameraRenderer(self.city, cfg.camera) if cfg.camera.enabled else None
+        self.lidar = LidarRenderer(self.city, cfg.lidar, cfg.scan_period_s) if cfg.lidar.enabled else None
+        self._logged = self._integrate_odometry()
+
+    def __len__(self) -> int:
+        return len(self.times)
+
+    # -- poses ---------------------------------------------------------------------------------
+
+    def gt_pose(self, k: int) -> np.ndarray:
+        x, y, yaw = self.xy_yaw[k]
+        return pose_matrix(x, y, self.config.lidar.height_m, yaw)
+
+    def gt_positions(self) -> np.ndarray:
+        """(N, 2) ground-truth xy of every frame."""
+        return self.xy_yaw[:, :2].copy()
+
+    def logged_pose(self, k: int) -> np.ndarray:
+        x, y, yaw = self._logged[k]
+        return pose_matrix(x, y, self.config.lidar.height_m, yaw)
+
+    def _integrate_odometry(self) -> np.ndarray:
+        """Dead-reckoned planar poses from the true increments with the configured errors."""
+        od = self.config.odometry
+        rng = np.random.default_rng([self.config.seed, _STREAM_ODOM])
+        g = self.xy_yaw
+        out = np.empty_like(g)
+        out[0] = g[0]
+        bias = 0.0
+        for k in range(1, len(g)):
+            c, s = math.cos(g[k - 1, 2]), math.sin(g[k - 1, 2])
+            dxw, dyw = g[k, 0] - g[k - 1, 0], g[k, 1] - g[k - 1, 1]
+            dx, dy = c * dxw + s * dyw, -s * dxw + c * dyw
+            dth = g[k, 2] - g[k - 1, 2]
+            dist = math.hypot(dx, dy)
+            sq = math.sqrt(dist)
+            bias += rng.normal(0.0, od.yaw_bias_walk_rad_per_m_sqrt_m * sq)
+            noise = rng.normal(0.0, 1.0, 3)
+            dth_l = dth + (od.yaw_drift_rad_per_m + bias) * dist + od.yaw_noise_rad_per_sqrt_m * sq * noise[0]
+            dx_l = (1.0 + od.scale_error) * dx + od.translation_noise_m_per_sqrt_m * sq * noise[1]
+            dy_l = (1.0 + od.scale_error) * dy + od.translation_noise_m_per_sqrt_m * sq * noise[2]
+            cl, sl = math.cos(out[k - 1, 2]), math.sin(out[k - 1, 2])
+            out[k, 0] = out[k - 1, 0] + cl * dx_l - sl * dy_l
+            out[k, 1] = out[k - 1, 1] + sl * dx_l + cl * dy_l
+            out[k, 2] = out[k - 1, 2] + dth_l
+        return out
+
+    # -- sensors -------------------------------------------------------------------------------
+
+    def appearance_name(self, k: int) -> str:
+        sched = self.config.appearance_schedule
+        return sched[min(int(self.passes[k]), len(sched) - 1)]
+
+    def render_image(self, k: int) -> np.ndarray | None:
+        if self.camera is None:
+            return None
+        x, y, yaw = self.xy_yaw[k]
+        app = self.config.appearances[self.appearance_name(k)]
+        rng = np.random.default_rng([self.config.seed, _STREAM_IMAGE, k])
+        return self.camera.render(x, y, yaw, app, rng)
+
+    def render_scan(self, k: int) -> tuple[np.ndarray, np.ndarray] | tuple[None, None]:
+        if self.lidar is None:
+            return None, None
+        rng = np.random.default_rng([self.config.seed, _STREAM_LIDAR, k])
+        if self.config.lidar.motion_distortion:
+            t = self.times[k] - self.lidar.period + self.lidar.col_times
+            xs, ys, yaws = self.route.pose_at(self.route.arc_length_at(t))
+        else:
+            xs, ys, yaws = self.xy_yaw[k]
+        return self.lidar.scan(xs, ys, yaws, rng)
+
+    def frame(self, k: int) -> Frame:
+        if not 0 <= k < len(self):
+            raise IndexError(f"frame {k} outside 0..{len(self) - 1}")
+        points, times = self.render_scan(k)
+        return Frame(
+            index=k,
+            timestamp=float(self.config.start_time_s + self.times[k]),
+            image=self.render_image(k),
+            points=points,
+            point_times=times,
+            logged_pose=self.logged_pose(k),
+            gt_pose=self.gt_pose(k),
+        )
+
+    def frames(self) -> Iterator[Frame]:
+        for k in range(len(self)):
+            yield self.frame(k)
+
+    def stats(self, revisit_radius_m: float = 5.0, min_gap_frames: int | None = None) -> dict:
+        """Length, frame count, passes and ground-truth revisit count of the traverse."""
+        xy = self.gt_positions()
+        rev = ground_truth_revisits(xy, revisit_radius_m, min_gap_frames or self.default_min_gap())
+        rev_same = ground_truth_revisits(
+            xy, revisit_radius_m, min_gap_frames or self.default_min_gap(), self.xy_yaw[:, 2], math.pi / 4
+        )
+        return {
+            "frames": len(self),
+            "duration_s": float(self.times[-1]) if len(self) else 0.0,
+            "length_m": float(self.arc[-1] - self.arc[0]),
+            "passes": int(self.passes.max()) + 1,
+            "revisit_frames": int((rev >= 0).sum()),
+            "revisit_frames_same_direction": int((rev_same >= 0).sum()),
+            "segments": self.city.n_segments,
+        }
+
+    def default_min_gap(self) -> int:
+        """Frames driven over two city blocks: closer frames are one visit, not a revisit."""
+        spacing = self.config.route.speed_mps / self.config.frame_rate_hz
+        return max(1, int(round(2 * self.config.city.pitch_m / spacing)))
+
+
+def simulate_traverse(config: SimulationConfig) -> Iterator[Frame]:
+    """Stream the frames of the traverse described by ``config`` (deterministic per seed).
+
+    Configuration and route errors are raised here, before the first frame is rendered.
+    """
+    return TraverseSimulator(config).frames()
+
+
+def ground_truth_revisits(
+    positions: np.ndarray,
+    radius_m: float = 5.0,
+    min_gap_frames: int = 30,
+    yaws: np.ndarray | None = None,
+    max_yaw_difference_rad: float | None = None,
+) -> np.ndarray:
+    """For each frame, the nearest earlier frame within ``radius_m`` and at least
+    ``min_gap_frames`` older (optionally heading within ``max_yaw_difference_rad``), or -1.
+    """
+    xy = np.asarray(positions, float)[:, :2]
+    n = len(xy)
+    out = np.full(n, -1, np.int64)
+    chunk = 512
+    for a in range(0, n, chunk):
+        q = xy[a : a + chunk]
+        d = np.linalg.norm(q[:, None, :] - xy[None, :, :], axis=2)
+        idx = np.arange(a, a + len(q))[:, None]
+        ok = (np.arange(n)[None, :] <= idx - min_gap_frames) & (d <= radius_m)
+        if yaws is not None and max_yaw_difference_rad is not None:
+            dy = np.angle(np.exp(1j * (yaws[a : a + len(q), None] - yaws[None, :])))
+            ok &= np.abs(dy) <= max_yaw_difference_rad
+        d = np.where(ok, d, np.inf)
+        best = np.argmin(d, axis=1)
+        has = np.isfinite(d[np.arange(len(q)), best])
+        out[a : a + len(q)][has] = best[has]
+    return out
+
+
+def default_demo_config(**overrides) -> SimulationConfig:
+    """The demo traverse: loop A around two blocks twice by day, then loop B at dusk.
+
+    About 420 frames at 5 Hz over ~930 m with same- and opposite-direction revisits.
+    """
+    data = {"appearance_schedule": ["day", "day", "dusk"]}
+    data.update(overrides)
+    return SimulationConfig.model_validate(data)
