@@ -36,9 +36,11 @@ CAMERA_FOLDERS = ("image_2", "image_0")
 
 def read_velodyne(path: Path) -> np.ndarray:
     """Nx3 float64 points of a KITTI ``.bin`` scan (intensity dropped)."""
+    record = KITTI_POINT_COLUMNS * np.dtype(np.float32).itemsize
+    size = path.stat().st_size
+    if size % record:
+        raise FrontendInputError(f"{path}: {size} bytes is not a whole number of 16-byte points")
     raw = np.fromfile(path, dtype=np.float32)
-    if raw.size % KITTI_POINT_COLUMNS:
-        raise FrontendInputError(f"{path}: {raw.size} floats is not a multiple of 4 (x y z i)")
     return raw.reshape(-1, KITTI_POINT_COLUMNS)[:, :3].astype(np.float64)
 
 
