@@ -1,0 +1,128 @@
+"""Every parameter of SSM-VPR, as pydantic models; the defaults are the ECMR 2019 paper's.
+
+The application composes these with its own sections and loads YAML presets over them;
+this package only needs the models, so it stays usable on its own.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+class BackboneConfig(_Strict):
+    """VGG16 truncated after the deepest layer SSM-VPR reads."""
+
+    weights: str | None = Field(
+        default=None,
+        description="Path to a torchvision-layout VGG16 state dict, 'random' (tests only), "
+        "or None to resolve automatically (SSMVPR_WEIGHTS, cache, download).",
+    )
+    allow_download: bool = True
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    input_size: int = Field(default=224, ge=32)
+    preprocessing: Literal["torchvision", "caffe"] = "torchvision"
+    pre_relu: bool = Field(default=True, description="Take activations before the ReLU, as the authors' code does.")
+    stage1_layer: Literal["conv4_2", "conv4_3", "conv5_1", "conv5_2", "conv5_3"] = "conv5_2"
+    stage2_layer: Literal["conv3_3", "conv4_1", "conv4_2", "conv4_3"] = "conv4_2"
+    batch_size: int = Field(default=8, ge=1)
+    num_threads: int | None = Field(default=None, ge=1, description="torch CPU threads; None keeps torch's default.")
+
+
+class CubeConfig(_Strict):
+    """How a conv map is cut into cubes: LxLxC windows at a stride, each flattened."""
+
+    cube_size: int = Field(ge=1)
+    stride: int = Field(ge=1)
+    l2_normalize_locations: bool = True
+
+
+class PCAConfig(_Strict):
+    dim: int = Field(default=100, ge=1)
+    whiten: bool = False
+    l2_normalize_output: bool = Field(
+        default=True, description="Unit-length codes make nearest-neighbour and best-cell search cosine."
+    )
+    max_fit_samples: int = Field(default=40000, ge=1, description="Cube vectors kept (seeded subsample) for fitting.")
+    max_fit_images: int = Field(default=300, ge=1, description="Images whose feature maps are held for fitting.")
+    seed: int = 0
+
+
+class FilteringConfig(_Strict):
+    """Stage I: histogram voting over nearest stage-I vectors."""
+
+    cubes: CubeConfig = CubeConfig(cube_size=7, stride=2)
+    pca: PCAConfig = PCAConfig(dim=100)
+    num_candidates: int = Field(default=50, ge=1, description="N: places kept for spatial matching.")
+    neighbours_per_vector: int | None = Field(
+        default=None, ge=1, description="Nearest database vectors per query vector; None uses N as the paper does."
+    )
+
+    @property
+    def k_neighbours(self) -> int:
+        return self.neighbours_per_vector or self.num_candidates
+
+
+class SpatialConfig(_Strict):
+    """Stage II: anchor row/column consistency on the conv4_2 grid."""
+
+    cubes: CubeConfig = CubeConfig(cube_size=3, stride=2)
+    # Unnormalised stage-II codes (best cell by L2) measured better on Corridor: top-1 0.84 vs 0.70.
+    pca: PCAConfig = PCAConfig(dim=100, l2_normalize_output=False)
+    chunk_candidates: int = Field(default=64, ge=1, description="Candidates scored per batched matmul.")
+
+
+class DatabaseConfig(_Strict):
+    stage1_dtype: Literal["float16", "float32"] = "float32"
+    stage2_dtype: Literal["float16", "float32"] = "float16"
+
+
+class FrameCorrelationConfig(_Strict):
+    """The RAS 2020 prior: candidates near the last recognitions get extra votes."""
+
+    enabled: bool = False
+    history: int = Field(default=2, ge=1, description="How many previous recognitions boost candidates.")
+    radius: int = Field(default=2, ge=0, description="Frames around a previous match (shifted by the step) boosted.")
+    boost: float = Field(default=0.5, ge=0.0, description="Added to a boosted candidate's normalised stage-I score.")
+
+
+class VPRConfig(_Strict):
+    """The complete SSM-VPR recogniser."""
+
+    backbone: BackboneConfig = BackboneConfig()
+    filtering: FilteringConfig = FilteringConfig()
+    spatial: SpatialConfig = SpatialConfig()
+    database: DatabaseConfig = DatabaseConfig()
+    frame_correlation: FrameCorrelationConfig = FrameCorrelationConfig()
+
+    @model_validator(mode="after")
+    def _layers_fit(self) -> "VPRConfig":
+        for name, cubes in (("filtering", self.filtering.cubes), ("spatial", self.spatial.cubes)):
+            layer = self.backbone.stage1_layer if name == "filtering" else self.backbone.stage2_layer
+            side = feature_side(layer, self.backbone.input_size)
+            if cubes.cube_size > side:
+                raise ValueError(
+                    f"{name}.cubes.cube_size={cubes.cube_size} exceeds the {side}x{side} {layer} map "
+                    f"at input_size={self.backbone.input_size}"
+                )
+        return self
+
+
+LAYER_DOWNSAMPLING = {"conv3_3": 4, "conv4_1": 8, "conv4_2": 8, "conv4_3": 8, "conv5_1": 16, "conv5_2": 16, "conv5_3": 16}
+
+
+def feature_side(layer: str, input_size: int) -> int:
+    """Side of a square VGG16 map at `layer` (each max-pool halves, flooring)."""
+    side = input_size
+    for _ in range({4: 2, 8: 3, 16: 4}[LAYER_DOWNSAMPLING[layer]]):
+        side //= 2
+    return side
+
+
+def grid_side(map_side: int, cubes: CubeConfig) -> int:
+    return (map_side - cubes.cube_size) // cubes.stride + 1

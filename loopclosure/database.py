@@ -1,0 +1,198 @@
+"""PlaceDatabase: the growing map of places, their codes, and the codebooks that made them.
+
+Places are appended one at a time (streaming SLAM) or in batches (a reference folder).
+Storage grows by doubling so appends are amortised O(1). On disk a database is a folder:
+arrays in .npy files, the codebooks, and a versioned manifest written last. Every file is
+replaced atomically and the manifest records how many places are valid, so a crash while
+saving leaves the previous consistent state readable.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from loopclosure.atomic import atomic_write_bytes, atomic_write_text
+from loopclosure.config import DatabaseConfig
+from loopclosure.encoder import PlaceCodes
+from loopclosure.errors import LoopClosureInputError
+from loopclosure.filtering import Candidates, vote
+from loopclosure.pca import Codebooks
+
+FORMAT = "ssmvpr-place-database"
+FORMAT_VERSION = 1
+MANIFEST = "manifest.json"
+
+
+@dataclass
+class PlaceInfo:
+    """What the caller wants back about a place: its frame/keyframe id, time and a name."""
+
+    frame_id: int
+    timestamp: float = float("nan")
+    name: str = ""
+    extra: dict[str, Any] = field(default_factory=dict)
+
+
+class _GrowingArray:
+    """A numpy array that appends along axis 0 with capacity doubling."""
+
+    def __init__(self, row_shape: tuple[int, ...], dtype: np.dtype, data: np.ndarray | None = None) -> None:
+        self.row_shape = row_shape
+        self._data = np.empty((0, *row_shape), dtype) if data is None else np.ascontiguousarray(data, dtype)
+        self._size = len(self._data)
+
+    def extend(self, rows: np.ndarray) -> None:
+        needed = self._size + len(rows)
+        if needed > len(self._data):
+            grown = np.empty((max(needed, 2 * len(self._data), 16), *self.row_shape), self._data.dtype)
+            grown[: self._size] = self._data[: self._size]
+            self._data = grown
+        self._data[self._size : needed] = rows
+        self._size = needed
+
+    @property
+    def view(self) -> np.ndarray:
+        return self._data[: self._size]
+
+
+class PlaceDatabase:
+    def __init__(self, codebooks: Codebooks, config: DatabaseConfig | None = None) -> None:
+        self.codebooks = codebooks
+        self.config = config or DatabaseConfig()
+        self._stage1: _GrowingArray | None = None
+        self._stage2: _GrowingArray | None = None
+        self.places: list[PlaceInfo] = []
+
+    def __len__(self) -> int:
+        return len(self.places)
+
+    @property
+    def stage1(self) -> np.ndarray:
+        """(P, n1, d1) stage-I codes of all places."""
+        return self._stage1.view if self._stage1 is not None else np.empty((0, 0, self.codebooks.stage1.dim))
+
+    @property
+    def stage2(self) -> np.ndarray:
+        """(P, gh, gw, d2) stage-II grids of all places."""
+        return self._stage2.view if self._stage2 is not None else np.empty((0, 0, 0, self.codebooks.stage2.dim))
+
+    @property
+    def bytes_per_place(self) -> int:
+        if not len(self):
+            return 0
+        return int(self.stage1[0].nbytes + self.stage2[0].nbytes)
+
+    def add(self, codes: PlaceCodes, infos: list[PlaceInfo] | PlaceInfo | None = None) -> list[int]:
+        """Append places; returns their database indices."""
+        if isinstance(infos, PlaceInfo):
+            infos = [infos]
+        first = len(self)
+        if infos is None:
+            infos = [PlaceInfo(frame_id=first + i) for i in range(len(codes))]
+        if len(infos) != len(codes):
+            raise LoopClosureInputError(f"{len(codes)} codes but {len(infos)} place infos")
+        self._check_codes(codes)
+        if self._stage1 is None:
+            self._stage1 = _GrowingArray(codes.stage1.shape[1:], np.dtype(self.config.stage1_dtype))
+            self._stage2 = _GrowingArray(codes.stage2.shape[1:], np.dtype(self.config.stage2_dtype))
+        elif codes.stage1.shape[1:] != self._stage1.row_shape or codes.stage2.shape[1:] != self._stage2.row_shape:
+            raise LoopClosureInputError(
+                f"codes of shape {codes.stage1.shape[1:]}/{codes.stage2.shape[1:]} do not fit a database of "
+                f"{self._stage1.row_shape}/{self._stage2.row_shape}"
+            )
+        self._stage1.extend(codes.stage1)
+        self._stage2.extend(codes.stage2)
+        self.places.extend(infos)
+        return list(range(first, len(self)))
+
+    def _check_codes(self, codes: PlaceCodes) -> None:
+        if codes.stage1.ndim != 3 or codes.stage1.shape[-1] != self.codebooks.stage1.dim:
+            raise LoopClosureInputError(f"stage-I codes must be (B, n, {self.codebooks.stage1.dim}), got {codes.stage1.shape}")
+        if codes.stage2.ndim != 4 or codes.stage2.shape[-1] != self.codebooks.stage2.dim:
+            raise LoopClosureInputError(f"stage-II codes must be (B, gh, gw, {self.codebooks.stage2.dim}), got {codes.stage2.shape}")
+        if not (np.isfinite(codes.stage1).all() and np.isfinite(codes.stage2).all()):
+            raise LoopClosureInputError("place codes contain NaN or inf")
+
+    def filter(
+        self, query_stage1: np.ndarray, k_neighbours: int, num_candidates: int, excluded: np.ndarray | None = None
+    ) -> Candidates:
+        """Stage I against every place not excluded."""
+        if not len(self):
+            return Candidates(np.empty(0, np.int64), np.empty(0, np.int64), np.empty(0, np.float32))
+        return vote(query_stage1, self.stage1, k_neighbours, num_candidates, excluded)
+
+    # ---- persistence -------------------------------------------------------------------
+    def save(self, folder: str | Path, extra: dict[str, Any] | None = None) -> Path:
+        """Write (or overwrite) the folder; the manifest goes last and names the valid count."""
+        folder = Path(folder)
+        folder.mkdir(parents=True, exist_ok=True)
+        self.codebooks.save(folder / "codebooks.npz")
+        for name, array in (("stage1.npy", self.stage1), ("stage2.npy", self.stage2)):
+            atomic_write_bytes(folder / name, _npy_bytes(array))
+        places = [{"frame_id": p.frame_id, "timestamp": p.timestamp, "name": p.name, "extra": p.extra} for p in self.places]
+        atomic_write_text(folder / "places.json", json.dumps(places, allow_nan=True))
+        manifest = {
+            "format": FORMAT,
+            "version": FORMAT_VERSION,
+            "num_places": len(self),
+            "stage1_shape": list(self.stage1.shape[1:]),
+            "stage2_shape": list(self.stage2.shape[1:]),
+            "config": self.config.model_dump(),
+            "extra": extra or {},
+        }
+        atomic_write_text(folder / MANIFEST, json.dumps(manifest, indent=2))
+        return folder
+
+    @classmethod
+    def load(cls, folder: str | Path) -> "PlaceDatabase":
+        folder = Path(folder)
+        manifest_path = folder / MANIFEST
+        if not manifest_path.is_file():
+            raise LoopClosureInputError(f"not a place database (no {MANIFEST}): {folder}")
+        try:
+            manifest = json.loads(manifest_path.read_text())
+        except json.JSONDecodeError as exc:
+            raise LoopClosureInputError(f"corrupt manifest {manifest_path}: {exc}") from None
+        if manifest.get("format") != FORMAT:
+            raise LoopClosureInputError(f"{manifest_path} is not a {FORMAT} manifest")
+        if manifest.get("version") != FORMAT_VERSION:
+            raise LoopClosureInputError(
+                f"{manifest_path} has format version {manifest.get('version')}, this build reads {FORMAT_VERSION}"
+            )
+        n = int(manifest["num_places"])
+        db = cls(Codebooks.load(folder / "codebooks.npz"), DatabaseConfig(**manifest["config"]))
+        places = json.loads((folder / "places.json").read_text())
+        if n == 0:
+            return db
+        stage1, stage2 = (_load_npy(folder / name, n) for name in ("stage1.npy", "stage2.npy"))
+        if len(places) < n:
+            raise LoopClosureInputError(f"{folder / 'places.json'} lists {len(places)} places, manifest says {n}")
+        if list(stage1.shape[1:]) != manifest["stage1_shape"] or list(stage2.shape[1:]) != manifest["stage2_shape"]:
+            raise LoopClosureInputError(f"array shapes in {folder} disagree with its manifest")
+        db._stage1 = _GrowingArray(stage1.shape[1:], np.dtype(db.config.stage1_dtype), stage1[:n])
+        db._stage2 = _GrowingArray(stage2.shape[1:], np.dtype(db.config.stage2_dtype), stage2[:n])
+        db.places = [PlaceInfo(**p) for p in places[:n]]
+        return db
+
+
+def _npy_bytes(array: np.ndarray) -> bytes:
+    import io
+
+    buffer = io.BytesIO()
+    np.save(buffer, np.ascontiguousarray(array), allow_pickle=False)
+    return buffer.getvalue()
+
+
+def _load_npy(path: Path, n: int) -> np.ndarray:
+    try:
+        array = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise LoopClosureInputError(f"cannot read {path}: {exc}") from None
+    if len(array) < n:
+        raise LoopClosureInputError(f"{path} holds {len(array)} places, its manifest says {n}")
+    return array

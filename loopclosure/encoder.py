@@ -1,0 +1,122 @@
+"""Images to SSM-VPR codes: one backbone pass, then stage-I vectors and the stage-II grid."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Iterator, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from loopclosure.backbone import Backbone
+from loopclosure.config import VPRConfig
+from loopclosure.cubes import extract_cubes
+from loopclosure.errors import LoopClosureInputError
+from loopclosure.images import as_rgb, resize_square
+from loopclosure.pca import Codebooks, fit_pca
+
+
+@dataclass(frozen=True)
+class PlaceCodes:
+    """Codes of B images: stage1 (B, n_vectors, d1) and stage2 (B, gh, gw, d2), float32."""
+
+    stage1: np.ndarray
+    stage2: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.stage1.shape[0])
+
+    def __getitem__(self, index: int | slice) -> "PlaceCodes":
+        if isinstance(index, int):
+            index = slice(index, index + 1)
+        return PlaceCodes(self.stage1[index], self.stage2[index])
+
+    @staticmethod
+    def concatenate(parts: Sequence["PlaceCodes"]) -> "PlaceCodes":
+        return PlaceCodes(np.concatenate([p.stage1 for p in parts]), np.concatenate([p.stage2 for p in parts]))
+
+
+@dataclass(frozen=True)
+class RawCubes:
+    """Cube vectors before PCA: stage1 (B, n1, D1), stage2 (B, gh, gw, D2)."""
+
+    stage1: np.ndarray
+    stage2: np.ndarray
+
+
+class Encoder:
+    """Owns the backbone and the codebooks; everything image-side of the method."""
+
+    def __init__(self, config: VPRConfig, backbone: Backbone, codebooks: Codebooks | None = None) -> None:
+        self.config = config
+        self.backbone = backbone
+        self.codebooks = codebooks
+
+    def prepare(self, image: np.ndarray, name: str = "image") -> np.ndarray:
+        return resize_square(as_rgb(image, name), self.config.backbone.input_size)
+
+    def raw_cubes(self, images: Sequence[np.ndarray]) -> RawCubes:
+        """Backbone + cube extraction for one batch of prepared (square RGB) images."""
+        maps1, maps2 = self.backbone(np.stack(images))
+        stage1 = extract_cubes(maps1, self.config.filtering.cubes)
+        return RawCubes(stage1.reshape(stage1.shape[0], -1, stage1.shape[-1]), extract_cubes(maps2, self.config.spatial.cubes))
+
+    def project(self, raw: RawCubes) -> PlaceCodes:
+        if self.codebooks is None:
+            raise LoopClosureInputError("no PCA codebooks: fit them (ssmvpr-slam fit-pca) or load a database")
+        return PlaceCodes(self.codebooks.stage1.transform(raw.stage1), self.codebooks.stage2.transform(raw.stage2))
+
+    def encode(self, images: Sequence[np.ndarray]) -> PlaceCodes:
+        """Codes of already-prepared images, batched as configured."""
+        parts = [self.project(self.raw_cubes(batch)) for batch in _batches(images, self.config.backbone.batch_size)]
+        return PlaceCodes.concatenate(parts)
+
+    def encode_stream(
+        self, images: Iterable[np.ndarray], on_batch: Callable[[int], None] | None = None
+    ) -> Iterator[PlaceCodes]:
+        """Codes batch by batch, for folders too big to hold as images."""
+        for batch in _batches(images, self.config.backbone.batch_size):
+            yield self.project(self.raw_cubes(batch))
+            if on_batch is not None:
+                on_batch(len(batch))
+
+    def fit_codebooks(
+        self, images: Iterable[np.ndarray], on_batch: Callable[[int], None] | None = None
+    ) -> Codebooks:
+        """Fit both PCA codebooks on prepared images (e.g. the reference set) and keep them."""
+        stage1: list[np.ndarray] = []
+        stage2: list[np.ndarray] = []
+        rng = np.random.default_rng(self.config.spatial.pca.seed)
+        per_image = _per_image_budget(self.config)
+        for batch in _batches(images, self.config.backbone.batch_size):
+            raw = self.raw_cubes(batch)
+            stage1.append(raw.stage1.reshape(-1, raw.stage1.shape[-1]))
+            grid = raw.stage2.reshape(raw.stage2.shape[0], -1, raw.stage2.shape[-1])
+            keep = min(per_image, grid.shape[1])
+            for cells in grid:  # a seeded subset of each image's grid keeps memory bounded
+                stage2.append(cells[np.sort(rng.choice(grid.shape[1], keep, replace=False))])
+            if on_batch is not None:
+                on_batch(len(batch))
+        if not stage1:
+            raise LoopClosureInputError("no images to fit the PCA codebooks on")
+        self.codebooks = Codebooks(
+            fit_pca(np.concatenate(stage1), self.config.filtering.pca, "stage-I PCA"),
+            fit_pca(np.concatenate(stage2), self.config.spatial.pca, "stage-II PCA"),
+        )
+        return self.codebooks
+
+
+def _per_image_budget(config: VPRConfig) -> int:
+    """Stage-II cells kept per image so the fit set stays near pca.max_fit_samples."""
+    pca = config.spatial.pca
+    return max(1, -(-pca.max_fit_samples // pca.max_fit_images))
+
+
+def _batches(items: Iterable[np.ndarray], size: int) -> Iterator[list[np.ndarray]]:
+    batch: list[np.ndarray] = []
+    for item in items:
+        batch.append(item)
+        if len(batch) == size:
+            yield batch
+            batch = []
+    if batch:
+        yield batch
