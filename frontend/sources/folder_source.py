@@ -27,6 +27,7 @@ from frontend.sources.images import list_images, read_rgb
 IMAGE_DIR_NAMES = ("images", "image", "rgb", "image_2", "image_0")
 POSES_NAMES = ("poses.txt", "groundtruth.txt", "poses_tum.txt", "poses_kitti.txt", "gt.txt")
 TIMES_NAME = "times.txt"
+POSE_ROLES = {"gt": ("gt_pose",), "logged": ("logged_pose",), "both": ("gt_pose", "logged_pose")}
 
 
 class FolderSource(Source):
@@ -87,7 +88,8 @@ class FolderSource(Source):
                 raise FrontendInputError(f"{self.times_path}: unreadable ({error})") from None
             if times.ndim != 1 or len(times) != count or not np.all(np.isfinite(times)):
                 raise FrontendInputError(
-                    f"{self.times_path}: need {count} finite times (one per image), got {times.size}"
+                    f"{self.times_path}: need {count} finite times (one per image), "
+                    f"got {times.size}"
                 )
             return times, True
         try:
@@ -136,24 +138,24 @@ class FolderSource(Source):
     def topics(self) -> dict[str, str]:
         topics = {"camera": str(self.image_dir)}
         if self.poses_path is not None:
-            roles = {"gt": ["gt_pose"], "logged": ["logged_pose"], "both": ["gt_pose", "logged_pose"]}
-            topics.update({role: str(self.poses_path) for role in roles[self.config.pose_role]})
+            for role in POSE_ROLES[self.config.pose_role]:
+                topics[role] = str(self.poses_path)
         return topics
 
     @property
     def description(self) -> str:
-        poses = (
-            f"{self.pose_file.format} poses as {self.config.pose_role}" if self.pose_file else "no poses"
-        )
+        poses = "no poses"
+        if self.pose_file is not None:
+            poses = f"{self.pose_file.format} poses as {self.config.pose_role}"
         return f"image folder {self.image_dir}: {len(self)} images, {poses}"
 
     def __iter__(self) -> Iterator[Frame]:
         self.reset_stats()
-        role = self.config.pose_role
+        roles = POSE_ROLES[self.config.pose_role]
         last = float("-inf")
         for index, (path, time) in enumerate(zip(self.images, self.times)):
             if time <= last:
-                self.stats.skip("non_monotonic", f"{path}: time {time} is not after {last}; skipped")
+                self.stats.skip("non_monotonic", f"{path}: time {time} not after {last}; skipped")
                 continue
             last = time
             pose = self.poses[index] if self.poses is not None else None
@@ -163,8 +165,8 @@ class FolderSource(Source):
                 index=self.stats.frames_yielded,
                 timestamp=float(time),
                 image=read_rgb(path),
-                logged_pose=pose.copy() if pose is not None and role in ("logged", "both") else None,
-                gt_pose=pose.copy() if pose is not None and role in ("gt", "both") else None,
+                logged_pose=pose.copy() if pose is not None and "logged_pose" in roles else None,
+                gt_pose=pose.copy() if pose is not None and "gt_pose" in roles else None,
             )
             self.stats.frames_yielded += 1
             yield frame

@@ -119,7 +119,8 @@ class KittiSource(Source):
     def _check_count(self, files: list[Path], what: str | None) -> None:
         if files and len(files) != len(self.times):
             raise FrontendInputError(
-                f"{self.path / str(what)}: {len(files)} files but times.txt has {len(self.times)} lines"
+                f"{self.path / str(what)}: {len(files)} files but times.txt has "
+                f"{len(self.times)} lines"
             )
 
     def _gt_frame(self) -> str:

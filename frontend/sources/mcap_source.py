@@ -15,7 +15,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
-import numpy as np
 from mcap.exceptions import McapError
 from mcap.reader import NonSeekingReader, SeekingReader
 from mcap.records import Channel, Message, Schema
@@ -111,13 +110,16 @@ class McapSource(Source):
                 log.debug("%s: no usable summary (%s)", self.path, error)
                 summary = None
             if summary is not None and summary.chunk_indexes:
-                types = {c.id: self._type(summary.schemas.get(c.schema_id)) for c in summary.channels.values()}
+                channels = [
+                    (c, self._type(summary.schemas.get(c.schema_id)))
+                    for c in summary.channels.values()
+                ]
                 counts: dict[str, int] = {}
                 if summary.statistics is not None:
                     for cid, n in summary.statistics.channel_message_counts.items():
                         topic = summary.channels[cid].topic
                         counts[topic] = counts.get(topic, 0) + n
-                return True, [(c, types[c.id]) for c in summary.channels.values()], counts
+                return True, channels, counts
             stream.seek(0)
             return False, self._scan_channels(stream), {}
 
@@ -148,7 +150,8 @@ class McapSource(Source):
             if requested is not None:
                 if requested not in present:
                     raise FrontendInputError(
-                        f"{self.path}: {role} topic '{requested}' not found; topics present: {listing}"
+                        f"{self.path}: {role} topic '{requested}' not found; "
+                        f"topics present: {listing}"
                     )
                 if present[requested] not in accepted:
                     raise FrontendInputError(
@@ -161,11 +164,9 @@ class McapSource(Source):
             if not candidates:
                 continue
             # Prefer our writer's names, then type order (raw before compressed), then name.
-            candidates.sort(
-                key=lambda t: (t not in defaults, auto_types.index(present[t]), t)
-            )
+            candidates.sort(key=lambda t: (t not in defaults, auto_types.index(present[t]), t))
             if len(candidates) > 1:
-                log.info("%s: %s candidates %s; using %s", self.path, role, candidates, candidates[0])
+                log.info("%s: %s topics %s; using %s", self.path, role, candidates, candidates[0])
             chosen[role] = _Topic(role, candidates[0], present[candidates[0]])
         if "camera" not in chosen and "lidar" not in chosen:
             raise FrontendInputError(
@@ -179,7 +180,9 @@ class McapSource(Source):
         if drive == "auto":
             return "camera" if "camera" in self._roles else "lidar"
         if drive not in self._roles:
-            raise FrontendInputError(f"{self.path}: drive='{drive}' but the log has no {drive} topic")
+            raise FrontendInputError(
+                f"{self.path}: drive='{drive}' but the log has no {drive} topic"
+            )
         return drive
 
     # ---------------------------------------------------------------- Source API
@@ -222,7 +225,7 @@ class McapSource(Source):
                 except StopIteration:
                     break
                 except Exception as error:  # the reader hit a cut or corrupt record
-                    failure = f"{type(error).__name__}: {error}" if str(error) else type(error).__name__
+                    failure = type(error).__name__ + (f": {error}" if str(error) else "")
                     break
                 schema, channel, message = item
                 topic = by_topic[channel.topic]
@@ -266,7 +269,9 @@ class McapSource(Source):
         # File order: sorting an unindexed log by time would load all of it into memory.
         return NonSeekingReader(stream).iter_messages(topics=topics, log_time_order=False)
 
-    def _decode(self, factory: DecoderFactory, schema: Schema | None, channel: Channel, message: Message) -> Any:
+    def _decode(
+        self, factory: DecoderFactory, schema: Schema | None, channel: Channel, message: Message
+    ) -> Any:
         try:
             decoder = factory.decoder_for(channel.message_encoding, schema)
             if decoder is None:
@@ -279,7 +284,8 @@ class McapSource(Source):
             raise
         except Exception as error:
             self.stats.skip(
-                "undecodable_message", f"{self.path}: cannot decode a {channel.topic} message ({error})"
+                "undecodable_message",
+                f"{self.path}: cannot decode a {channel.topic} message ({error})",
             )
             return None
 
@@ -301,7 +307,7 @@ class McapSource(Source):
             if image is None:
                 if not self.config.skip_undecodable_images:
                     raise FrontendInputError(f"{where}: compressed image cannot be decoded")
-                self.stats.skip("undecodable_image", f"{where}: compressed image cannot be decoded; skipped")
+                self.stats.skip("undecodable_image", f"{where}: undecodable compressed image")
             return image
         if topic.type == POINT_CLOUD2:
             return ros_convert.decode_point_cloud(decoded, where)

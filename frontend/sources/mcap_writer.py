@@ -26,7 +26,11 @@ from frontend.frame import Frame
 from frontend.poses_io import pose_problem
 from frontend.sources import ros_convert, ros_msgdefs
 
-_COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "none": CompressionType.NONE}
+_COMPRESSION = {
+    "zstd": CompressionType.ZSTD,
+    "lz4": CompressionType.LZ4,
+    "none": CompressionType.NONE,
+}
 
 
 class McapFrameWriter:
@@ -52,7 +56,9 @@ class McapFrameWriter:
 
     def open(self) -> McapFrameWriter:
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(dir=self.path.parent, prefix=f".{self.path.name}.", suffix=".tmp")
+        fd, tmp = tempfile.mkstemp(
+            dir=self.path.parent, prefix=f".{self.path.name}.", suffix=".tmp"
+        )
         self._tmp_path = Path(tmp)
         self._file = os.fdopen(fd, "wb")
         self._writer = Writer(

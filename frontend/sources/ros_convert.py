@@ -216,25 +216,27 @@ def decode_point_cloud(msg: Any, topic: str) -> tuple[np.ndarray, np.ndarray | N
     formats = [_field_dtype(fields[n], topic).newbyteorder(order) for n in wanted]
     offsets = [int(fields[n].offset) for n in wanted]
     if any(o + f.itemsize > point_step for o, f in zip(offsets, formats)):
-        raise FrontendInputError(f"{topic}: PointCloud2 field offsets exceed point_step {point_step}")
-    dtype = np.dtype({"names": wanted, "formats": formats, "offsets": offsets, "itemsize": point_step})
-    row_step = max(int(msg.row_step), width * point_step)
-    data = np.frombuffer(bytes(msg.data), dtype=np.uint8)
-    if data.size < row_step * (height - 1) + width * point_step:
         raise FrontendInputError(
-            f"{topic}: PointCloud2 {width}x{height} (point_step {point_step}, row_step "
-            f"{row_step}) has only {data.size} data bytes"
+            f"{topic}: PointCloud2 field offsets exceed point_step {point_step}"
         )
+    dtype = np.dtype(
+        {"names": wanted, "formats": formats, "offsets": offsets, "itemsize": point_step}
+    )
+    row_step = max(int(msg.row_step), width * point_step)
+    data = bytes(msg.data)
     if height * width == 0:
         return np.zeros((0, 3)), (np.zeros(0) if time_name else None)
-    padded = np.zeros(row_step * height, dtype=np.uint8)
-    padded[: min(data.size, padded.size)] = data[: padded.size]
-    rows = padded.reshape(height, row_step)[:, : width * point_step]
-    cloud = np.ascontiguousarray(rows).view(dtype).reshape(-1)
-    points = np.stack([cloud[a].astype(np.float64) for a in "xyz"], axis=1)
+    if len(data) < row_step * (height - 1) + width * point_step:
+        raise FrontendInputError(
+            f"{topic}: PointCloud2 {width}x{height} (point_step {point_step}, row_step "
+            f"{row_step}) has only {len(data)} data bytes"
+        )
+    # A strided view over the message bytes: row padding and unused fields are never copied.
+    cloud = np.ndarray((height, width), dtype=dtype, buffer=data, strides=(row_step, point_step))
+    points = np.stack([cloud[a].astype(np.float64).ravel() for a in "xyz"], axis=1)
     times = None
     if time_name is not None:
-        raw = cloud[time_name]
+        raw = cloud[time_name].ravel()
         times = raw.astype(np.float64)
         if np.issubdtype(raw.dtype, np.integer):
             times /= NANOSECONDS

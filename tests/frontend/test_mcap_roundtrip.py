@@ -251,3 +251,21 @@ def test_topics_overridable(tmp_path: Path) -> None:
     assert source.topics["logged_pose"].startswith("/vehicle/odom")
     assert "lidar" not in source.topics
     assert all(f.points is None and f.logged_pose is not None for f in source)
+
+
+def test_organised_cloud_with_row_padding(tmp_path: Path) -> None:
+    xyz = np.arange(2 * 3 * 3, dtype=np.float64).reshape(6, 3)
+    fields = [("x", 0, np.float32), ("y", 4, np.float32), ("z", 8, np.float32)]
+    message = _cloud(fields, xyz, point_step=16, t=2.0)
+    rows = np.frombuffer(message["data"], np.uint8).reshape(2, 3 * 16)
+    padded = np.concatenate([rows, np.full((2, 8), 255, np.uint8)], axis=1)  # 8 junk bytes per row
+    message.update(height=2, width=3, row_step=3 * 16 + 8, data=padded.tobytes())
+    path = tmp_path / "organised.mcap"
+    _write_raw(path, "/os/points", ros_msgdefs.POINT_CLOUD2, [(2.0, message)])
+    (frame,) = list(McapSource(path))
+    np.testing.assert_array_equal(frame.points, xyz)
+    assert frame.point_times is None
+    short = dict(message, data=padded.tobytes()[:-20])
+    _write_raw(path, "/os/points", ros_msgdefs.POINT_CLOUD2, [(2.0, short)])
+    with pytest.raises(FrontendInputError, match=r"/os/points: PointCloud2 3x2 .* only"):
+        list(McapSource(path))
