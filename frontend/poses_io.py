@@ -199,6 +199,13 @@ def _stack(poses: list[np.ndarray]) -> np.ndarray:
 # --------------------------------------------------------------------------- writing
 
 
+def default_file_mode() -> int:
+    """Permissions a plain ``open(..., "w")`` would give (mkstemp files are owner-only)."""
+    umask = os.umask(0)
+    os.umask(umask)
+    return 0o666 & ~umask
+
+
 def atomic_write_text(path: str | Path, text: str) -> None:
     """Write ``text`` to ``path`` via a temp file in the same folder and ``os.replace``."""
     path = Path(path)
@@ -209,6 +216,7 @@ def atomic_write_text(path: str | Path, text: str) -> None:
             handle.write(text)
             handle.flush()
             os.fsync(handle.fileno())
+        os.chmod(tmp, default_file_mode())
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

@@ -23,7 +23,7 @@ from mcap_ros2.writer import Writer
 from frontend.config import McapWriterConfig
 from frontend.errors import FrontendInputError
 from frontend.frame import Frame
-from frontend.poses_io import pose_problem
+from frontend.poses_io import default_file_mode, pose_problem
 from frontend.sources import ros_convert, ros_msgdefs
 
 _COMPRESSION = {
@@ -76,6 +76,7 @@ class McapFrameWriter:
         self._file.flush()
         os.fsync(self._file.fileno())
         self._file.close()
+        os.chmod(self._tmp_path, default_file_mode())
         os.replace(self._tmp_path, self.path)
         self._writer = None
 

@@ -24,6 +24,14 @@ def _pose(x: float, yaw: float = 0.0) -> np.ndarray:
     return pose
 
 
+def _umask() -> int:
+    import os
+
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def _frames(n: int, rng: np.random.Generator, with_times: bool = True) -> list[Frame]:
     frames = []
     for i in range(n):
@@ -205,6 +213,7 @@ def test_schemas_are_standard_ros2(tmp_path: Path) -> None:
         assert reader.get_header().profile == "ros2"
         summary = reader.get_summary()
     names = {s.name for s in summary.schemas.values()}
+    assert path.stat().st_mode & 0o777 == 0o666 & ~_umask()  # not mkstemp's 0600
     assert names == {"sensor_msgs/msg/Image", "sensor_msgs/msg/PointCloud2",
                      "nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseStamped"}
     assert {s.encoding for s in summary.schemas.values()} == {"ros2msg"}
