@@ -126,3 +126,22 @@ def feature_side(layer: str, input_size: int) -> int:
 
 def grid_side(map_side: int, cubes: CubeConfig) -> int:
     return (map_side - cubes.cube_size) // cubes.stride + 1
+
+
+class SequenceGateConfig(_Strict):
+    """The sequence prior as a gate: a closure needs L consistent recognitions in a row."""
+
+    length: int = Field(default=3, ge=1, description="L: the closure and its L-1 predecessors must agree.")
+    tolerance: int = Field(default=2, ge=0, description="±frames a predecessor's match may deviate.")
+    allow_reverse: bool = Field(default=True, description="Accept revisits travelled in the opposite direction.")
+
+
+class DetectorConfig(_Strict):
+    """Streaming loop-closure detection over keyframes."""
+
+    exclusion_keyframes: int = Field(default=30, ge=0, description="The most recent keyframes are never candidates.")
+    exclusion_distance: float = Field(
+        default=15.0, ge=0.0, description="Keyframes within this travelled distance (m) of the query are never candidates."
+    )
+    min_score: float = Field(default=0.2, ge=0.0, le=1.0, description="Stage-II score below which nothing is proposed.")
+    gate: SequenceGateConfig = SequenceGateConfig()

