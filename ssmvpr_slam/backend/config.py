@@ -97,6 +97,7 @@ class IcpStageConfig(_Strict):
 
     max_correspondence_distance: float = Field(gt=0, description="m")
     kernel: float = Field(gt=0, description="kiss-icp robust kernel scale, m")
+    max_iterations: int = Field(200, ge=1)
 
 
 def _default_stages() -> list[IcpStageConfig]:
@@ -109,23 +110,31 @@ def _default_stages() -> list[IcpStageConfig]:
 class LidarRegistrationConfig(_Strict):
     """Scan-to-(local)map registration of a loop with kiss-icp."""
 
-    voxel_size: float = Field(0.5, gt=0, description="m; kiss-icp map voxel size")
+    voxel_size: float = Field(1.0, gt=0, description="m; kiss-icp map voxel size")
     map_downsample_factor: float = Field(0.5, gt=0, description="x voxel_size, as kiss-icp")
     source_downsample_factor: float = Field(1.5, gt=0, description="x voxel_size, as kiss-icp")
     max_points_per_voxel: int = Field(20, ge=1)
     max_range: float = Field(100.0, gt=0, description="m; points farther away are dropped")
-    max_iterations: int = Field(500, ge=1)
     convergence_criterion: float = Field(1e-4, gt=0)
     max_threads: int = Field(0, ge=0, description="0 = all cores")
     stages: list[IcpStageConfig] = Field(default_factory=_default_stages, min_length=1)
     yaw_seed_offsets_deg: list[float] = Field(
         default_factory=lambda: [0.0, 30.0, -30.0, 60.0, -60.0, 90.0, -90.0, 180.0],
         min_length=1,
-        description="yaw seeds tried around the caller's guess",
+        description="yaw seeds tried around the caller's guess, in this order",
     )
-    inlier_distance: float = Field(0.3, gt=0, description="m; NN distance counted as inlier")
-    min_inlier_ratio: float = Field(0.6, ge=0, le=1)
-    max_rmse: float = Field(0.2, gt=0, description="m; RMSE of the inlier distances")
+    screening_iterations: int = Field(
+        50, ge=1, description="ICP iterations of the first stage when screening each seed"
+    )
+    refine_top_k: int = Field(2, ge=1, description="best screened seeds that run all stages")
+    early_stop_inlier_ratio: float = Field(
+        0.9, ge=0, le=1, description="a screened seed this good ends screening; only it is refined"
+    )
+    inlier_distance: float = Field(
+        0.5, gt=0, description="m; distance to the nearest raw map point counted as inlier"
+    )
+    min_inlier_ratio: float = Field(0.5, ge=0, le=1)
+    max_rmse: float = Field(0.3, gt=0, description="m; RMSE of the inlier distances")
     min_points: int = Field(50, ge=3, description="after down-sampling, per cloud")
     local_map_half_window: int = Field(
         2, ge=0, description="keyframes m-k..m+k make the target local map"
@@ -154,10 +163,13 @@ class TwoViewConfig(_Strict):
     orb_features: int = Field(2000, ge=8)
     ratio_test: float = Field(0.8, gt=0, le=1, description="Lowe ratio for ORB matches")
     ransac_confidence: float = Field(0.999, gt=0, lt=1)
-    ransac_threshold_px: float = Field(1.0, gt=0)
+    ransac_threshold_px: float = Field(1.0, gt=0, description="essential matrix (epipolar)")
+    homography_threshold_px: float = Field(
+        2.0, gt=0, description="homography transfer error; 2-D, so looser than the epipolar one"
+    )
     min_inliers: int = Field(30, ge=5, description="below this the yaw guess is used")
     homography_share: float = Field(
-        0.9, gt=0, le=1, description="H inliers / E inliers above which pure rotation is tested"
+        0.8, gt=0, description="H inliers / E inliers above which pure rotation is tested"
     )
     rotation_singular_tol: float = Field(
         0.05, gt=0, description="K^-1 H K counts as a rotation if s_min/s_max >= 1 - tol"

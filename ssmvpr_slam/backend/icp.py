@@ -1,0 +1,141 @@
+"""Scan-to-map alignment for loop closures with kiss-icp's registration, tried from several
+yaw seeds, plus the quality measures that decide whether to trust the result.
+
+Uses kiss-icp's public Python pieces (`VoxelHashMap`, `Registration`, `voxel_down_sample`).
+Points are checked here first (finite, shape (N, 3), enough of them): kiss-icp's C++ side
+aborts the process on some bad inputs instead of raising.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from kiss_icp.mapping import VoxelHashMap
+from kiss_icp.registration import Registration
+from kiss_icp.voxelization import voxel_down_sample
+from scipy.spatial import cKDTree
+
+from ssmvpr_slam.backend.config import LidarRegistrationConfig
+
+
+def clean_points(name: str, points: object, max_range: float) -> np.ndarray:
+    """(N, 3) float64 points with NaN / inf rows and points beyond `max_range` dropped.
+
+    Wrong shapes are a ValueError naming `name`; too few points is left to the caller, which
+    rejects the loop with a reason instead of failing.
+    """
+    try:
+        arr = np.asarray(points, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name}: not a numeric (N, 3) array ({exc})") from None
+    if arr.ndim != 2 or arr.shape[1] < 3:
+        raise ValueError(f"{name}: expected shape (N, 3), got {arr.shape}")
+    arr = arr[:, :3]
+    arr = arr[np.all(np.isfinite(arr), axis=1)]
+    arr = arr[np.linalg.norm(arr, axis=1) <= max_range]
+    return np.ascontiguousarray(arr)
+
+
+def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply a 4x4 rigid transform to (N, 3) points."""
+    return points @ pose[:3, :3].T + pose[:3, 3]
+
+
+@dataclass(frozen=True)
+class IcpOutcome:
+    """Best alignment over the seeds: `pose` maps source points into the target frame.
+
+    inlier_ratio / rmse are measured from the down-sampled source to the raw target."""
+
+    pose: np.ndarray
+    inlier_ratio: float
+    rmse: float
+    seed_index: int
+    n_source: int
+    n_target: int
+
+
+class SeededIcp:
+    """Aligns a source cloud to a target cloud from several initial guesses; keeps the best.
+
+    Each seed is screened with a short run of the first stage (cheap, scored on the sparse
+    cloud); only the `refine_top_k` best run every stage in full. Screening stops early
+    once a seed reaches `early_stop_inlier_ratio`, since seeds come nearest-the-guess first.
+    """
+
+    def __init__(self, config: LidarRegistrationConfig) -> None:
+        self.config = config
+        self._screen = self._registration(config.screening_iterations)
+        self._stages = [self._registration(stage.max_iterations) for stage in config.stages]
+
+    def _registration(self, iterations: int) -> Registration:
+        return Registration(
+            max_num_iterations=iterations,
+            convergence_criterion=self.config.convergence_criterion,
+            max_num_threads=self.config.max_threads,
+        )
+
+    def downsample(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(dense, sparse) clouds as kiss-icp makes them: map resolution and ICP source."""
+        cfg = self.config
+        dense = voxel_down_sample(points, cfg.voxel_size * cfg.map_downsample_factor)
+        sparse = voxel_down_sample(dense, cfg.voxel_size * cfg.source_downsample_factor)
+        return np.asarray(dense, dtype=np.float64), np.asarray(sparse, dtype=np.float64)
+
+    def align(self, source: np.ndarray, target: np.ndarray, seeds: list[np.ndarray]) -> IcpOutcome:
+        """Align cleaned `source` to cleaned `target`; both must hold >= min_points after
+        down-sampling (checked by the caller via `downsample`)."""
+        if not seeds:
+            raise ValueError("seeds: need at least one initial guess")
+        cfg = self.config
+        target_dense, _ = self.downsample(target)
+        source_dense, source_sparse = self.downsample(source)
+        voxel_map = VoxelHashMap(cfg.voxel_size, cfg.max_range, cfg.max_points_per_voxel)
+        voxel_map.add_points(target_dense)
+        tree = cKDTree(target)  # quality against the raw map: independent of voxel size
+
+        first = cfg.stages[0]
+        screened: list[tuple[float, int, np.ndarray]] = []
+        for index, seed in enumerate(seeds):
+            pose = self._screen.align_points_to_map(
+                points=source_sparse,
+                voxel_map=voxel_map,
+                initial_guess=np.asarray(seed, dtype=np.float64),
+                max_correspondance_distance=first.max_correspondence_distance,
+                kernel=first.kernel,
+            )
+            ratio, _ = self._quality(tree, source_sparse, pose)
+            screened.append((ratio, index, pose))
+            if ratio >= cfg.early_stop_inlier_ratio:
+                screened = screened[-1:]  # good enough: refine this seed only
+                break
+        screened.sort(key=lambda item: (-item[0], item[1]))
+
+        best: IcpOutcome | None = None
+        for _, index, pose in screened[: cfg.refine_top_k]:
+            for stage, registration in zip(cfg.stages, self._stages):
+                pose = registration.align_points_to_map(
+                    points=source_sparse,
+                    voxel_map=voxel_map,
+                    initial_guess=pose,
+                    max_correspondance_distance=stage.max_correspondence_distance,
+                    kernel=stage.kernel,
+                )
+            ratio, rmse = self._quality(tree, source_dense, pose)
+            outcome = IcpOutcome(pose, ratio, rmse, index, len(source_dense), len(target_dense))
+            if best is None or (ratio, -rmse) > (best.inlier_ratio, -best.rmse):
+                best = outcome
+        assert best is not None
+        return best
+
+    def _quality(
+        self, tree: cKDTree, source: np.ndarray, pose: np.ndarray
+    ) -> tuple[float, float]:
+        """Share of source points with a target neighbour within inlier_distance, and the RMSE
+        of those inlier distances."""
+        dist, _ = tree.query(transform_points(pose, source), k=1)
+        inliers = dist <= self.config.inlier_distance
+        ratio = float(np.mean(inliers))
+        rmse = float(np.sqrt(np.mean(dist[inliers] ** 2))) if inliers.any() else float("inf")
+        return ratio, rmse

@@ -1,0 +1,208 @@
+"""Relative pose of an accepted loop closure between query keyframe q and matched keyframe m.
+
+Convention: ``T_mq = inv(T_m) @ T_q``, the pose of the query keyframe in the matched
+keyframe's body frame; it maps query-frame points into the matched frame. Feed it to the
+pose graph as ``graph.add_loop(m, q, reg.T_mq, sigmas=reg.sigmas)`` when ``reg.accepted``.
+The yaw guess is the yaw of T_mq (rotation of q about the body z axis relative to m, rad);
+the caller derives it from the visual spatial matching's dominant column shift.
+
+Which path is used when:
+* LiDAR scans available -> `LoopRegistrar.register_scans`: the query scan is aligned to the
+  matched keyframe's scan, or to a small local map of keyframes m-k..m+k built with
+  `build_local_map`, by kiss-icp's point-to-point ICP from zero translation and each yaw in
+  guess + `yaw_seed_offsets_deg`; the best seed (highest inlier ratio, then lowest RMSE) wins.
+  Accepted only if the inlier ratio and the inlier RMSE pass the config thresholds; rejected
+  (with a reason, never an exception) when either cloud is too small after cleaning.
+* No LiDAR -> `LoopRegistrar.register_images`: a place prior. Translation is zero with
+  `two_view.translation_sigma` (the place radius). Rotation comes from two-view geometry
+  (ORB + essential matrix / pure-rotation homography) when enough inliers support it,
+  with `two_view.rot_sigma`; otherwise from the yaw guess with the looser yaw-prior sigmas.
+  A place prior is always accepted: the recogniser and sequence gate already vouched for the
+  place, and the wide sigmas plus the graph's robust kernel bound the damage if it is wrong.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ssmvpr_slam.backend.config import LoopRegistrationConfig
+from ssmvpr_slam.backend.icp import SeededIcp, clean_points, transform_points
+from ssmvpr_slam.backend.noise import sigmas6
+from ssmvpr_slam.backend.se3 import as_pose, invert, make_pose, project_to_so3, rot_z
+from ssmvpr_slam.backend.two_view import estimate_rotation
+
+
+@dataclass(frozen=True)
+class LoopRegistration:
+    """Result of registering a loop q -> m (see the module docstring for the convention)."""
+
+    T_mq: np.ndarray
+    """inv(T_m) @ T_q: query keyframe pose in the matched keyframe's frame."""
+    accepted: bool
+    reason: str
+    inlier_ratio: float
+    """ICP: share of query points within inlier_distance of the map; two-view: inliers/matches."""
+    rmse: float
+    """ICP: RMSE of inlier distances (m); two-view: mean inlier error (px); NaN otherwise."""
+    sigmas: np.ndarray = field(default_factory=lambda: np.full(6, np.nan))
+    """Loop factor sigmas (rx, ry, rz, tx, ty, tz) for `PoseGraph.add_loop`."""
+    method: str = "icp"
+    """'icp', 'two_view_essential', 'two_view_homography' or 'yaw_prior'."""
+    yaw_seed: float = float("nan")
+    """ICP: the yaw seed (rad) that won."""
+
+    @property
+    def T_qm(self) -> np.ndarray:
+        """inv(T_mq): matched keyframe pose in the query keyframe's frame."""
+        return invert(self.T_mq)
+
+    def to_dict(self) -> dict[str, object]:
+        """JSON-ready record (NaN becomes None) for loop_closures.csv / metrics.json."""
+
+        def num(v: float) -> float | None:
+            return None if not math.isfinite(v) else float(v)
+
+        return {
+            "accepted": self.accepted,
+            "reason": self.reason,
+            "method": self.method,
+            "inlier_ratio": num(self.inlier_ratio),
+            "rmse": num(self.rmse),
+            "yaw_seed": num(self.yaw_seed),
+            "T_mq": self.T_mq.tolist(),
+            "sigmas": [num(s) for s in self.sigmas],
+        }
+
+
+def build_local_map(
+    scans: Sequence[np.ndarray],
+    poses: Sequence[np.ndarray],
+    anchor_pose: np.ndarray,
+    max_range: float,
+) -> np.ndarray:
+    """Concatenate scans (each in its own sensor frame) into the frame of `anchor_pose`.
+
+    `poses` are the scans' odometry poses (body-to-world); the anchor is usually the matched
+    keyframe m's odometry pose, so the map is in m's frame as `register_scans` expects. Each
+    scan is cleaned (NaN/inf and beyond max_range dropped) before it is moved.
+    """
+    if len(scans) != len(poses):
+        raise ValueError(f"poses: {len(poses)} poses for {len(scans)} scans")
+    if len(scans) == 0:
+        raise ValueError("scans: need at least one scan to build a local map")
+    anchor_inv = invert(as_pose("anchor_pose", anchor_pose))
+    parts = []
+    for k, (scan, pose) in enumerate(zip(scans, poses)):
+        pts = clean_points(f"scans[{k}]", scan, max_range)
+        parts.append(transform_points(anchor_inv @ as_pose(f"poses[{k}]", pose), pts))
+    return np.concatenate(parts, axis=0)
+
+
+class LoopRegistrar:
+    """Computes `LoopRegistration`s from scans (ICP) or images (place prior)."""
+
+    def __init__(self, config: LoopRegistrationConfig | None = None) -> None:
+        self.config = config or LoopRegistrationConfig()
+        self._icp = SeededIcp(self.config.lidar)
+
+    # ------------------------------------------------------------------ LiDAR
+    def register_scans(
+        self, query_points: np.ndarray, map_points: np.ndarray, yaw_guess: float = 0.0
+    ) -> LoopRegistration:
+        """Align the query scan (query sensor frame) to `map_points` (matched keyframe frame)."""
+        cfg = self.config.lidar
+        yaw_guess = _finite_yaw(yaw_guess)
+        query = clean_points("query_points", query_points, cfg.max_range)
+        target = clean_points("map_points", map_points, cfg.max_range)
+        for name, cloud in (("query scan", query), ("map", target)):
+            n_dense = len(self._icp.downsample(cloud)[0]) if len(cloud) else 0
+            if n_dense < cfg.min_points:
+                return self._rejected(
+                    f"{name} has {n_dense} points after cleaning and down-sampling "
+                    f"(< {cfg.min_points})",
+                    yaw_guess,
+                )
+        seeds_yaw = [yaw_guess + math.radians(off) for off in cfg.yaw_seed_offsets_deg]
+        seeds = [make_pose(rot_z(yaw), np.zeros(3)) for yaw in seeds_yaw]
+        best = self._icp.align(query, target, seeds)
+        pose = make_pose(project_to_so3(best.pose[:3, :3]), best.pose[:3, 3])
+        problems = []
+        if best.inlier_ratio < cfg.min_inlier_ratio:
+            problems.append(f"inlier ratio {best.inlier_ratio:.2f} < {cfg.min_inlier_ratio:.2f}")
+        if not best.rmse <= cfg.max_rmse:
+            problems.append(f"inlier RMSE {best.rmse:.3f} m > {cfg.max_rmse:.3f} m")
+        accepted = not problems
+        reason = (
+            f"ICP converged: inlier ratio {best.inlier_ratio:.2f}, RMSE {best.rmse:.3f} m"
+            if accepted
+            else "poor alignment: " + "; ".join(problems)
+        )
+        return LoopRegistration(
+            T_mq=pose,
+            accepted=accepted,
+            reason=reason,
+            inlier_ratio=best.inlier_ratio,
+            rmse=best.rmse,
+            sigmas=sigmas6(cfg.rot_sigma, cfg.trans_sigma),
+            method="icp",
+            yaw_seed=seeds_yaw[best.seed_index],
+        )
+
+    def _rejected(self, reason: str, yaw_guess: float) -> LoopRegistration:
+        return LoopRegistration(
+            T_mq=make_pose(rot_z(yaw_guess), np.zeros(3)),
+            accepted=False,
+            reason=reason,
+            inlier_ratio=0.0,
+            rmse=float("nan"),
+            method="icp",
+        )
+
+    # ------------------------------------------------------------------ images
+    def register_images(
+        self, query_image: np.ndarray, match_image: np.ndarray, yaw_guess: float = 0.0
+    ) -> LoopRegistration:
+        """Place prior from the two keyframes' camera images (see the module docstring)."""
+        cfg = self.config.two_view
+        yaw_guess = _finite_yaw(yaw_guess)
+        est = estimate_rotation(match_image, query_image, cfg)
+        if est.rotation_mq is None:
+            rot = rot_z(yaw_guess)
+            sigmas = np.array(
+                [cfg.yaw_prior_tilt_sigma, cfg.yaw_prior_tilt_sigma, cfg.yaw_prior_yaw_sigma]
+                + [cfg.translation_sigma] * 3
+            )
+            return LoopRegistration(
+                T_mq=make_pose(rot, np.zeros(3)),
+                accepted=True,
+                reason=f"yaw prior from the visual match ({est.reason})",
+                inlier_ratio=est.n_inliers / est.n_matches if est.n_matches else 0.0,
+                rmse=float("nan"),
+                sigmas=sigmas,
+                method="yaw_prior",
+            )
+        body_from_cam = project_to_so3(np.asarray(cfg.body_from_camera, dtype=np.float64))
+        rot = project_to_so3(body_from_cam @ est.rotation_mq @ body_from_cam.T)
+        return LoopRegistration(
+            T_mq=make_pose(rot, np.zeros(3)),
+            accepted=True,
+            reason=est.reason,
+            inlier_ratio=est.n_inliers / est.n_matches,
+            rmse=est.error_px,
+            sigmas=sigmas6(cfg.rot_sigma, cfg.translation_sigma),
+            method=f"two_view_{est.model}",
+        )
+
+
+def _finite_yaw(yaw: float) -> float:
+    try:
+        value = float(yaw)
+    except (TypeError, ValueError):
+        raise ValueError(f"yaw_guess: expected a number in radians, got {yaw!r}") from None
+    if not math.isfinite(value):
+        raise ValueError(f"yaw_guess: must be finite, got {value}")
+    return value

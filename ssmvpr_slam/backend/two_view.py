@@ -1,0 +1,175 @@
+"""Relative camera rotation between two images of the same place (no LiDAR available).
+
+ORB features, Lowe-ratio matching, then two models fitted with RANSAC:
+* the essential matrix (`cv2.findEssentialMat` + `cv2.recoverPose`), valid with a baseline;
+* a homography; if it explains (nearly) as many matches as E does and ``K^-1 H K`` is a
+  scaled rotation, the views differ by a pure rotation (a revisit from the same spot), where
+  E is degenerate, and the rotation is read from H instead.
+The translation direction of E is discarded: its scale is unknown, so the caller uses a
+place prior (zero translation with a radius-sized sigma).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ssmvpr_slam.backend.config import TwoViewConfig
+from ssmvpr_slam.backend.se3 import project_to_so3
+
+MIN_MODEL_POINTS = 8
+"""Fewer matches than this cannot support either RANSAC model (5-point E, 4-point H)."""
+UINT8_MAX = 255.0
+
+
+@dataclass(frozen=True)
+class TwoViewRotation:
+    """Rotation of the query camera in the matched camera's frame (optical axes), or None."""
+
+    rotation_mq: np.ndarray | None
+    model: str
+    n_matches: int
+    n_inliers: int
+    error_px: float
+    reason: str
+
+
+def to_gray(name: str, image: object) -> np.ndarray:
+    """uint8 grayscale from (H, W), (H, W, 1), (H, W, 3) RGB or (H, W, 4) RGBA arrays."""
+    if not isinstance(image, np.ndarray):
+        raise ValueError(f"{name}: expected a numpy image array, got {type(image).__name__}")
+    img = image
+    if img.ndim == 3 and img.shape[2] == 1:
+        img = img[:, :, 0]
+    if img.ndim == 3 and img.shape[2] in (3, 4):
+        img = img[:, :, :3]
+    elif img.ndim != 2:
+        raise ValueError(f"{name}: expected (H, W) or (H, W, 3) image, got shape {image.shape}")
+    if img.shape[0] == 0 or img.shape[1] == 0:
+        raise ValueError(f"{name}: image is empty, shape {image.shape}")
+    if img.dtype != np.uint8:
+        data = img.astype(np.float64)
+        if not np.all(np.isfinite(data)):
+            raise ValueError(f"{name}: image contains NaN or inf")
+        if data.max(initial=0.0) <= 1.0:
+            data = data * UINT8_MAX
+        img = np.clip(np.rint(data), 0, UINT8_MAX).astype(np.uint8)
+    if img.ndim == 3:
+        img = cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_RGB2GRAY)
+    return np.ascontiguousarray(img)
+
+
+def intrinsics(config: TwoViewConfig, width: int, height: int) -> np.ndarray:
+    """Pinhole K from the config; unset entries come from the image size and hfov_deg."""
+    fx = config.fx
+    if fx is None:
+        fx = width / (2.0 * np.tan(np.radians(config.hfov_deg) / 2.0))
+    fy = config.fy if config.fy is not None else fx
+    cx = config.cx if config.cx is not None else (width - 1) / 2.0
+    cy = config.cy if config.cy is not None else (height - 1) / 2.0
+    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+
+def _matches(
+    gray_m: np.ndarray, gray_q: np.ndarray, cfg: TwoViewConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel coordinates of ORB matches that pass Lowe's ratio test."""
+    orb = cv2.ORB_create(nfeatures=cfg.orb_features)
+    kp_m, des_m = orb.detectAndCompute(gray_m, None)
+    kp_q, des_q = orb.detectAndCompute(gray_q, None)
+    if des_m is None or des_q is None or len(kp_m) < 2 or len(kp_q) < 2:
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    pairs = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(des_m, des_q, k=2)
+    good = [
+        p[0] for p in pairs if len(p) == 2 and p[0].distance < cfg.ratio_test * p[1].distance
+    ]
+    pts_m = np.array([kp_m[g.queryIdx].pt for g in good], dtype=np.float64).reshape(-1, 2)
+    pts_q = np.array([kp_q[g.trainIdx].pt for g in good], dtype=np.float64).reshape(-1, 2)
+    return pts_m, pts_q
+
+
+def _rotation_from_homography(h: np.ndarray, k: np.ndarray, tol: float) -> np.ndarray | None:
+    """R_qm with x_q ~ K R_qm K^-1 x_m if H is (close to) such an infinite homography."""
+    m = np.linalg.inv(k) @ h @ k
+    det = np.linalg.det(m)
+    if not np.isfinite(det) or abs(det) < np.finfo(float).tiny:
+        return None
+    m = m / np.cbrt(det)
+    sv = np.linalg.svd(m, compute_uv=False)
+    if sv[-1] / sv[0] < 1.0 - tol:
+        return None
+    return project_to_so3(m)
+
+
+def _transfer_error(h: np.ndarray, pts_m: np.ndarray, pts_q: np.ndarray) -> np.ndarray:
+    proj = cv2.perspectiveTransform(pts_m.reshape(-1, 1, 2), h).reshape(-1, 2)
+    return np.linalg.norm(proj - pts_q, axis=1)
+
+
+def _sampson(e_px: np.ndarray, pts_m: np.ndarray, pts_q: np.ndarray) -> np.ndarray:
+    """Sampson distance (px) of matches to the epipolar geometry F (pixel coordinates)."""
+    x1 = np.c_[pts_m, np.ones(len(pts_m))]
+    x2 = np.c_[pts_q, np.ones(len(pts_q))]
+    fx1 = x1 @ e_px.T
+    ftx2 = x2 @ e_px
+    num = np.sum(x2 * fx1, axis=1) ** 2
+    den = fx1[:, 0] ** 2 + fx1[:, 1] ** 2 + ftx2[:, 0] ** 2 + ftx2[:, 1] ** 2
+    return np.sqrt(num / np.maximum(den, np.finfo(float).tiny))
+
+
+def estimate_rotation(
+    image_m: np.ndarray, image_q: np.ndarray, config: TwoViewConfig
+) -> TwoViewRotation:
+    """Rotation of camera q in camera m's optical frame (R_mq), or None with a reason."""
+    gray_m = to_gray("match_image", image_m)
+    gray_q = to_gray("query_image", image_q)
+    if gray_m.shape != gray_q.shape:
+        reason = f"image sizes differ: {gray_m.shape} vs {gray_q.shape}"
+        return _failed(0, 0, reason)
+    k = intrinsics(config, gray_m.shape[1], gray_m.shape[0])
+    pts_m, pts_q = _matches(gray_m, gray_q, config)
+    n = len(pts_m)
+    if n < max(MIN_MODEL_POINTS, config.min_inliers):
+        return _failed(n, 0, f"only {n} ORB matches")
+    e, e_mask = cv2.findEssentialMat(
+        pts_m,
+        pts_q,
+        k,
+        method=cv2.RANSAC,
+        prob=config.ransac_confidence,
+        threshold=config.ransac_threshold_px,
+    )
+    h, h_mask = cv2.findHomography(
+        pts_m,
+        pts_q,
+        cv2.RANSAC,
+        config.homography_threshold_px,
+        confidence=config.ransac_confidence,
+    )
+    n_e = int(e_mask.sum()) if e is not None and e.shape == (3, 3) else 0
+    n_h = int(h_mask.sum()) if h is not None else 0
+    if h is not None and n_h >= config.min_inliers and n_h >= config.homography_share * n_e:
+        r_qm = _rotation_from_homography(h, k, config.rotation_singular_tol)
+        if r_qm is not None:
+            inl = h_mask.ravel().astype(bool)
+            err = float(np.mean(_transfer_error(h, pts_m[inl], pts_q[inl])))
+            reason = f"pure rotation: {n_h}/{n} homography inliers"
+            return TwoViewRotation(r_qm.T, "homography", n, n_h, err, reason)
+    if n_e < config.min_inliers:
+        return _failed(n, n_e, f"only {n_e} essential-matrix inliers of {n} matches")
+    e = e[:3]  # findEssentialMat may stack several solutions; RANSAC picked the first
+    n_pose, r_qm, _, pose_mask = cv2.recoverPose(e, pts_m, pts_q, k, mask=e_mask.copy())
+    if n_pose < config.min_inliers:
+        return _failed(n, int(n_pose), f"only {n_pose} matches pass the cheirality check")
+    k_inv = np.linalg.inv(k)
+    f_px = k_inv.T @ e @ k_inv
+    inl = pose_mask.ravel().astype(bool)
+    err = float(np.mean(_sampson(f_px, pts_m[inl], pts_q[inl])))
+    reason = f"essential matrix: {n_pose}/{n} inliers"
+    return TwoViewRotation(project_to_so3(r_qm).T, "essential", n, int(n_pose), err, reason)
+
+
+def _failed(n_matches: int, n_inliers: int, reason: str) -> TwoViewRotation:
+    return TwoViewRotation(None, "none", n_matches, n_inliers, float("nan"), reason)

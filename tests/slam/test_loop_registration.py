@@ -1,0 +1,231 @@
+"""Loop registration: kiss-icp scan alignment with yaw seeds, and the camera place prior."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from ssmvpr_slam.backend.config import LoopRegistrationConfig
+from ssmvpr_slam.backend.loop_registration import LoopRegistrar, build_local_map
+from ssmvpr_slam.backend.se3 import invert, make_pose, rot_z, rotation_angle, yaw_of
+from ssmvpr_slam.backend.two_view import intrinsics
+
+DENSITY = 10.0  # surface points per m^2
+SCAN_RANGE = 25.0
+YAW_TOL_DEG = 0.5
+TRANS_TOL_M = 0.1
+
+
+# --------------------------------------------------------------------------- LiDAR scenes
+def box_surface(rng, lo, hi):
+    lo, hi = np.asarray(lo, float), np.asarray(hi, float)
+    faces = []
+    for axis in range(3):
+        other = [a for a in range(3) if a != axis]
+        n = max(1, int(np.prod(hi[other] - lo[other]) * DENSITY))
+        for value in (lo[axis], hi[axis]):
+            pts = rng.uniform(lo, hi, (n, 3))
+            pts[:, axis] = value
+            faces.append(pts)
+    return np.concatenate(faces)
+
+
+BOXES = [  # a 30 x 20 m room with asymmetric pillars and crates
+    ([-15, -10, -1], [15, 10, 3]),
+    ([-8, -4, -1], [-7, -3, 3]),
+    ([4, 2, -1], [5.5, 3.5, 3]),
+    ([9, -7, -1], [12, -5, 0.5]),
+    ([-12, 5, -1], [-10, 9, 1.5]),
+    ([0, -9, -1], [0.5, -2, 2]),
+]
+
+
+def world(seed: int) -> np.ndarray:
+    """An independent surface sampling of the same room (like two LiDAR visits)."""
+    rng = np.random.default_rng(seed)
+    return np.concatenate([box_surface(rng, lo, hi) for lo, hi in BOXES])
+
+
+def scan(world_pts, pose, seed, noise=0.02):
+    local = (world_pts - pose[:3, 3]) @ pose[:3, :3]
+    local = local[np.linalg.norm(local, axis=1) < SCAN_RANGE]
+    return local + np.random.default_rng(seed).normal(0, noise, local.shape)
+
+
+T_M = make_pose(rot_z(0.2), [-2.0, 1.0, 0.0])
+T_MQ = make_pose(rot_z(np.radians(40.0)), [1.5, -0.8, 0.05])
+
+
+@pytest.fixture(scope="module")
+def scans():
+    return scan(world(1), T_M @ T_MQ, seed=11), scan(world(2), T_M, seed=12)
+
+
+@pytest.fixture(scope="module")
+def registrar():
+    return LoopRegistrar()
+
+
+def pose_error(estimate: np.ndarray) -> tuple[float, float]:
+    err = invert(T_MQ) @ estimate
+    return np.degrees(rotation_angle(err[:3, :3])), float(np.linalg.norm(err[:3, 3]))
+
+
+def test_icp_recovers_known_yaw_and_translation(scans, registrar):
+    query, target = scans
+    reg = registrar.register_scans(query, target, yaw_guess=np.radians(35.0))
+    assert reg.accepted, reg.reason
+    rot_err, trans_err = pose_error(reg.T_mq)
+    assert rot_err < YAW_TOL_DEG and trans_err < TRANS_TOL_M
+    assert reg.inlier_ratio > 0.9
+    np.testing.assert_allclose(reg.T_qm @ reg.T_mq, np.eye(4), atol=1e-12)
+    assert reg.sigmas.shape == (6,) and np.all(reg.sigmas > 0)
+
+
+@pytest.mark.parametrize("guess_offset_deg", [-95.0, 175.0])
+def test_icp_recovers_from_a_far_yaw_guess_within_the_seed_set(scans, registrar, guess_offset_deg):
+    query, target = scans
+    guess = np.radians(40.0 + guess_offset_deg)
+    reg = registrar.register_scans(query, target, yaw_guess=guess)
+    assert reg.accepted, reg.reason
+    rot_err, trans_err = pose_error(reg.T_mq)
+    assert rot_err < YAW_TOL_DEG and trans_err < TRANS_TOL_M
+    assert reg.yaw_seed != pytest.approx(guess)  # another seed than the guess won
+
+
+def test_a_single_far_seed_fails_so_the_seed_set_matters(scans):
+    cfg = LoopRegistrationConfig()
+    cfg.lidar.yaw_seed_offsets_deg = [0.0]
+    query, target = scans
+    reg = LoopRegistrar(cfg).register_scans(query, target, yaw_guess=np.radians(40.0 - 95.0))
+    rot_err, _ = pose_error(reg.T_mq)
+    assert not reg.accepted or rot_err > 5.0
+
+
+def test_unrelated_cloud_is_rejected_with_a_reason(scans, registrar):
+    query, _ = scans
+    unrelated = np.random.default_rng(5).uniform(-15, 15, (20000, 3))
+    reg = registrar.register_scans(query, unrelated, yaw_guess=0.0)
+    assert not reg.accepted
+    assert reg.reason.startswith("poor alignment")
+
+
+def test_nan_points_are_dropped_and_too_few_points_rejected(scans, registrar):
+    query, target = scans
+    dirty = query.copy()
+    dirty[::7] = np.nan
+    dirty[1::11, 2] = np.inf
+    reg = registrar.register_scans(dirty, target, yaw_guess=np.radians(40.0))
+    assert reg.accepted, reg.reason
+    tiny = registrar.register_scans(query[:10], target, yaw_guess=0.0)
+    assert not tiny.accepted and "query scan has" in tiny.reason
+    empty = registrar.register_scans(np.full((100, 3), np.nan), target)
+    assert not empty.accepted and "query scan" in empty.reason
+    no_map = registrar.register_scans(query, np.zeros((0, 3)))
+    assert not no_map.accepted and "map has 0 points" in no_map.reason
+
+
+def test_bad_shapes_and_yaw_are_value_errors(registrar):
+    with pytest.raises(ValueError, match="query_points"):
+        registrar.register_scans(np.zeros((10, 2)), np.zeros((10, 3)))
+    with pytest.raises(ValueError, match="yaw_guess"):
+        registrar.register_scans(np.zeros((10, 3)), np.zeros((10, 3)), yaw_guess=float("nan"))
+
+
+def test_local_map_from_neighbouring_keyframes(registrar):
+    """Map of keyframes m-1..m+1 in m's frame; the query registers against it."""
+    pts = world(3)
+    poses = [T_M @ make_pose(rot_z(0.05 * k), [2.0 * k, 0.0, 0.0]) for k in (-1, 0, 1)]
+    scans_k = [scan(pts, p, seed=20 + k) for k, p in enumerate(poses)]
+    local = build_local_map(scans_k, poses, anchor_pose=T_M, max_range=100.0)
+    query = scan(world(4), T_M @ T_MQ, seed=30)
+    reg = registrar.register_scans(query, local, yaw_guess=np.radians(40.0))
+    assert reg.accepted, reg.reason
+    rot_err, trans_err = pose_error(reg.T_mq)
+    assert rot_err < YAW_TOL_DEG and trans_err < TRANS_TOL_M
+    with pytest.raises(ValueError, match="poses"):
+        build_local_map([pts], [], anchor_pose=T_M, max_range=100.0)
+
+
+# --------------------------------------------------------------------------- camera scenes
+H_PX, W_PX = 480, 640
+
+
+def texture(seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    img = rng.integers(0, 256, (H_PX // 8, W_PX // 8), dtype=np.uint8)
+    img = cv2.resize(img, (W_PX, H_PX), interpolation=cv2.INTER_NEAREST)
+    for _ in range(300):
+        centre = tuple(int(v) for v in rng.integers(0, [W_PX, H_PX]))
+        cv2.circle(img, centre, int(rng.integers(3, 25)), int(rng.integers(0, 256)), -1)
+    return cv2.GaussianBlur(img, (3, 3), 0)
+
+
+@pytest.fixture(scope="module")
+def camera():
+    cfg = LoopRegistrationConfig()
+    body_from_cam = np.asarray(cfg.two_view.body_from_camera)
+    k = intrinsics(cfg.two_view, W_PX, H_PX)
+    return cfg, body_from_cam, k, texture(0)
+
+
+def cam_rotation_qm(body_from_cam, yaw_deg):
+    """R_qm in optical axes for a body yaw (left turn positive) of q relative to m."""
+    r_mq_cam = body_from_cam.T @ rot_z(np.radians(yaw_deg)) @ body_from_cam
+    return r_mq_cam.T
+
+
+@pytest.mark.parametrize("yaw_deg", [6.0, -9.0, 15.0])
+def test_pure_rotation_yaw_is_recovered(camera, yaw_deg):
+    cfg, body_from_cam, k, img_m = camera
+    h = k @ cam_rotation_qm(body_from_cam, yaw_deg) @ np.linalg.inv(k)
+    img_q = cv2.warpPerspective(img_m, h, (W_PX, H_PX))
+    reg = LoopRegistrar(cfg).register_images(img_q, img_m, yaw_guess=0.0)
+    assert reg.accepted and reg.method == "two_view_homography", reg.reason
+    assert np.degrees(yaw_of(reg.T_mq[:3, :3])) == pytest.approx(yaw_deg, abs=1.0)
+    np.testing.assert_allclose(reg.T_mq[:3, 3], 0.0)
+    assert reg.sigmas[3] == cfg.two_view.translation_sigma
+
+
+@pytest.mark.parametrize(
+    ("yaw_deg", "t_mq_cam"), [(10.0, [1.0, 0.0, 0.3]), (-6.0, [-1.5, 0.0, 0.5])]
+)
+def test_essential_matrix_yaw_with_baseline(camera, yaw_deg, t_mq_cam):
+    """A concave corner of two textured walls 6 m away, seen after a sideways step."""
+    cfg, body_from_cam, k, img_m = camera
+    r_qm = cam_rotation_qm(body_from_cam, yaw_deg)
+    t_qm = -r_qm @ np.asarray(t_mq_cam)
+    left = np.zeros((H_PX, W_PX), np.float32)
+    left[:, : W_PX // 2] = 1.0
+    img_q = np.zeros((H_PX, W_PX), np.float32)
+    depth = 6.0
+    for normal, mask in (((-1, 0, 1), left), ((1, 0, 1), 1.0 - left)):
+        n = np.asarray(normal, float) / np.sqrt(2.0)
+        h = k @ (r_qm + np.outer(t_qm, n) / (depth / np.sqrt(2.0))) @ np.linalg.inv(k)
+        warped = cv2.warpPerspective(img_m.astype(np.float32), h, (W_PX, H_PX))
+        img_q += warped * cv2.warpPerspective(mask, h, (W_PX, H_PX), flags=cv2.INTER_NEAREST)
+    reg = LoopRegistrar(cfg).register_images(img_q.astype(np.uint8), img_m, yaw_guess=0.0)
+    assert reg.accepted and reg.method == "two_view_essential", reg.reason
+    assert np.degrees(yaw_of(reg.T_mq[:3, :3])) == pytest.approx(yaw_deg, abs=2.5)
+
+
+def test_featureless_images_fall_back_to_the_yaw_guess(camera):
+    cfg, _, _, img_m = camera
+    blank = np.zeros((H_PX, W_PX, 3), np.uint8)
+    reg = LoopRegistrar(cfg).register_images(blank, img_m, yaw_guess=0.3)
+    assert reg.accepted and reg.method == "yaw_prior"
+    assert yaw_of(reg.T_mq[:3, :3]) == pytest.approx(0.3)
+    assert reg.sigmas[2] == cfg.two_view.yaw_prior_yaw_sigma
+    assert reg.to_dict()["rmse"] is None
+
+
+def test_bad_images_are_value_errors(camera):
+    cfg, _, _, img_m = camera
+    registrar = LoopRegistrar(cfg)
+    with pytest.raises(ValueError, match="query_image"):
+        registrar.register_images(np.zeros((4, 4, 2)), img_m)
+    with pytest.raises(ValueError, match="match_image"):
+        registrar.register_images(img_m, "not an image")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="NaN"):
+        registrar.register_images(np.full((8, 8), np.nan), img_m)
