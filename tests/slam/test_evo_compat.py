@@ -82,8 +82,9 @@ def test_rpe_matches_evo(trajectories, delta, all_pairs):
         (evo_metrics.PoseRelation.translation_part, lambda r: r.translation),
         (evo_metrics.PoseRelation.rotation_angle_deg, lambda r: r.rotation_deg),
     ):
-        metric = evo_metrics.RPE(relation, delta=delta, delta_unit=evo_metrics.Unit.frames,
-                                 all_pairs=all_pairs)
+        metric = evo_metrics.RPE(
+            relation, delta=delta, delta_unit=evo_metrics.Unit.frames, all_pairs=all_pairs
+        )
         metric.process_data((evo_traj(stamps, ref), evo_traj(stamps, est)))
         theirs = metric.get_all_statistics()
         ours = ours_of(rpe(ref, est, delta=delta, all_pairs=all_pairs))

@@ -142,7 +142,8 @@ def test_loop_precision_recall_per_query_keyframe():
         (19, 0),  # exact: correct
         (18, 2),  # 1 m off: correct under the looser radius
         (17, 8),  # 6 m off: wrong
-        (15, 4), (15, 9),  # one correct, one wrong -> the query counts as a false positive
+        (15, 4),  # correct, but query 15 also has ...
+        (15, 9),  # ... a wrong loop, so it counts as a false positive
     ]
     res = evaluate_loops(gt, loops, cfg)
     assert res.n_revisits == 8

@@ -43,8 +43,15 @@ def test_all_plots_render(tmp_path, run):
     assert evaluation.loop_correct == [True, True, False]
     odom_ate, opt_ate = ate(gt, odom), ate(gt, opt)
     paths = [
-        plot_trajectories(tmp_path / "top.png", gt, odom_ate.aligned_poses, opt_ate.aligned_poses,
-                          loops, evaluation.loop_correct, config=SMALL),
+        plot_trajectories(
+            tmp_path / "top.png",
+            gt,
+            odom_ate.aligned_poses,
+            opt_ate.aligned_poses,
+            loops,
+            evaluation.loop_correct,
+            config=SMALL,
+        ),
         plot_translation_error(tmp_path / "err.png", odom_ate.errors, opt_ate.errors, config=SMALL),
         plot_loop_summary(tmp_path / "loops.png", evaluation, config=SMALL),
     ]
@@ -67,6 +74,7 @@ def test_plot_input_errors(tmp_path, run):
     with pytest.raises(ValueError, match=r"loops\[0\]"):
         plot_trajectories(tmp_path / "a.png", gt, loops=[(500, 1)], config=SMALL)
     with pytest.raises(ValueError, match="distance_m"):
-        plot_translation_error(tmp_path / "b.png", np.ones(5), None, distance_m=np.ones(3),
-                               config=SMALL)
+        plot_translation_error(
+            tmp_path / "b.png", np.ones(5), None, distance_m=np.ones(3), config=SMALL
+        )
     assert not list(tmp_path.iterdir())
