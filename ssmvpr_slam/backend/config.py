@@ -12,6 +12,18 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 RobustKernelKind = Literal["cauchy", "huber", "dcs", "geman_mcclure", "tukey", "none"]
 
+DEFAULT_KERNEL_SCALES: dict[str, float] = {
+    "cauchy": 1.0,
+    "huber": 1.345,
+    # Redescending kernels ignore residuals far beyond their scale. The first true loop after
+    # a long drift has a large whitened error, so their scales must be generous or it would be
+    # discarded (seen in tests/slam/test_pose_graph.py's simulation: DCS 1.0 and Tukey 4.685
+    # leave the odometry uncorrected; these values keep the correction and reject outliers).
+    "dcs": 10.0,
+    "geman_mcclure": 10.0,
+    "tukey": 30.0,
+}
+
 
 class _Strict(BaseModel):
     """Unknown keys are errors: a typo in a preset must not be silently ignored."""
@@ -46,9 +58,18 @@ class RobustKernelConfig(_Strict):
     """M-estimator wrapped around every loop factor (odometry stays Gaussian)."""
 
     kind: RobustKernelKind = "cauchy"
-    scale: float = Field(
-        1.0, gt=0, description="kernel parameter (k or c) on the whitened error norm"
+    scale: float | None = Field(
+        None,
+        gt=0,
+        description="kernel parameter (k or c) on the whitened error norm; "
+        "None = the kind's entry in DEFAULT_KERNEL_SCALES",
     )
+
+    def resolved_scale(self) -> float | None:
+        """The scale to use (None for kind 'none')."""
+        if self.kind == "none":
+            return None
+        return self.scale if self.scale is not None else DEFAULT_KERNEL_SCALES[self.kind]
 
 
 class ISAM2Config(_Strict):

@@ -65,9 +65,10 @@ def make_kernel(cfg: RobustKernelConfig) -> gtsam.noiseModel.mEstimator.Base | N
         "geman_mcclure": est.GemanMcClure,
         "tukey": est.Tukey,
     }
-    if cfg.kind == "none":
+    scale = cfg.resolved_scale()
+    if scale is None:
         return None
-    return factories[cfg.kind].Create(float(cfg.scale))
+    return factories[cfg.kind].Create(float(scale))
 
 
 def robustify(

@@ -1,6 +1,7 @@
 """Figures of a run: top view with loop edges, translation error along the traverse, loop P/R.
 
-matplotlib runs headless (Agg) and every PNG is written atomically. Trajectories are drawn as
+Figures render on their own Agg canvas (no pyplot, no global backend switch, no display)
+and every PNG is written atomically. Trajectories are drawn as
 given: align odometry / optimised poses to the ground truth first (e.g. `AteResult.aligned_poses`).
 """
 
@@ -10,16 +11,13 @@ import os
 from collections.abc import Sequence
 from pathlib import Path
 
-import matplotlib
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402  (backend must be chosen first)
-import numpy as np  # noqa: E402
-from matplotlib.figure import Figure  # noqa: E402
-
-from ssmvpr_slam.evaluation.atomic import atomic_write  # noqa: E402
-from ssmvpr_slam.evaluation.config import PlotConfig  # noqa: E402
-from ssmvpr_slam.evaluation.loop_metrics import LoopEvaluation  # noqa: E402
+from ssmvpr_slam.evaluation.atomic import atomic_write
+from ssmvpr_slam.evaluation.config import PlotConfig
+from ssmvpr_slam.evaluation.loop_metrics import LoopEvaluation
 
 COLOURS = {
     "gt": "black",
@@ -32,13 +30,17 @@ LOOP_ALPHA = 0.6
 LOOP_WIDTH = 0.8
 
 
+def new_figure(config: PlotConfig, height_scale: float = 1.0) -> Figure:
+    """A figure bound to its own Agg canvas."""
+    fig = Figure(figsize=(config.width_in, config.height_in * height_scale))
+    FigureCanvasAgg(fig)
+    return fig
+
+
 def save_figure(fig: Figure, path: str | os.PathLike[str], config: PlotConfig) -> Path:
-    """Render `fig` to PNG atomically and close it."""
-    try:
-        fig.tight_layout()
-        return atomic_write(path, lambda handle: fig.savefig(handle, format="png", dpi=config.dpi))
-    finally:
-        plt.close(fig)
+    """Render `fig` to PNG atomically."""
+    fig.tight_layout()
+    return atomic_write(path, lambda handle: fig.savefig(handle, format="png", dpi=config.dpi))
 
 
 def _positions(name: str, poses: np.ndarray | None) -> np.ndarray | None:
@@ -76,7 +78,8 @@ def plot_trajectories(
         raise ValueError("gt, odometry, optimised: give at least one trajectory")
     if loop_correct is not None and len(loop_correct) != len(loops):
         raise ValueError(f"loop_correct: {len(loop_correct)} flags for {len(loops)} loops")
-    fig, ax = plt.subplots(figsize=(cfg.width_in, cfg.height_in))
+    fig = new_figure(cfg)
+    ax = fig.subplots()
     for label, (pos, colour) in series.items():
         if pos is not None:
             ax.plot(pos[:, 0], pos[:, 1], color=colour, label=label)
@@ -125,7 +128,8 @@ def plot_translation_error(
     }
     if all(err is None for err, _ in curves.values()):
         raise ValueError("odometry_errors, optimised_errors: give at least one")
-    fig, ax = plt.subplots(figsize=(cfg.width_in, cfg.height_in / 2))
+    fig = new_figure(cfg, height_scale=0.5)
+    ax = fig.subplots()
     for label, (err, colour) in curves.items():
         if err is None:
             continue
@@ -150,7 +154,8 @@ def plot_loop_summary(
 ) -> Path:
     """Precision / recall bars and the counts behind them."""
     cfg = config or PlotConfig()
-    fig, (ax_ratio, ax_count) = plt.subplots(1, 2, figsize=(cfg.width_in, cfg.height_in / 2))
+    fig = new_figure(cfg, height_scale=0.5)
+    ax_ratio, ax_count = fig.subplots(1, 2)
     ratios = {"precision": evaluation.precision, "recall": evaluation.recall}
     names = list(ratios)
     values = [0.0 if v is None else v for v in ratios.values()]
