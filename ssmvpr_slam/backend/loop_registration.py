@@ -129,6 +129,8 @@ class LoopRegistrar:
         seeds_yaw = [yaw_guess + math.radians(off) for off in cfg.yaw_seed_offsets_deg]
         seeds = [make_pose(rot_z(yaw), np.zeros(3)) for yaw in seeds_yaw]
         best = self._icp.align(query, target, seeds)
+        if not np.all(np.isfinite(best.pose)):
+            return self._rejected("ICP returned a non-finite pose", yaw_guess)
         pose = make_pose(project_to_so3(best.pose[:3, :3]), best.pose[:3, 3])
         problems = []
         if best.inlier_ratio < cfg.min_inlier_ratio:
