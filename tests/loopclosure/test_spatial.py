@@ -1,0 +1,147 @@
+"""loopclosure.spatial: the vectorised closed form against the paper's literal loop."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from loopclosure.spatial import (
+    best_query_cells,
+    consistency_counts,
+    max_raw_score,
+    spatial_score_literal,
+    spatial_scores,
+)
+
+
+@st.composite
+def grids(draw):
+    gh = draw(st.integers(2, 6))
+    gw = draw(st.integers(2, 6))
+    d = draw(st.integers(1, 6))
+    c = draw(st.integers(1, 4))
+    ints = st.integers(-3, 3)
+    query = draw(arrays(np.int8, (gh, gw, d), elements=ints)).astype(np.float32)
+    cands = draw(arrays(np.int8, (c, gh, gw, d), elements=ints)).astype(np.float32)
+    return query, cands
+
+
+@given(grids())
+@settings(max_examples=150, deadline=None)
+def test_closed_form_equals_literal_algorithm(grid):
+    """Small integer codes make every distance exact, so ties resolve to the first minimum in both."""
+    query, cands = grid
+    gh, gw, _ = query.shape
+    result = spatial_scores(query, cands)
+    expected = [spatial_score_literal(query, cand) for cand in cands]
+    np.testing.assert_array_equal(result.raw, expected)
+    np.testing.assert_allclose(result.scores, np.asarray(expected) / max_raw_score(gh, gw), rtol=1e-6)
+    assert (result.scores >= 0).all() and (result.scores <= 1).all()
+    assert result.shifts.shape == (len(cands), 2)
+    assert (np.abs(result.shifts[:, 0]) < gh).all() and (np.abs(result.shifts[:, 1]) < gw).all()
+
+
+@given(grids(), st.integers(1, 3))
+@settings(max_examples=30, deadline=None)
+def test_chunking_changes_nothing(grid, chunk):
+    query, cands = grid
+    a = spatial_scores(query, cands, chunk=chunk)
+    b = spatial_scores(query, cands)
+    np.testing.assert_array_equal(a.raw, b.raw)
+    np.testing.assert_array_equal(a.scores, b.scores)
+    np.testing.assert_array_equal(a.shifts, b.shifts)
+
+
+def _unique_grid(gh: int, gw: int, d: int = 8, seed: int = 0) -> np.ndarray:
+    return np.random.default_rng(seed).standard_normal((gh, gw, d)).astype(np.float32)
+
+
+def test_literal_reference_on_identity_is_the_maximum():
+    q = _unique_grid(4, 5)
+    assert spatial_score_literal(q, q) == max_raw_score(4, 5) == 4 * 5 * 5 + 5 * 4 * 4
+
+
+def test_identical_candidate_scores_one_with_zero_shift():
+    q = _unique_grid(13, 13, d=100)
+    r = spatial_scores(q, q[None])
+    assert r.raw[0] == max_raw_score(13, 13)
+    assert r.scores[0] == pytest.approx(1.0)
+    np.testing.assert_array_equal(r.shifts[0], [0, 0])
+
+
+def test_translated_candidate_has_the_translation_as_dominant_shift():
+    """Candidate cell (i, j) holds query cell (i, j + 2) (the grid rolled left by two columns,
+    wrapping). Its best query cell is (i, j + 2), so best - cell = (0, +2) for the gw - 2
+    columns that did not wrap and (0, -(gw - 2)) for the two that did."""
+    gh, gw = 7, 9
+    q = _unique_grid(gh, gw)
+    cand = np.roll(q, -2, axis=1)
+    assert np.array_equal(cand[3, 4], q[3, 6])
+    r = spatial_scores(q, cand[None])
+    np.testing.assert_array_equal(r.shifts[0], [0, 2])
+    # rows: groups of gw-2 and 2 cells; columns: one displacement each
+    expected = gh * ((gw - 2) ** 2 + 2**2) + gw * gh**2
+    assert r.raw[0] == expected == spatial_score_literal(q, cand)
+
+    down = np.roll(q, 3, axis=0)  # candidate (i, j) holds query (i - 3, j): shift (-3, 0)
+    r = spatial_scores(q, down[None])
+    np.testing.assert_array_equal(r.shifts[0], [-3, 0])
+
+
+def test_best_query_cells_is_nearest_in_l2_not_dot_product():
+    """A long vector has the largest dot product but is not the nearest."""
+    q = np.array([[[1.0, 0.0], [10.0, 0.0]]], np.float32)  # 1x2 grid
+    cand = np.array([[[[1.1, 0.0], [9.0, 0.0]]]], np.float32)
+    np.testing.assert_array_equal(best_query_cells(q, cand), [[[0, 1]]])
+
+
+def test_consistency_counts_on_hand_made_best_map():
+    # 2x3 grid: flat best-cell indices; displacements (row, col):
+    # row 0: cells -> (0,0),(0,1),(0,2): best 0,1,2 -> all (0,0)
+    # row 1: cells -> best 0 (=(0,0): disp (-1,0)), 4 (=(1,1): (0,0)), 2 (=(0,2): (-1,0))
+    best = np.array([[[0, 1, 2], [0, 4, 2]]])
+    raw, shifts = consistency_counts(best)
+    # rows: 3^2 + (2^2 + 1^2) = 14; columns: col0 {(0,0),(-1,0)} 1+1, col1 {(0,0),(0,0)} 4, col2 1+1 -> 8
+    assert raw[0] == 22
+    np.testing.assert_array_equal(shifts[0], [0, 0])  # 4 of 6 cells share (0, 0)
+    assert spatial_score_literal(*_grids_for_best(best[0])) == 22
+
+
+def _grids_for_best(best: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Query with one-hot cells and a candidate whose cell (i, j) copies query cell best[i, j]."""
+    gh, gw = best.shape
+    query = np.eye(gh * gw, dtype=np.float32).reshape(gh, gw, gh * gw)
+    cand = query.reshape(gh * gw, -1)[best.ravel()].reshape(gh, gw, -1)
+    return query, cand
+
+
+def test_scores_rank_a_clean_match_above_noise():
+    rng = np.random.default_rng(5)
+    q = _unique_grid(6, 6, d=16, seed=1)
+    noisy = q + 0.1 * rng.standard_normal(q.shape).astype(np.float32)
+    unrelated = rng.standard_normal((3, 6, 6, 16)).astype(np.float32)
+    r = spatial_scores(q, np.concatenate([unrelated, noisy[None]]))
+    assert int(np.argmax(r.scores)) == 3
+    assert r.scores[3] == pytest.approx(1.0)
+    assert (r.scores[:3] < 0.6).all()
+
+
+def test_empty_candidates_and_shape_mismatch():
+    q = _unique_grid(3, 3)
+    r = spatial_scores(q, np.empty((0, 3, 3, 8), np.float32))
+    assert r.scores.shape == (0,) and r.raw.shape == (0,) and r.shifts.shape == (0, 2)
+    with pytest.raises(ValueError, match="do not match"):
+        spatial_scores(q, np.zeros((2, 3, 4, 8), np.float32))
+    with pytest.raises(ValueError, match="do not match"):
+        spatial_scores(q, np.zeros((3, 3, 8), np.float32))
+
+
+@pytest.mark.parametrize("gh, gw", [(1, 1), (2, 3), (13, 13), (4, 7)])
+def test_max_raw_score_is_the_literal_identity_score(gh, gw):
+    q = _unique_grid(gh, gw, d=4, seed=gh * 10 + gw)
+    if gh * gw <= 30:
+        assert spatial_score_literal(q, q) == max_raw_score(gh, gw)
+    assert spatial_scores(q, q[None]).raw[0] == max_raw_score(gh, gw)
