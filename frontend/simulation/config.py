@@ -141,14 +141,19 @@ class RouteConfig(_Model):
 
     preset: str = Field("block_grid", description="block_grid | figure_eight | path to poses file")
     poses_format: Literal["auto", "tum", "kitti"] = "auto"
-    speed_mps: float = Field(11.0, gt=0.0)
+    speed_mps: float = Field(11.0, gt=0.0, description="cruise speed on straights")
     speed_variation: float = Field(0.08, ge=0.0, lt=0.9, description="relative amplitude")
     speed_variation_period_s: float = Field(25.0, gt=0.0)
+    max_lateral_accel_mps2: float = Field(3.0, gt=0.0, description="sets the cornering speed")
+    max_accel_mps2: float = Field(2.0, gt=0.0)
+    max_decel_mps2: float = Field(3.0, gt=0.0)
+    curvature_window_m: float = Field(1.0, gt=0.0, description="smoothing of the path curvature")
     laps: int = Field(2, ge=1, description="laps of the main loop (block_grid, figure_eight)")
-    turn_radius_m: float = Field(6.0, gt=0.0)
+    turn_radius_m: float = Field(7.0, gt=0.0)
     lane_offset_m: float = Field(-1.6, description="lateral offset from the centre line, + = left")
     lateral_wander_m: float = Field(0.25, ge=0.0, description="smooth lateral weaving amplitude")
     wander_wavelength_m: float = Field(70.0, gt=0.0)
+    path_smoothing_m: float = Field(3.0, ge=0.0, description="gaussian sigma easing curvature in and out of turns")
     path_resolution_m: float = Field(0.05, gt=0.0, description="sampling of the dense path")
     file_heading_smoothing_m: float = Field(2.0, ge=0.0, description="poses-file routes only")
 
@@ -208,8 +213,8 @@ class LidarConfig(_Model):
 class OdometryDriftConfig(_Model):
     """Error model of the logged ("wheel") odometry, integrated frame to frame."""
 
-    scale_error: float = Field(0.015, gt=-0.5, lt=0.5, description="relative distance error")
-    yaw_drift_rad_per_m: float = Field(2.5e-4, description="constant heading bias")
+    scale_error: float = Field(0.02, gt=-0.5, lt=0.5, description="relative distance error")
+    yaw_drift_rad_per_m: float = Field(5e-4, description="constant heading bias")
     yaw_bias_walk_rad_per_m_sqrt_m: float = Field(2e-5, ge=0.0, description="random walk of the bias")
     yaw_noise_rad_per_sqrt_m: float = Field(1e-3, ge=0.0)
     translation_noise_m_per_sqrt_m: float = Field(0.01, ge=0.0)

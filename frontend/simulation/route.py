@@ -4,7 +4,8 @@ A route is a dense planar path parameterised by arc length s: ``Route.pose_at(s)
 (x, y, yaw) with yaw along the direction of travel. Preset routes are polylines through street
 crossings with circular fillets at the corners, then shifted into the driving lane with a slow
 lateral weave (so later passes do not repeat earlier poses exactly). ``Route.arc_length_at(t)``
-maps time to s with a smoothly varying speed.
+maps time to s: the vehicle starts from rest, cruises at a slowly varying speed and slows
+down for corners (lateral acceleration limit) with bounded acceleration and braking.
 """
 
 from __future__ import annotations
@@ -21,10 +22,11 @@ from frontend.simulation.city import City
 from frontend.simulation.config import RouteConfig
 
 # Passes of the preset routes as crossings (i, j) = (street_x index, street_y index).
-# block_grid: loop A around two blocks (driven `laps` times), then loop B, which shares one
-# street with A in the same direction and two in the opposite direction, and adds new ones.
+# block_grid: loop A anticlockwise around two blocks (driven `laps` times), then loop B
+# clockwise around the right-hand block: a new street, then three of A's in the opposite
+# direction.
 _LOOP_A = [(1, 0), (2, 0), (2, 1), (0, 1), (0, 0), (1, 0)]
-_LOOP_B = [(1, 0), (1, 1), (0, 1), (0, 2), (2, 2), (2, 0), (1, 0)]
+_LOOP_B = [(1, 0), (1, 1), (2, 1), (2, 0), (1, 0)]
 # figure_eight: two blocks touching at crossing (1, 1), driven straight through it both ways.
 _EIGHT = [(1, 1), (0, 1), (0, 0), (1, 0), (1, 1), (1, 2), (2, 2), (2, 1), (1, 1)]
 
@@ -35,21 +37,22 @@ _HARMONIC_RATIO = 0.37
 
 @dataclass
 class Route:
-    """Dense path: arc length ``s`` (uniform), positions ``xy`` and unwrapped ``yaw``."""
+    """Dense path: arc length ``s`` (uniform), positions ``xy``, unwrapped ``yaw`` and the time
+    ``t`` at which the vehicle passes each sample (speed profile)."""
 
     s: np.ndarray
     xy: np.ndarray
     yaw: np.ndarray
+    t: np.ndarray
     pass_starts: np.ndarray  # arc length at which each pass (loop) begins
-    speed_mps: float
-    speed_variation: float
-    speed_period_s: float
-    speed_phases: np.ndarray
-    s_offset: float
 
     @property
     def length(self) -> float:
         return float(self.s[-1])
+
+    @property
+    def duration(self) -> float:
+        return float(self.t[-1])
 
     @property
     def n_passes(self) -> int:
@@ -67,14 +70,8 @@ class Route:
         return np.searchsorted(self.pass_starts, np.asarray(s, float), side="right") - 1
 
     def arc_length_at(self, t) -> np.ndarray:
-        """Distance driven at time t (seconds from the first frame): speed varies smoothly."""
-        t = np.asarray(t, float)
-        v0, a = self.speed_mps, self.speed_variation
-        out = self.s_offset + v0 * t
-        for w, ratio, ph in zip(_HARMONIC_WEIGHTS, (1.0, _HARMONIC_RATIO), self.speed_phases):
-            om = 2.0 * math.pi / (self.speed_period_s * ratio)
-            out = out - v0 * a * w / om * (np.cos(om * t + ph) - math.cos(ph))
-        return out
+        """Distance driven at time t (seconds since the start of the route); clamped."""
+        return np.interp(np.asarray(t, float), self.t, self.s)
 
 
 def read_poses_file(path: str | Path, fmt: str = "auto") -> tuple[np.ndarray | None, np.ndarray]:
@@ -204,7 +201,6 @@ def build_route(
     cfg: RouteConfig,
     city: City,
     seed: int,
-    scan_period_s: float = 0.0,
     poses_xy: np.ndarray | None = None,
 ) -> Route:
     """Build the dense route. ``poses_xy`` (N, 2) gives the path of a poses-file route."""
@@ -225,17 +221,8 @@ def build_route(
         xy = np.stack([np.interp(s, s_raw, pts[:, 0]), np.interp(s, s_raw, pts[:, 1])], axis=1)
         yaw = _heading(xy, step, cfg.file_heading_smoothing_m)
         _warn_off_road(city, xy, cfg.preset)
-        return Route(
-            s=s,
-            xy=xy,
-            yaw=yaw,
-            pass_starts=np.array([0.0]),
-            speed_mps=cfg.speed_mps,
-            speed_variation=cfg.speed_variation,
-            speed_period_s=cfg.speed_variation_period_s,
-            speed_phases=speed_phases,
-            s_offset=cfg.speed_mps * scan_period_s,
-        )
+        t = speed_profile(s, yaw, cfg, speed_phases)
+        return Route(s=s, xy=xy, yaw=yaw, t=t, pass_starts=np.array([0.0]))
 
     if abs(cfg.lane_offset_m) + cfg.lateral_wander_m >= cfg.turn_radius_m:
         raise FrontendInputError(
@@ -261,20 +248,51 @@ def build_route(
     s_l = _arclength(lane)
     s = np.arange(0.0, s_l[-1], step)
     xy = np.stack([np.interp(s, s_l, lane[:, 0]), np.interp(s, s_l, lane[:, 1])], axis=1)
+    if cfg.path_smoothing_m > 0:
+        # Gaussian smoothing eases curvature in and out of the arcs (like a clothoid), so the
+        # yaw rate ramps instead of jumping; then re-sample at uniform arc length.
+        xy = _gaussian_smooth(xy, cfg.path_smoothing_m / step)
+        s_sm = _arclength(xy)
+        s_new = np.arange(0.0, s_sm[-1], step)
+        xy = np.stack([np.interp(s_new, s_sm, xy[:, 0]), np.interp(s_new, s_sm, xy[:, 1])], axis=1)
+        s_l = s_l * (s_sm[-1] / s_l[-1])
+        s = s_new
     yaw = _heading(xy, step, 0.0)
     pass_starts = s_l[marks[first_index]]
     pass_starts[0] = 0.0
-    return Route(
-        s=s,
-        xy=xy,
-        yaw=yaw,
-        pass_starts=pass_starts,
-        speed_mps=cfg.speed_mps,
-        speed_variation=cfg.speed_variation,
-        speed_period_s=cfg.speed_variation_period_s,
-        speed_phases=speed_phases,
-        s_offset=cfg.speed_mps * scan_period_s,
-    )
+    t = speed_profile(s, yaw, cfg, speed_phases)
+    return Route(s=s, xy=xy, yaw=yaw, t=t, pass_starts=pass_starts)
+
+
+def speed_profile(s: np.ndarray, yaw: np.ndarray, cfg: RouteConfig, phases: np.ndarray) -> np.ndarray:
+    """Time at each arc-length sample: cruise speed with a slow variation, slowed in curves to
+    ``max_lateral_accel_mps2`` and limited in acceleration / braking; starts from rest."""
+    ds = float(s[1] - s[0]) if len(s) > 1 else 1.0
+    n_smooth = max(1, int(round(cfg.curvature_window_m / ds)))
+    kappa = np.abs(np.gradient(yaw, ds))
+    kappa = np.convolve(np.pad(kappa, n_smooth, mode="edge"), np.ones(2 * n_smooth + 1) / (2 * n_smooth + 1), "valid")
+    wavelength = cfg.speed_mps * cfg.speed_variation_period_s
+    v = cfg.speed_mps * (1.0 + cfg.speed_variation * _smooth_noise(s, wavelength, phases))
+    v = np.minimum(v, np.sqrt(cfg.max_lateral_accel_mps2 / np.maximum(kappa, 1e-9)))
+    v[0] = 0.0
+    # Forward (acceleration) and backward (braking) limits: v^2 changes by at most 2 a ds.
+    acc2, dec2 = 2.0 * cfg.max_accel_mps2 * ds, 2.0 * cfg.max_decel_mps2 * ds
+    v2 = v * v
+    for i in range(1, len(v2)):
+        v2[i] = min(v2[i], v2[i - 1] + acc2)
+    for i in range(len(v2) - 2, -1, -1):
+        v2[i] = min(v2[i], v2[i + 1] + dec2)
+    v = np.sqrt(v2)
+    dt = 2.0 * ds / np.maximum(v[1:] + v[:-1], 1e-9)
+    return np.concatenate([[0.0], np.cumsum(dt)])
+
+
+def _gaussian_smooth(xy: np.ndarray, sigma_samples: float) -> np.ndarray:
+    half = int(math.ceil(3 * sigma_samples))
+    k = np.exp(-0.5 * (np.arange(-half, half + 1) / sigma_samples) ** 2)
+    k /= k.sum()
+    padded = np.pad(xy, ((half, half), (0, 0)), mode="reflect", reflect_type="odd")
+    return np.stack([np.convolve(padded[:, i], k, mode="valid") for i in range(2)], axis=1)
 
 
 def _heading(xy: np.ndarray, step: float, smoothing_m: float) -> np.ndarray:

@@ -46,20 +46,19 @@ class TraverseSimulator:
             _, xyz = read_poses_file(cfg.route.preset, cfg.route.poses_format)
             poses_xy = xyz[:, :2]
         self.city: City = build_city(cfg.city, cfg.seed, cover_xy=poses_xy)
-        self.route: Route = build_route(cfg.route, self.city, cfg.seed, cfg.scan_period_s, poses_xy)
-        # Frame times: until the route ends (or max_frames).
+        self.route: Route = build_route(cfg.route, self.city, cfg.seed, poses_xy)
+        # Frame k ends its LiDAR sweep at route time scan_period + k / frame_rate (the first
+        # sweep starts when the vehicle sets off); frames run until the route ends.
         dt = 1.0 / cfg.frame_rate_hz
-        v_min = cfg.route.speed_mps * (1.0 - cfg.route.speed_variation)
-        n_upper = int((self.route.length - self.route.s_offset) / (v_min * dt)) + 2
-        t = np.arange(max(n_upper, 1)) * dt
-        s = self.route.arc_length_at(t)
-        n = int(np.searchsorted(s, self.route.length, side="right"))
+        t0 = cfg.scan_period_s
+        n = int(np.floor((self.route.duration - t0) / dt)) + 1 if self.route.duration >= t0 else 0
         if cfg.max_frames is not None:
             n = min(n, cfg.max_frames)
         if n < 1:
             raise FrontendInputError("route is too short for a single frame (route.preset / route.speed_mps)")
-        self.times = t[:n]
-        self.arc = s[:n]
+        self.route_times = t0 + np.arange(n) * dt
+        self.times = np.arange(n) * dt
+        self.arc = self.route.arc_length_at(self.route_times)
         x, y, yaw = self.route.pose_at(self.arc)
         self.xy_yaw = np.stack([x, y, yaw], axis=1)
         self.passes = self.route.pass_index(self.arc)
@@ -129,7 +128,7 @@ class TraverseSimulator:
             return None, None
         rng = np.random.default_rng([self.config.seed, _STREAM_LIDAR, k])
         if self.config.lidar.motion_distortion:
-            t = self.times[k] - self.lidar.period + self.lidar.col_times
+            t = self.route_times[k] - self.lidar.period + self.lidar.col_times
             xs, ys, yaws = self.route.pose_at(self.route.arc_length_at(t))
         else:
             xs, ys, yaws = self.xy_yaw[k]
@@ -162,7 +161,7 @@ class TraverseSimulator:
         )
         return {
             "frames": len(self),
-            "duration_s": float(self.times[-1]) if len(self) else 0.0,
+            "duration_s": float(self.times[-1]),
             "length_m": float(self.arc[-1] - self.arc[0]),
             "passes": int(self.passes.max()) + 1,
             "revisit_frames": int((rev >= 0).sum()),
