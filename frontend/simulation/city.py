@@ -71,7 +71,9 @@ N_MATERIALS = 20
 _GRAINY = np.zeros(N_MATERIALS, bool)
 _GRAINY[[M_WALL, M_COURSE, M_CORNICE, M_PLINTH, M_ALLEY]] = True
 G_PLOT, G_ASPHALT, G_SIDEWALK, G_JOINT, G_KERB, G_MARKING = range(6)
-_GROUND_COLOURS = np.array([_PLOT, _ASPHALT, _SIDEWALK, _SIDEWALK * 0.8, _SIDEWALK * 1.25, _MARKING], np.float32)
+_GROUND_COLOURS = np.array(
+    [_PLOT, _ASPHALT, _SIDEWALK, _SIDEWALK * 0.8, _SIDEWALK * 1.25, _MARKING], np.float32
+)
 
 # Proportions of the procedural textures (metres unless a fraction).
 _FRAME_M = 0.12  # window frame width
@@ -115,7 +117,8 @@ def hash_u32(*keys) -> np.ndarray:
             k = np.asarray(k)
             if k.dtype.kind == "f":
                 k = np.floor(k)
-            h = (h + k.astype(np.int64).astype(np.uint32) * mult) * np.uint32(0x85EBCA77)
+            k = k.astype(np.int32).view(np.uint32)  # two's complement bits of small integers
+            h = (h + k * mult) * np.uint32(0x85EBCA77)
     return _mix32(_mix32(np.asarray(h, dtype=np.uint32)))
 
 
@@ -224,7 +227,8 @@ class City:
         factor = np.where(_GRAINY[mat], 1.0 + _GRAIN_AMPLITUDE * (grain - 0.5), 1.0).astype(np.float32)
         rgb *= factor[:, None]
         glassy = (mat == M_GLASS) | (mat == M_SHOP)
-        hw = hash_u32(self.seed, _H_GLASS, sid, np.where(mat == M_SHOP, shop_col, col), np.where(mat == M_SHOP, -1, storey))
+        is_shop = mat == M_SHOP
+        hw = hash_u32(self.seed, _H_GLASS, sid, np.where(is_shop, shop_col, col), np.where(is_shop, -1, storey))
         sheen = (hw & np.uint32(0xFFFF)).astype(np.float32) * np.float32(1.0 / 65536)
         wkey = (hw >> np.uint32(16)).astype(np.float32) * np.float32(1.0 / 65536)
         wv = np.clip((fr - sill) / np.maximum(hf, 1e-3), 0.0, 1.0)
@@ -282,7 +286,11 @@ class City:
         factor = np.where(
             mat == G_ASPHALT,
             1.0 + d * 0.12 * fine + 0.25 * patch,
-            np.where((mat == G_SIDEWALK) | (mat == G_JOINT), 1.0 + d * 0.15 * tiles, 1.0 - 0.15 * d * (fine + 0.5)),
+            np.where(
+                (mat == G_SIDEWALK) | (mat == G_JOINT),
+                1.0 + d * 0.15 * tiles,
+                1.0 - 0.15 * d * (fine + 0.5),
+            ),
         ).astype(np.float32)
         return _GROUND_COLOURS[mat] * factor[:, None]
 
@@ -431,7 +439,8 @@ def build_city(config: CityConfig, seed: int, cover_xy: np.ndarray | None = None
                 t = lo
                 while t + cfg.car_slot_length_m < hi:
                     mid = t + cfg.car_slot_length_m / 2
-                    if np.min(np.abs(cross - mid)) > clear + car_l / 2 and rng.random() < cfg.parked_car_probability:
+                    away = np.min(np.abs(cross - mid)) > clear + car_l / 2
+                    if away and rng.random() < cfg.parked_car_probability:
                         off = side * (rh - cfg.car_kerb_gap_m - car_w / 2)
                         jitter = rng.uniform(-0.5, 0.5)
                         cx, cy = (c + off, mid + jitter) if axis == "x" else (mid + jitter, c + off)

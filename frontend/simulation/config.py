@@ -153,7 +153,7 @@ class RouteConfig(_Model):
     lane_offset_m: float = Field(-1.6, description="lateral offset from the centre line, + = left")
     lateral_wander_m: float = Field(0.25, ge=0.0, description="smooth lateral weaving amplitude")
     wander_wavelength_m: float = Field(70.0, gt=0.0)
-    path_smoothing_m: float = Field(3.0, ge=0.0, description="gaussian sigma easing curvature in and out of turns")
+    path_smoothing_m: float = Field(3.0, ge=0.0, description="gaussian sigma easing turns in and out")
     path_resolution_m: float = Field(0.05, gt=0.0, description="sampling of the dense path")
     file_heading_smoothing_m: float = Field(2.0, ge=0.0, description="poses-file routes only")
 

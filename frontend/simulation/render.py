@@ -119,10 +119,12 @@ class CameraRenderer:
         img = np.empty((H * W, 3), np.float32)
         flat_layer = layer.ravel()
 
+        lit_colour = np.float32(app.lit_window_strength) * np.asarray(app.lit_window_colour, np.float32)
+
         def finish(idx, albedo, shade, dist, emissive=None):
             col = albedo * (shade * gain_tint)
             if emissive is not None:
-                col += emissive[:, None] * (app.lit_window_strength * np.asarray(app.lit_window_colour, np.float32))
+                col += emissive[:, None] * lit_colour
             fog = (1.0 - np.exp(-dist / np.float32(app.fog_distance_m)))[:, None]
             img[idx] = col * (1.0 - fog) + hor * fog
 
@@ -138,7 +140,8 @@ class CameraRenderer:
             u = (city.u0[seg] + uk[cols, k] * length).astype(np.float32)
             v = h_cam + t * self.slope[rows]
             albedo, key = city.wall_albedo(city.surface[seg], u, v)
-            shade = (app.ambient + app.sun_strength * np.clip(city.normal[seg] @ sun, 0.0, None)).astype(np.float32)
+            shade = app.ambient + app.sun_strength * np.clip(city.normal[seg] @ sun, 0.0, None)
+            shade = shade.astype(np.float32)
             lit = (key < app.lit_window_fraction).astype(np.float32)
             finish(idx, albedo, shade[:, None], t * self.ray_norm[cols], lit)
 
@@ -196,7 +199,11 @@ class LidarRenderer:
         # Unit ray directions in the sensor frame, (beams, azimuths, 3).
         ce, se = np.cos(self.elev)[:, None], np.sin(self.elev)[:, None]
         self.dirs = np.stack(
-            [ce * np.cos(self.az)[None, :], ce * np.sin(self.az)[None, :], np.broadcast_to(se, (config.beams, n))],
+            [
+                ce * np.cos(self.az)[None, :],
+                ce * np.sin(self.az)[None, :],
+                np.broadcast_to(se, (config.beams, n)),
+            ],
             axis=-1,
         )
 

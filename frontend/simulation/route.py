@@ -203,7 +203,13 @@ def build_route(
     seed: int,
     poses_xy: np.ndarray | None = None,
 ) -> Route:
-    """Build the dense route. ``poses_xy`` (N, 2) gives the path of a poses-file route."""
+    """Build the dense route. ``poses_xy`` (N, 2) gives the path of a poses-file route.
+
+    A poses file contributes its positions' x, y only (poses are taken as z-up body poses, as
+    kiss-icp and this project write them); its orientations and timestamps are ignored: the
+    heading follows the path and the vehicle drives it with the configured speed profile.
+    Lane offset, weaving and corner easing apply to preset routes only.
+    """
     rng = np.random.default_rng([seed, 4409])
     wander_phases = rng.uniform(0, 2 * math.pi, 2)
     speed_phases = rng.uniform(0, 2 * math.pi, 2)
@@ -270,7 +276,8 @@ def speed_profile(s: np.ndarray, yaw: np.ndarray, cfg: RouteConfig, phases: np.n
     ds = float(s[1] - s[0]) if len(s) > 1 else 1.0
     n_smooth = max(1, int(round(cfg.curvature_window_m / ds)))
     kappa = np.abs(np.gradient(yaw, ds))
-    kappa = np.convolve(np.pad(kappa, n_smooth, mode="edge"), np.ones(2 * n_smooth + 1) / (2 * n_smooth + 1), "valid")
+    box = np.ones(2 * n_smooth + 1) / (2 * n_smooth + 1)
+    kappa = np.convolve(np.pad(kappa, n_smooth, mode="edge"), box, "valid")
     wavelength = cfg.speed_mps * cfg.speed_variation_period_s
     v = cfg.speed_mps * (1.0 + cfg.speed_variation * _smooth_noise(s, wavelength, phases))
     v = np.minimum(v, np.sqrt(cfg.max_lateral_accel_mps2 / np.maximum(kappa, 1e-9)))

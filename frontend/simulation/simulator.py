@@ -38,7 +38,9 @@ class TraverseSimulator:
 
     def __init__(self, config: SimulationConfig):
         if not isinstance(config, SimulationConfig):
-            raise FrontendInputError(f"simulation config must be a SimulationConfig, got {type(config).__name__}")
+            raise FrontendInputError(
+                f"simulation config must be a SimulationConfig, got {type(config).__name__}"
+            )
         self.config = config
         cfg = config
         poses_xy = None
@@ -215,7 +217,9 @@ def ground_truth_revisits(
 def default_demo_config(**overrides) -> SimulationConfig:
     """The demo traverse: loop A around two blocks twice by day, then loop B at dusk.
 
-    About 420 frames at 5 Hz over ~930 m with same- and opposite-direction revisits.
+    456 frames at 5 Hz over ~706 m (91 s) with same-direction revisits (lap 2) and
+    opposite-direction revisits (loop B drives three of A's streets the other way).
+    Keyword arguments override top-level config fields.
     """
     data = {"appearance_schedule": ["day", "day", "dusk"]}
     data.update(overrides)

@@ -130,7 +130,8 @@ def test_trajectory_is_smooth_and_planar(sim):
 
 
 def test_figure_eight_crosses_itself():
-    s = TraverseSimulator(SimulationConfig(route={"preset": "figure_eight", "laps": 2}, camera={"enabled": False}))
+    cfg = SimulationConfig(route={"preset": "figure_eight", "laps": 2}, camera={"enabled": False})
+    s = TraverseSimulator(cfg)
     xy = s.gt_positions()
     centre = s.city.node(1, 1)
     near = np.nonzero(np.linalg.norm(xy - centre, axis=1) < 3.0)[0]
@@ -157,7 +158,8 @@ def test_poses_file_routes(tmp_path):
     # A straight drive along the street y = 0, in TUM and KITTI formats.
     xs = np.linspace(2.0, 80.0, 40)
     tum = tmp_path / "route_tum.txt"
-    tum.write_text("# t x y z qx qy qz qw\n" + "".join(f"{i * 0.5} {x} -1.5 0 0 0 0 1\n" for i, x in enumerate(xs)))
+    rows = "".join(f"{i * 0.5} {x} -1.5 0 0 0 0 1\n" for i, x in enumerate(xs))
+    tum.write_text("# t x y z qx qy qz qw\n" + rows)
     kitti = tmp_path / "route_kitti.txt"
     kitti.write_text("".join(f"1 0 0 {x} 0 1 0 -1.5 0 0 1 0\n" for x in xs))
     for path in (tum, kitti):
