@@ -37,7 +37,7 @@ class CityConfig(_Model):
     outer_ring_blocks: int = Field(1, ge=1, description="rings of blocks beyond the outer streets")
     block_size_m: float = Field(30.0, gt=5.0, description="block edge, kerb to kerb of the plot")
     street_width_m: float = Field(16.0, gt=4.0, description="plot line to plot line")
-    sidewalk_width_m: float = Field(3.0, ge=0.0)
+    sidewalk_width_m: float = Field(2.5, ge=0.0)
     building_width_range_m: tuple[float, float] = (8.0, 16.0)
     building_depth_m: float = Field(10.0, gt=1.0, description="length of the side walls")
     setback_range_m: tuple[float, float] = Field((0.0, 2.5), description="facade behind plot line")

@@ -129,6 +129,16 @@ def test_trajectory_is_smooth_and_planar(sim):
     assert R[2, 2] == pytest.approx(1.0)
 
 
+def test_route_keeps_clear_of_walls_cars_and_poles(sim):
+    xy = sim.route.xy[::20]
+    city = sim.city
+    e = city.p1 - city.p0
+    w = xy[:, None] - city.p0[None]
+    f = np.clip((w * e[None]).sum(-1) / (e * e).sum(-1), 0, 1)
+    d = np.linalg.norm(w - f[..., None] * e[None], axis=-1)
+    assert d.min() > 1.3
+
+
 def test_figure_eight_crosses_itself():
     cfg = SimulationConfig(route={"preset": "figure_eight", "laps": 2}, camera={"enabled": False})
     s = TraverseSimulator(cfg)
