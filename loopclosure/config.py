@@ -145,3 +145,9 @@ class DetectorConfig(_Strict):
     )
     min_score: float = Field(default=0.2, ge=0.0, le=1.0, description="Stage-II score below which nothing is proposed.")
     gate: SequenceGateConfig = SequenceGateConfig()
+    pca_warmup_keyframes: int = Field(
+        default=40, ge=2, description="Without codebooks, fit PCA on the first keyframes, then start querying."
+    )
+    codebooks: str | None = Field(default=None, description="Codebooks (.npz from fit-pca) to use from the first keyframe.")
+    camera_hfov_deg: float = Field(default=90.0, gt=0.0, lt=180.0, description="Turns a grid column shift into a yaw guess.")
+

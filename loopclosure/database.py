@@ -166,7 +166,10 @@ class PlaceDatabase:
             )
         n = int(manifest["num_places"])
         db = cls(Codebooks.load(folder / "codebooks.npz"), DatabaseConfig(**manifest["config"]))
-        places = json.loads((folder / "places.json").read_text())
+        try:
+            places = json.loads((folder / "places.json").read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise LoopClosureInputError(f"cannot read {folder / 'places.json'}: {exc}") from None
         if n == 0:
             return db
         stage1, stage2 = (_load_npy(folder / name, n) for name in ("stage1.npy", "stage2.npy"))

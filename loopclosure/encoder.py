@@ -96,28 +96,50 @@ class Encoder:
         self, images: Iterable[np.ndarray], on_batch: Callable[[int], None] | None, keep_raw: bool
     ) -> tuple[Codebooks, list[RawCubes]]:
         raws: list[RawCubes] = []
-        stage1: list[np.ndarray] = []
-        stage2: list[np.ndarray] = []
-        rng = np.random.default_rng(self.config.spatial.pca.seed)
-        per_image = _per_image_budget(self.config)
+        samples = _FitSamples(self.config)
         for batch in _batches(images, self.config.backbone.batch_size):
             raw = self.raw_cubes(batch)
+            samples.add(raw)
             if keep_raw:
                 raws.append(raw)
-            stage1.append(raw.stage1.reshape(-1, raw.stage1.shape[-1]))
-            grid = raw.stage2.reshape(raw.stage2.shape[0], -1, raw.stage2.shape[-1])
-            keep = min(per_image, grid.shape[1])
-            for cells in grid:  # a seeded subset of each image's grid keeps memory bounded
-                stage2.append(cells[np.sort(rng.choice(grid.shape[1], keep, replace=False))])
             if on_batch is not None:
                 on_batch(len(batch))
-        if not stage1:
-            raise LoopClosureInputError("no images to fit the PCA codebooks on")
-        self.codebooks = Codebooks(
-            fit_pca(np.concatenate(stage1), self.config.filtering.pca, "stage-I PCA"),
-            fit_pca(np.concatenate(stage2), self.config.spatial.pca, "stage-II PCA"),
-        )
+        self.codebooks = samples.fit()
         return self.codebooks, raws
+
+    def fit_codebooks_from_raw(self, raws: Iterable[RawCubes]) -> Codebooks:
+        """Fit on cubes already computed (a streaming detector's first keyframes)."""
+        samples = _FitSamples(self.config)
+        for raw in raws:
+            samples.add(raw)
+        self.codebooks = samples.fit()
+        return self.codebooks
+
+
+class _FitSamples:
+    """Cube vectors collected for fitting; a seeded subset of each grid keeps memory bounded."""
+
+    def __init__(self, config: VPRConfig) -> None:
+        self.config = config
+        self.stage1: list[np.ndarray] = []
+        self.stage2: list[np.ndarray] = []
+        self.rng = np.random.default_rng(config.spatial.pca.seed)
+        self.per_image = _per_image_budget(config)
+
+    def add(self, raw: RawCubes) -> None:
+        self.stage1.append(raw.stage1.reshape(-1, raw.stage1.shape[-1]))
+        grid = raw.stage2.reshape(raw.stage2.shape[0], -1, raw.stage2.shape[-1])
+        keep = min(self.per_image, grid.shape[1])
+        for cells in grid:
+            self.stage2.append(cells[np.sort(self.rng.choice(grid.shape[1], keep, replace=False))])
+
+    def fit(self) -> Codebooks:
+        if not self.stage1:
+            raise LoopClosureInputError("no images to fit the PCA codebooks on")
+        return Codebooks(
+            fit_pca(np.concatenate(self.stage1), self.config.filtering.pca, "stage-I PCA"),
+            fit_pca(np.concatenate(self.stage2), self.config.spatial.pca, "stage-II PCA"),
+        )
 
 
 def _per_image_budget(config: VPRConfig) -> int:

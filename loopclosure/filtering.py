@@ -38,7 +38,10 @@ def vote(
         raise ValueError(f"stage-I query must be (n, {dim}), got {query.shape}")
     allowed = np.ones(n_places, dtype=bool)
     if excluded is not None and len(excluded):
-        allowed[np.asarray(excluded, dtype=np.int64)] = False
+        excluded = np.asarray(excluded, dtype=np.int64)
+        if excluded.min() < 0 or excluded.max() >= n_places:
+            raise ValueError(f"excluded place indices must lie in [0, {n_places}), got {excluded.min()}..{excluded.max()}")
+        allowed[excluded] = False
     n_allowed = int(allowed.sum())
     if n_allowed == 0:
         return Candidates(np.empty(0, np.int64), np.empty(0, np.int64), np.empty(0, np.float32))

@@ -72,10 +72,10 @@ def fit_pca(samples: np.ndarray, config: PCAConfig, name: str = "PCA") -> PCAPro
     if samples.ndim != 2:
         raise LoopClosureInputError(f"{name}: samples must be (n, D), got {samples.shape}")
     n, dim_in = samples.shape
-    if n < config.dim or dim_in < config.dim:
+    if min(n, config.max_fit_samples) < config.dim or dim_in < config.dim:
         raise LoopClosureInputError(
-            f"{name}: {n} samples of {dim_in} dims cannot give {config.dim} components; "
-            f"fit on more images or lower pca.dim"
+            f"{name}: {min(n, config.max_fit_samples)} samples (of {n}, max_fit_samples={config.max_fit_samples}) "
+            f"of {dim_in} dims cannot give {config.dim} components; fit on more images or lower pca.dim"
         )
     if not np.isfinite(samples).all():
         raise LoopClosureInputError(f"{name}: samples contain NaN or inf")

@@ -47,6 +47,16 @@ class Recognizer:
             raise LoopClosureInputError(f"query one place at a time, got {len(codes)}")
         filtering = self.config.filtering
         candidates = self.database.filter(codes.stage1[0], filtering.k_neighbours, filtering.num_candidates, excluded)
+        return self.rerank(codes, candidates, boosted, excluded)
+
+    def rerank(
+        self,
+        codes: PlaceCodes,
+        candidates: Candidates,
+        boosted: np.ndarray | None = None,
+        excluded: np.ndarray | None = None,
+    ) -> Recognition:
+        """Stage II on given stage-I candidates (plus any boosted places not excluded)."""
         places = candidates.places
         boost = np.zeros(len(places), np.float32)
         if boosted is not None and len(boosted):

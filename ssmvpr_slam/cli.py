@@ -100,6 +100,77 @@ def vpr_eval(
     run_vpr_eval(ref, query, cfg, gt, sequential, pca, console)
 
 
+@app.command("simulate")
+@friendly_errors
+def simulate(
+    out: Annotated[Path, typer.Option("--out", "-o", help="MCAP file to write.")] = Path("demo.mcap"),
+    frames: Annotated[Optional[int], typer.Option(help="Stop after this many frames.")] = None,
+    seed: Annotated[Optional[int], typer.Option(help="Seed of city textures, noise and drift.")] = None,
+    sim_config: Annotated[Optional[Path], typer.Option("--sim-config", help="SimulationConfig YAML.")] = None,
+    config: ConfigOpt = None,
+) -> None:
+    """Render a loopy city traverse (camera, LiDAR, ground truth, drifting odometry) to MCAP."""
+    from frontend.simulation.config import SimulationConfig
+    from ssmvpr_slam.runner import demo_frames_config, simulate_to_mcap
+
+    cfg = demo_frames_config(_config(config))
+    if sim_config is not None:
+        cfg.simulation = SimulationConfig.from_yaml(sim_config)
+    updates = {k: v for k, v in {"max_frames": frames, "seed": seed}.items() if v is not None}
+    cfg.simulation = cfg.simulation.model_copy(update=updates)
+    simulate_to_mcap(cfg, out, console)
+    console.print(f"wrote [bold]{out}[/bold]")
+
+
+@app.command("run")
+@friendly_errors
+def run(
+    log: Annotated[Path, typer.Argument(help="MCAP log, KITTI sequence folder, or image folder with poses.")],
+    odometry: Annotated[Optional[str], typer.Option(help="kiss-icp | logged")] = None,
+    map_dir: Annotated[Optional[Path], typer.Option("--map", help="Place database of an earlier run to close loops against.")] = None,
+    no_lidar_loops: Annotated[bool, typer.Option("--no-lidar-loops", help="Ignore scans for loop registration (place prior).")] = False,
+    inject_wrong_loops: Annotated[float, typer.Option(help="Test option: share of keyframes given a wrong loop factor.")] = 0.0,
+    config: ConfigOpt = None,
+    weights: WeightsOpt = None,
+    device: DeviceOpt = None,
+    out: OutOpt = None,
+) -> None:
+    """Process a logged traverse end to end: odometry, SSM-VPR loops, iSAM2, evaluation."""
+    from ssmvpr_slam.runner import run_log
+
+    cfg = _config(config, weights, device, out)
+    if odometry is not None:
+        cfg.frontend.odometry.kind = {"kiss-icp": "kiss_icp", "kiss_icp": "kiss_icp", "logged": "logged"}.get(odometry, odometry)  # type: ignore[assignment]
+    if no_lidar_loops:
+        cfg.pipeline.use_lidar_for_loops = False
+    run_log(log, cfg, map_dir, inject_wrong_loops, console)
+
+
+@app.command("demo")
+@friendly_errors
+def demo(
+    frames: Annotated[Optional[int], typer.Option(help="Shorten the traverse (default: the full demo).")] = None,
+    odometry: Annotated[str, typer.Option(help="kiss-icp | logged")] = "kiss-icp",
+    config: ConfigOpt = None,
+    weights: WeightsOpt = None,
+    device: DeviceOpt = None,
+    out: OutOpt = None,
+) -> None:
+    """Simulate the default loopy traverse, run it, evaluate, and print before/after."""
+    from ssmvpr_slam.runner import demo_frames_config, run_log, simulate_to_mcap
+
+    cfg = demo_frames_config(_config(config, weights, device, out))
+    if frames is not None:
+        cfg.simulation = cfg.simulation.model_copy(update={"max_frames": frames})
+    cfg.frontend.odometry.kind = "kiss_icp" if odometry.replace("-", "_") == "kiss_icp" else "logged"  # type: ignore[assignment]
+    if cfg.frontend.odometry.kind == "logged":
+        cfg.pipeline.use_lidar_for_loops = False
+    log = Path(cfg.results.out_dir) / "demo.mcap"
+    log.parent.mkdir(parents=True, exist_ok=True)
+    simulate_to_mcap(cfg, log, console)
+    run_log(log, cfg, console=console, name="demo")
+
+
 @app.command("fit-pca")
 @friendly_errors
 def fit_pca(

@@ -18,6 +18,7 @@ from frontend.config import FrontendConfig
 from frontend.simulation.config import SimulationConfig
 from loopclosure.config import DetectorConfig, VPRConfig
 from ssmvpr_slam.backend.config import BackendConfig
+from ssmvpr_slam.evaluation.config import EvaluationConfig
 
 PRESETS_DIR = Path(__file__).resolve().parents[1] / "configs"
 
@@ -44,6 +45,12 @@ class ResultsConfig(BaseModel):
     plots: bool = True
 
 
+class PipelineConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    use_lidar_for_loops: bool = Field(default=True, description="Register loops by ICP when scans exist.")
+
+
 class SlamConfig(BaseSettings):
     model_config = SettingsConfigDict(env_prefix="SSMVPR_", env_nested_delimiter="__", extra="forbid")
 
@@ -53,6 +60,8 @@ class SlamConfig(BaseSettings):
     frontend: FrontendConfig = FrontendConfig()
     simulation: SimulationConfig = SimulationConfig()
     backend: BackendConfig = BackendConfig()
+    evaluation: EvaluationConfig = EvaluationConfig()
+    pipeline: PipelineConfig = PipelineConfig()
     results: ResultsConfig = ResultsConfig()
 
     @classmethod
@@ -92,12 +101,14 @@ def _merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
 
 
 def load_config(config: str | Path | None = None, overrides: dict[str, Any] | None = None) -> SlamConfig:
-    """`config` is a preset name (see `configs/`), a YAML path, or None for the defaults.
+    """`config` is a preset name (see `configs/`), a YAML path, or None for the `default` preset.
 
     A YAML file may name a base preset with `preset: NAME`; its keys then override that preset's.
     """
     data: dict[str, Any] = {}
     source = "defaults"
+    if config is None and (PRESETS_DIR / "default.yaml").is_file():
+        config = "default"
     if config is not None:
         path = Path(config)
         if not path.is_file():

@@ -1,0 +1,181 @@
+"""Streaming loop-closure detection: one keyframe in, at most one gated proposal out.
+
+Per keyframe: one backbone pass; stage I against the database minus an exclusion window
+(the most recent keyframes and the last metres travelled, which always look alike); stage
+II re-ranking; the sequence gate; then the keyframe joins the database. Without codebooks
+the first keyframes are buffered, PCA is fitted on them, and querying starts afterwards.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from loopclosure.config import DetectorConfig, VPRConfig, feature_side, grid_side
+from loopclosure.database import PlaceDatabase, PlaceInfo
+from loopclosure.encoder import Encoder, PlaceCodes, RawCubes
+from loopclosure.errors import LoopClosureInputError
+from loopclosure.recognizer import Recognizer
+from loopclosure.sequence_gate import SequenceGate
+
+
+@dataclass
+class LoopProposal:
+    """The best recognition of one keyframe and what the gate made of it."""
+
+    query_id: int
+    match_id: int  # keyframe id (PlaceInfo.frame_id) of the matched place
+    match_place: int  # database index of the matched place
+    score: float  # stage-II score in [0, 1]
+    stage1_score: float
+    column_shift: int  # dominant grid column displacement (query minus match)
+    yaw_guess: float  # rad, rotation of the query about z relative to the match, from the shift
+    accepted: bool
+    reason: str
+    direction: Literal["forward", "reverse"] | None = None
+    prior_map: bool = False  # the match comes from a database loaded from an earlier session
+
+
+@dataclass
+class DetectorTimings:
+    """Seconds spent per stage in the last `process` call."""
+
+    backbone: float = 0.0
+    database_query: float = 0.0
+    spatial_matching: float = 0.0
+    gate: float = 0.0
+
+
+@dataclass
+class _SessionPlace:
+    place: int
+    keyframe: int
+    travelled: float
+
+
+class LoopDetector:
+    def __init__(
+        self, vpr: VPRConfig, config: DetectorConfig, encoder: Encoder, database: PlaceDatabase | None = None
+    ) -> None:
+        self.vpr = vpr
+        self.config = config
+        self.encoder = encoder
+        self.database = database
+        if database is not None:
+            encoder.codebooks = database.codebooks
+        self.prior_places = len(database) if database is not None else 0
+        self._recognizer = Recognizer(vpr, database) if database is not None else None
+        self.gate = SequenceGate(config.gate)
+        self.timings = DetectorTimings()
+        self._session: list[_SessionPlace] = []
+        self._warmup: list[tuple[RawCubes, PlaceInfo, float]] = []
+        self._travelled = 0.0
+        self._last_position: np.ndarray | None = None
+        self._place_keyframe: dict[int, int] = {}
+        gw = grid_side(feature_side(vpr.backbone.stage2_layer, vpr.backbone.input_size), vpr.spatial.cubes)
+        self._yaw_per_column = math.radians(config.camera_hfov_deg) / gw
+
+    @property
+    def ready(self) -> bool:
+        return self.database is not None
+
+    def process(
+        self, image: np.ndarray, keyframe_id: int, position: np.ndarray | None = None, timestamp: float = float("nan")
+    ) -> LoopProposal | None:
+        """Recognise keyframe `keyframe_id` against earlier places, then add it as a place."""
+        self.timings = DetectorTimings()
+        self._advance(position)
+        start = time.perf_counter()
+        prepared = self.encoder.prepare(image, f"keyframe {keyframe_id} image")
+        raw = self.encoder.raw_cubes([prepared])
+        info = PlaceInfo(frame_id=keyframe_id, timestamp=timestamp, extra={"session": "current"})
+        if self.database is None:
+            self.timings.backbone = time.perf_counter() - start
+            self._warm_up(raw, info)
+            return None
+        codes = self.encoder.project(raw)
+        self.timings.backbone = time.perf_counter() - start
+        proposal = self._query(codes, keyframe_id)
+        self._add(codes, info)
+        return proposal
+
+    def _advance(self, position: np.ndarray | None) -> None:
+        if position is None:
+            return
+        position = np.asarray(position, dtype=np.float64).reshape(-1)[:3]
+        if not np.isfinite(position).all():
+            raise LoopClosureInputError(f"keyframe position is not finite: {position}")
+        if self._last_position is not None:
+            self._travelled += float(np.linalg.norm(position - self._last_position))
+        self._last_position = position
+
+    def _warm_up(self, raw: RawCubes, info: PlaceInfo) -> None:
+        """Buffer cubes until PCA can be fitted (or use configured codebooks at once)."""
+        if self.config.codebooks is not None:
+            from loopclosure.pca import Codebooks
+
+            self.encoder.codebooks = Codebooks.load(self.config.codebooks)
+        self._warmup.append((raw, info, self._travelled))
+        if self.encoder.codebooks is None and len(self._warmup) < self.config.pca_warmup_keyframes:
+            return
+        if self.encoder.codebooks is None:
+            self.encoder.codebooks = self.encoder.fit_codebooks_from_raw([r for r, _, _ in self._warmup])
+        self.database = PlaceDatabase(self.encoder.codebooks, self.vpr.database)
+        self._recognizer = Recognizer(self.vpr, self.database)
+        for raw_i, info_i, travelled in self._warmup:
+            place = self._add(self.encoder.project(raw_i), info_i, travelled)
+            self.gate.observe(place, None)
+        self._warmup.clear()
+
+    def _add(self, codes: PlaceCodes, info: PlaceInfo, travelled: float | None = None) -> int:
+        assert self.database is not None
+        place = self.database.add(codes, info)[0]
+        self._session.append(_SessionPlace(place, info.frame_id, self._travelled if travelled is None else travelled))
+        return place
+
+    def _excluded(self) -> np.ndarray:
+        """Session places too recent in keyframes or in travelled distance to be loop candidates."""
+        recent = self._session[-self.config.exclusion_keyframes :] if self.config.exclusion_keyframes else []
+        near = [p for p in self._session if self._travelled - p.travelled < self.config.exclusion_distance]
+        return np.array(sorted({p.place for p in recent} | {p.place for p in near}), dtype=np.int64)
+
+    def _query(self, codes: PlaceCodes, keyframe_id: int) -> LoopProposal | None:
+        assert self.database is not None
+        start = time.perf_counter()
+        filtering = self.vpr.filtering
+        excluded = self._excluded()
+        candidates = self.database.filter(codes.stage1[0], filtering.k_neighbours, filtering.num_candidates, excluded)
+        self.timings.database_query = time.perf_counter() - start
+        start = time.perf_counter()
+        recognition = self._recognizer.rerank(codes, candidates)
+        self.timings.spatial_matching = time.perf_counter() - start
+
+        start = time.perf_counter()
+        best = recognition.best_place
+        query_place = len(self.database)  # the gate works in place indices: unique across sessions
+        if best is None or recognition.best_score < self.config.min_score:
+            self.gate.observe(query_place, None)
+            self.timings.gate = time.perf_counter() - start
+            return None
+        match_id = self.database.places[best].frame_id
+        decision = self.gate.decide(query_place, best)
+        self.gate.observe(query_place, best)
+        self.timings.gate = time.perf_counter() - start
+        shift = int(recognition.ranked_shifts[0][1])
+        return LoopProposal(
+            query_id=keyframe_id,
+            match_id=match_id,
+            match_place=best,
+            score=recognition.best_score,
+            stage1_score=float(candidates.scores[candidates.places == best][0]) if np.any(candidates.places == best) else 0.0,
+            column_shift=shift,
+            yaw_guess=shift * self._yaw_per_column,
+            accepted=decision.accepted,
+            reason=decision.reason,
+            direction=decision.direction,
+            prior_map=best < self.prior_places,
+        )

@@ -1,0 +1,249 @@
+"""The main loop: frames -> odometry -> keyframes -> SSM-VPR loops -> iSAM2 pose graph.
+
+Mirrors kiss-icp's `OdometryPipeline`: one class owns the loop, the sources and the
+results. A stop request (Ctrl-C, SIGTERM) ends the loop after the current frame; what was
+processed so far is optimised and written like a finished run, so results are never half
+written.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import time
+from collections import Counter
+from collections.abc import Iterable
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from typing import Iterator
+
+import numpy as np
+
+from frontend.frame import Frame
+from frontend.keyframes import KeyframeSelector
+from frontend.odometry.base import Odometry
+from loopclosure.backbone import Backbone
+from loopclosure.database import PlaceDatabase
+from loopclosure.detector import LoopDetector, LoopProposal
+from loopclosure.encoder import Encoder
+from ssmvpr_slam.backend.loop_registration import LoopRegistrar, LoopRegistration
+from ssmvpr_slam.backend.pose_graph import PoseGraph
+from ssmvpr_slam.config import SlamConfig
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Keyframe:
+    """What the back end and the evaluation keep of a keyframe (scans voxel-downsampled)."""
+
+    id: int
+    frame_index: int
+    timestamp: float
+    odom_pose: np.ndarray
+    gt_pose: np.ndarray | None
+    scan: np.ndarray | None
+    image: np.ndarray | None
+
+
+@dataclass
+class LoopRecord:
+    """One proposal as reported in loop_closures.csv, with what became of it."""
+
+    proposal: LoopProposal
+    registration: LoopRegistration | None = None
+    factor_handle: int | None = None
+    injected: bool = False
+
+    @property
+    def in_graph(self) -> bool:
+        return self.factor_handle is not None
+
+
+@dataclass
+class StageTimes:
+    """Seconds per keyframe and stage; the benchmark reads medians from here."""
+
+    rows: list[dict[str, float]] = field(default_factory=list)
+
+    def summary(self) -> dict[str, dict[str, float]]:
+        if not self.rows:
+            return {}
+        keys = self.rows[0].keys()
+        return {
+            k: {"median_s": float(np.median([r[k] for r in self.rows])), "p90_s": float(np.percentile([r[k] for r in self.rows], 90))}
+            for k in keys
+        }
+
+
+@dataclass
+class RunState:
+    keyframes: list[Keyframe] = field(default_factory=list)
+    loops: list[LoopRecord] = field(default_factory=list)
+    frames_seen: int = 0
+    frames_skipped: Counter = field(default_factory=Counter)
+    interrupted: bool = False
+    seconds: float = 0.0
+    times: StageTimes = field(default_factory=StageTimes)
+
+
+class StopFlag:
+    """Set by SIGINT/SIGTERM; the loop checks it between frames."""
+
+    def __init__(self) -> None:
+        self.requested = False
+
+    @contextmanager
+    def installed(self) -> Iterator["StopFlag"]:
+        def handler(signum: int, _frame: object) -> None:
+            self.requested = True
+            log.warning("stop requested (%s): finishing the current frame", signal.Signals(signum).name)
+
+        previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            yield self
+        finally:
+            for s, h in previous.items():
+                signal.signal(s, h)
+
+
+class SlamPipeline:
+    def __init__(
+        self,
+        config: SlamConfig,
+        odometry: Odometry,
+        backbone: Backbone,
+        prior_map: PlaceDatabase | None = None,
+        inject_wrong_loops: float = 0.0,
+        seed: int = 0,
+    ) -> None:
+        self.config = config
+        self.odometry = odometry
+        self.selector = KeyframeSelector(config.frontend.keyframes)
+        self.detector = LoopDetector(config.vpr, config.detector, Encoder(config.vpr, backbone), prior_map)
+        self.registrar = LoopRegistrar(config.backend.registration)
+        self.graph = PoseGraph(config.backend.pose_graph)
+        self.state = RunState()
+        self.stop = StopFlag()
+        self.inject_wrong_loops = inject_wrong_loops
+        self._rng = np.random.default_rng(seed)
+
+    # ---- the loop -----------------------------------------------------------------------
+    def run(self, frames: Iterable[Frame], on_frame=None) -> RunState:  # noqa: ANN001
+        """Process every frame (or until a stop request); returns the run state."""
+        start = time.perf_counter()
+        with self.stop.installed():
+            for frame in frames:
+                if self.stop.requested:
+                    self.state.interrupted = True
+                    break
+                self.step(frame)
+                if on_frame is not None:
+                    on_frame(self.state)
+        self.state.seconds = time.perf_counter() - start
+        return self.state
+
+    def step(self, frame: Frame) -> None:
+        self.state.frames_seen += 1
+        if frame.image is None:
+            self.state.frames_skipped["no camera image"] += 1
+            return
+        pose = self.odometry.update(frame)
+        if pose is None or not np.all(np.isfinite(pose)):
+            self.state.frames_skipped["odometry gave no pose"] += 1
+            return
+        if not self.selector.select(pose, frame.timestamp):
+            return
+        self._keyframe(frame, pose)
+
+    def _keyframe(self, frame: Frame, pose: np.ndarray) -> None:
+        kf = Keyframe(
+            id=len(self.state.keyframes),
+            frame_index=frame.index,
+            timestamp=frame.timestamp,
+            odom_pose=np.array(pose, dtype=np.float64),
+            gt_pose=None if frame.gt_pose is None else np.array(frame.gt_pose, dtype=np.float64),
+            scan=self._keep_scan(frame.points),
+            image=frame.image,
+        )
+        self.state.keyframes.append(kf)
+        t0 = time.perf_counter()
+        self.graph.add_keyframe(kf.id, kf.odom_pose)
+        proposal = self.detector.process(frame.image, kf.id, kf.odom_pose[:3, 3], frame.timestamp)
+        t_reg = t_graph = 0.0
+        if proposal is not None:
+            record = LoopRecord(proposal)
+            self.state.loops.append(record)
+            if proposal.accepted:
+                t1 = time.perf_counter()
+                record.registration = self._register(kf, proposal)
+                t_reg = time.perf_counter() - t1
+                if record.registration.accepted:
+                    record.factor_handle = self.graph.add_loop(
+                        proposal.match_id, kf.id, record.registration.T_mq, sigmas=record.registration.sigmas
+                    )
+            self._maybe_inject_wrong_loop(kf)
+        t2 = time.perf_counter()
+        self.graph.update()
+        t_graph = time.perf_counter() - t2
+        timings = self.detector.timings
+        self.state.times.rows.append({
+            "backbone": timings.backbone, "database_query": timings.database_query,
+            "spatial_matching": timings.spatial_matching, "gate": timings.gate,
+            "registration": t_reg, "isam2_update": t_graph, "total": time.perf_counter() - t0,
+        })  # fmt: skip
+
+    def _keep_scan(self, points: np.ndarray | None) -> np.ndarray | None:
+        if points is None or len(points) == 0:
+            return None
+        from kiss_icp.voxelization import voxel_down_sample
+
+        lidar = self.config.backend.registration.lidar
+        finite = np.asarray(points, dtype=np.float64)
+        finite = finite[np.isfinite(finite).all(axis=1)]
+        voxel = lidar.voxel_size * lidar.map_downsample_factor
+        return voxel_down_sample(finite, voxel) if len(finite) else None
+
+    def _register(self, kf: Keyframe, proposal: LoopProposal) -> LoopRegistration:
+        """ICP against a local map around the match when both have scans, else a place prior."""
+        if proposal.prior_map:
+            return self._place_prior_without_image(kf, proposal)
+        match = self.state.keyframes[proposal.match_id]
+        if kf.scan is not None and match.scan is not None:
+            from ssmvpr_slam.backend.loop_registration import build_local_map
+
+            half = self.config.backend.registration.lidar.local_map_half_window
+            window = self.state.keyframes[max(0, match.id - half) : match.id + half + 1]
+            window = [k for k in window if k.scan is not None]
+            local_map = build_local_map(
+                [k.scan for k in window], [k.odom_pose for k in window], match.odom_pose,
+                self.config.backend.registration.lidar.max_range,
+            )  # fmt: skip
+            return self.registrar.register_scans(kf.scan, local_map, proposal.yaw_guess)
+        return self.registrar.register_images(kf.image, match.image, proposal.yaw_guess)
+
+    def _place_prior_without_image(self, kf: Keyframe, proposal: LoopProposal) -> LoopRegistration:
+        return LoopRegistration(np.eye(4), False, "match is in a prior map: no cross-session pose link", np.nan, np.nan)
+
+    def _maybe_inject_wrong_loop(self, kf: Keyframe) -> None:
+        """Test option: with the given probability per proposal, add a deliberately wrong loop."""
+        if self.inject_wrong_loops <= 0.0 or kf.id < 2 or self._rng.random() >= self.inject_wrong_loops:
+            return
+        wrong = int(self._rng.integers(0, kf.id - 1))
+        sigmas = np.array(self.config.backend.registration.lidar.rot_sigma * np.ones(3).tolist()
+                          + (self.config.backend.registration.lidar.trans_sigma * np.ones(3)).tolist())  # fmt: skip
+        proposal = LoopProposal(kf.id, wrong, -1, 0.0, 0.0, 0, 0.0, True, "injected wrong loop (test option)")
+        record = LoopRecord(proposal, injected=True)
+        record.factor_handle = self.graph.add_loop(wrong, kf.id, np.eye(4), sigmas=sigmas)
+        self.state.loops.append(record)
+
+    # ---- outputs ------------------------------------------------------------------------
+    def trajectories(self) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+        """(timestamps, odometry poses, optimised poses) of the keyframes."""
+        kfs = self.state.keyframes
+        stamps = np.array([k.timestamp for k in kfs])
+        odom = np.array([k.odom_pose for k in kfs]).reshape(-1, 4, 4)
+        if not kfs:
+            return stamps, odom, odom
+        optimised = self.graph.finalize()
+        return stamps, odom, np.array([optimised[k.id] for k in kfs])

@@ -1,0 +1,154 @@
+"""Everything a run leaves behind, and its evaluation against ground truth when there is one."""
+
+from __future__ import annotations
+
+import csv
+import io
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from loopclosure.atomic import atomic_write_text
+from loopclosure.metrics import pr_auc, precision_recall_curve
+from ssmvpr_slam.config import SlamConfig, dump_config
+from ssmvpr_slam.evaluation.loop_metrics import evaluate_loops, find_revisits
+from ssmvpr_slam.evaluation.metrics import ate, drift_per_100m, rpe
+from ssmvpr_slam.evaluation.trajectory_io import write_kitti, write_tum
+from ssmvpr_slam.pipeline import LoopRecord, SlamPipeline
+from ssmvpr_slam.results import write_json
+
+LOOP_COLUMNS = [
+    "query_kf", "match_kf", "score", "stage1_score", "column_shift", "yaw_guess_rad", "gate_accepted",
+    "gate_reason", "direction", "registration", "registration_accepted", "registration_reason",
+    "inlier_ratio", "rmse", "in_graph", "prior_map", "injected", "gt_distance_m",
+]  # fmt: skip
+
+
+def write_loop_csv(path: Path, loops: list[LoopRecord], gt_distance: list[float | None], final: set[int]) -> None:
+    """One row per proposal; `in_graph` is whether its factor survived to the end (GNC may drop it)."""
+    buffer = io.StringIO()
+    writer = csv.writer(buffer)
+    writer.writerow(LOOP_COLUMNS)
+    for record, distance in zip(loops, gt_distance):
+        p, reg = record.proposal, record.registration
+        writer.writerow([
+            p.query_id, p.match_id, f"{p.score:.4f}", f"{p.stage1_score:.4f}", p.column_shift, f"{p.yaw_guess:.4f}",
+            int(p.accepted), p.reason, p.direction or "", reg.method if reg else "", int(reg.accepted) if reg else "",
+            reg.reason if reg else "", f"{reg.inlier_ratio:.3f}" if reg else "", f"{reg.rmse:.3f}" if reg else "",
+            int(record.factor_handle in final), int(p.prior_map), int(record.injected),
+            "" if distance is None else f"{distance:.2f}",
+        ])  # fmt: skip
+    atomic_write_text(path, buffer.getvalue())
+
+
+def _gt_distance(pipeline: SlamPipeline, record: LoopRecord) -> float | None:
+    kfs = pipeline.state.keyframes
+    p = record.proposal
+    if p.prior_map or p.match_id >= len(kfs):
+        return None
+    q, m = kfs[p.query_id].gt_pose, kfs[p.match_id].gt_pose
+    return None if q is None or m is None else float(np.linalg.norm(q[:3, 3] - m[:3, 3]))
+
+
+def evaluate_run(pipeline: SlamPipeline, odom: np.ndarray, optimised: np.ndarray, config: SlamConfig) -> dict[str, Any]:
+    """ATE/RPE of odometry vs optimised, loop precision/recall and the stream's PR-AUC."""
+    kfs = pipeline.state.keyframes
+    if not kfs or any(k.gt_pose is None for k in kfs):
+        return {"ground_truth": False}
+    gt = np.array([k.gt_pose for k in kfs])
+    traj = config.evaluation.trajectory
+    out: dict[str, Any] = {"ground_truth": True}
+    if len(kfs) >= 3:
+        a_odom, a_opt = ate(gt, odom, traj.alignment), ate(gt, optimised, traj.alignment)
+        out["ate_odometry"] = a_odom.to_dict()
+        out["ate_optimised"] = a_opt.to_dict()
+        out["ate_ratio"] = a_opt.stats.rmse / a_odom.stats.rmse if a_odom.stats.rmse > 0 else None
+        out["rpe_odometry"] = rpe(gt, odom, traj.rpe_delta, traj.rpe_unit).to_dict()
+        out["rpe_optimised"] = rpe(gt, optimised, traj.rpe_delta, traj.rpe_unit).to_dict()
+        out["drift_odometry"] = drift_per_100m(gt, odom, traj.drift_segment_m).to_dict()
+        out["_errors"] = (a_odom.errors, a_opt.errors)
+
+    loops_cfg = config.evaluation.loops
+    session = [r for r in pipeline.state.loops if not r.proposal.prior_map]
+    in_graph = [(r.proposal.query_id, r.proposal.match_id) for r in session if r.in_graph and not r.injected]
+    evaluation = evaluate_loops(gt, in_graph, loops_cfg)
+    out["loops"] = evaluation.to_dict()
+    out["_loop_evaluation"] = evaluation
+    out["loops"]["proposed"] = len(session)
+    out["loops"]["gate_accepted"] = sum(r.proposal.accepted for r in session)
+    out["loops"]["in_graph"] = len(in_graph)
+
+    # the paper's PR-AUC over the stream: each keyframe's best proposal and its score
+    revisits = set(find_revisits(gt, loops_cfg.correct_radius, loops_cfg.min_frame_gap).tolist())
+    scores = np.full(len(kfs), -np.inf)
+    correct = np.zeros(len(kfs), bool)
+    for r in session:
+        q, m = r.proposal.query_id, r.proposal.match_id
+        scores[q] = r.proposal.score
+        correct[q] = q in revisits and np.linalg.norm(gt[q, :3, 3] - gt[m, :3, 3]) <= loops_cfg.correct_radius
+    has_truth = np.array([i in revisits for i in range(len(kfs))])
+    if has_truth.any():
+        out["stream_pr_auc"] = pr_auc(precision_recall_curve(scores, correct, has_truth))
+    return out
+
+
+def write_run_results(folder: Path, pipeline: SlamPipeline, config: SlamConfig, extra: dict[str, Any]) -> dict[str, Any]:
+    """Trajectories (TUM + KITTI), loop_closures.csv, database, config, metrics.json, plots."""
+    stamps, odom, optimised = pipeline.trajectories()
+    kfs = pipeline.state.keyframes
+    if len(kfs):
+        write_tum(folder / "odometry.tum", stamps, odom)
+        write_kitti(folder / "odometry.kitti", odom)
+        write_tum(folder / "optimised.tum", stamps, optimised)
+        write_kitti(folder / "optimised.kitti", optimised)
+        if all(k.gt_pose is not None for k in kfs):
+            gt = np.array([k.gt_pose for k in kfs])
+            write_tum(folder / "ground_truth.tum", stamps, gt)
+            write_kitti(folder / "ground_truth.kitti", gt)
+    write_loop_csv(folder / "loop_closures.csv", pipeline.state.loops,
+                   [_gt_distance(pipeline, r) for r in pipeline.state.loops], set(pipeline.graph.loop_handles))  # fmt: skip
+    atomic_write_text(folder / "config.yaml", dump_config(config))
+    if config.results.save_database and pipeline.detector.database is not None:
+        pipeline.detector.database.save(folder / "database")
+
+    evaluation = evaluate_run(pipeline, odom, optimised, config) if len(kfs) else {"ground_truth": False}
+    errors = evaluation.pop("_errors", None)
+    loop_eval = evaluation.pop("_loop_evaluation", None)
+    state = pipeline.state
+    metrics = {
+        "frames": state.frames_seen,
+        "frames_skipped": dict(state.frames_skipped),
+        "keyframes": len(kfs),
+        "interrupted": state.interrupted,
+        "seconds": state.seconds,
+        "frames_per_second": state.frames_seen / state.seconds if state.seconds else None,
+        "latency_per_keyframe": state.times.summary(),
+        "odometry": pipeline.odometry.stats.__dict__ if hasattr(pipeline.odometry, "stats") else {},
+        **extra,
+        **evaluation,
+    }
+    write_json(folder / "metrics.json", metrics)
+    if config.results.plots and len(kfs) >= 2:
+        _plots(folder, kfs, odom, optimised, pipeline, errors, loop_eval, config)
+    return metrics
+
+
+def _plots(folder, kfs, odom, optimised, pipeline, errors, loop_eval, config) -> None:  # noqa: ANN001
+    from ssmvpr_slam.evaluation.metrics import path_lengths
+    from ssmvpr_slam.evaluation.plots import plot_loop_summary, plot_trajectories, plot_translation_error
+
+    gt = np.array([k.gt_pose for k in kfs]) if all(k.gt_pose is not None for k in kfs) else None
+    graph_loops = [r for r in pipeline.state.loops if r.in_graph and not r.proposal.prior_map]
+    edges = [(r.proposal.query_id, r.proposal.match_id) for r in graph_loops]
+    correct = None
+    if gt is not None:
+        radius = config.evaluation.loops.correct_radius
+        correct = [bool(np.linalg.norm(gt[q, :3, 3] - gt[m, :3, 3]) <= radius) for q, m in edges]
+    plot_cfg = config.evaluation.plots
+    plot_trajectories(folder / "trajectory_top_view.png", gt, odom, optimised, edges, correct,
+                      "Top view: odometry vs optimised", plot_cfg)  # fmt: skip
+    if errors is not None:
+        plot_translation_error(folder / "translation_error.png", errors[0], errors[1], path_lengths(gt), config=plot_cfg)
+    if loop_eval is not None:
+        plot_loop_summary(folder / "loop_closures.png", loop_eval, config=plot_cfg)
