@@ -6,6 +6,7 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from loopclosure.backbone import Backbone
 from loopclosure.config import VPRConfig
@@ -63,7 +64,10 @@ class Encoder:
     def project(self, raw: RawCubes) -> PlaceCodes:
         if self.codebooks is None:
             raise LoopClosureInputError("no PCA codebooks: fit them (ssmvpr-slam fit-pca) or load a database")
-        return PlaceCodes(self.codebooks.stage1.transform(raw.stage1), self.codebooks.stage2.transform(raw.stage2))
+        # One BLAS thread: right after a backbone pass torch's threads still hold the cores and
+        # a 2-thread BLAS on these small products was measured 50-80x slower (tools/bench_vpr.py).
+        with threadpool_limits(limits=1, user_api="blas"):
+            return PlaceCodes(self.codebooks.stage1.transform(raw.stage1), self.codebooks.stage2.transform(raw.stage2))
 
     def encode(self, images: Sequence[np.ndarray]) -> PlaceCodes:
         """Codes of already-prepared images, batched as configured."""

@@ -74,8 +74,8 @@ def fit_pca(samples: np.ndarray, config: PCAConfig, name: str = "PCA") -> PCAPro
     n, dim_in = samples.shape
     if min(n, config.max_fit_samples) < config.dim or dim_in < config.dim:
         raise LoopClosureInputError(
-            f"{name}: {min(n, config.max_fit_samples)} samples (of {n}, max_fit_samples={config.max_fit_samples}) "
-            f"of {dim_in} dims cannot give {config.dim} components; fit on more images or lower pca.dim"
+            f"{name}: {min(n, config.max_fit_samples)} samples of {dim_in} dims cannot give {config.dim} components; "
+            f"fit on more images, raise max_fit_samples or lower pca.dim"
         )
     if not np.isfinite(samples).all():
         raise LoopClosureInputError(f"{name}: samples contain NaN or inf")

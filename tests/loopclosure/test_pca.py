@@ -162,11 +162,6 @@ def test_projection_from_arrays_round_trip():
     np.testing.assert_allclose(y, [[(2.0 - 0.0) / 2.0, (5.0 - 1.0) / 1.0]])
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="BUG loopclosure/pca.py fit_pca: the samples-vs-dim check runs before the max_fit_samples "
-    "subsample, so max_fit_samples < dim reaches sklearn and raises its raw ValueError",
-)
 def test_subsample_smaller_than_dim_is_a_clear_error():
     x = np.random.default_rng(0).standard_normal((300, 50)).astype(np.float32)
     with pytest.raises(LoopClosureInputError, match="max_fit_samples|samples"):
