@@ -106,12 +106,29 @@ def pose_problem(pose: np.ndarray, tolerance: float) -> str | None:
     return None
 
 
+def quaternion_problem(q: np.ndarray, tolerance: float) -> str | None:
+    """Why ``q`` (qx, qy, qz, qw) is not a unit quaternion within ``tolerance``, or None."""
+    norm = float(np.linalg.norm(q))
+    if abs(norm - 1.0) > tolerance:
+        return f"quaternion norm {norm:.6g} is not 1 (not a rotation)"
+    return None
+
+
+def pose_from_kitti_row(values: np.ndarray) -> np.ndarray:
+    """4x4 pose from the 12 row-major values of its top 3x4 block (unchecked)."""
+    pose = np.eye(4)
+    pose[:3, :4] = np.reshape(values, (3, 4))
+    return pose
+
+
 # --------------------------------------------------------------------------- reading
 
 
-def _data_lines(path: Path) -> list[tuple[int, list[str]]]:
+def data_lines(path: Path) -> list[tuple[int, list[str]]]:
+    """(line number, tokens) of each data line: blank and ``#`` lines skipped, ``,`` or
+    white space between values."""
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError) as error:
         raise FrontendInputError(f"{path}: cannot read pose file ({error})") from None
     rows = []
@@ -140,38 +157,35 @@ def read_tum(path: str | Path, config: PoseFileConfig | None = None) -> PoseFile
     """Read a TUM trajectory; quaternions must be unit length within tolerance."""
     path, config = Path(path), config or PoseFileConfig()
     stamps, poses = [], []
-    for lineno, tokens in _data_lines(path):
+    for lineno, tokens in data_lines(path):
         values = _floats(path, lineno, tokens, TUM_COLUMNS, "t x y z qx qy qz qw")
-        norm = np.linalg.norm(values[4:])
-        if abs(norm - 1.0) > config.rotation_tolerance:
-            raise FrontendInputError(
-                f"{path}:{lineno}: quaternion norm {norm:.6g} is not 1 (not a rotation)"
-            )
+        problem = quaternion_problem(values[4:], config.rotation_tolerance)
+        if problem is not None:
+            raise FrontendInputError(f"{path}:{lineno}: {problem}")
         stamps.append(values[0])
         poses.append(pose_from_translation_quaternion(values[1:4], values[4:]))
-    return PoseFile(_stack(poses), np.array(stamps, dtype=np.float64), "tum")
+    return PoseFile(stack_poses(poses), np.array(stamps, dtype=np.float64), "tum")
 
 
 def read_kitti(path: str | Path, config: PoseFileConfig | None = None) -> PoseFile:
     """Read a KITTI trajectory; rotations must be orthonormal within tolerance."""
     path, config = Path(path), config or PoseFileConfig()
     poses = []
-    for lineno, tokens in _data_lines(path):
+    for lineno, tokens in data_lines(path):
         values = _floats(path, lineno, tokens, KITTI_COLUMNS, "3x4 row-major pose")
-        pose = np.eye(4)
-        pose[:3, :4] = values.reshape(3, 4)
+        pose = pose_from_kitti_row(values)
         problem = pose_problem(pose, config.rotation_tolerance)
         if problem is not None:
             raise FrontendInputError(f"{path}:{lineno}: {problem}")
         pose[:3, :3] = nearest_rotation(pose[:3, :3])
         poses.append(pose)
-    return PoseFile(_stack(poses), None, "kitti")
+    return PoseFile(stack_poses(poses), None, "kitti")
 
 
 def detect_format(path: str | Path) -> PoseFormat:
     """TUM or KITTI, from the number of values on the first data line."""
     path = Path(path)
-    rows = _data_lines(path)
+    rows = data_lines(path)
     if not rows:
         raise FrontendInputError(f"{path}: pose file has no data lines")
     lineno, tokens = rows[0]
@@ -192,7 +206,8 @@ def read_poses(
     return read_tum(path, config) if format == "tum" else read_kitti(path, config)
 
 
-def _stack(poses: list[np.ndarray]) -> np.ndarray:
+def stack_poses(poses: list[np.ndarray]) -> np.ndarray:
+    """(N, 4, 4) array of a list of poses; (0, 4, 4) when empty."""
     return np.stack(poses) if poses else np.zeros((0, 4, 4))
 
 
@@ -223,6 +238,22 @@ def atomic_write_text(path: str | Path, text: str) -> None:
         raise
 
 
+def tum_lines(
+    timestamps: np.ndarray, poses: np.ndarray, stamp_format: str, value_format: str
+) -> list[str]:
+    """``t x y z qx qy qz qw`` per pose (qw >= 0), numbers formatted with ``str.format``."""
+    lines = []
+    for stamp, pose in zip(timestamps, poses):
+        values = [*pose[:3, 3], *matrix_to_quaternion(pose[:3, :3])]
+        lines.append(" ".join([stamp_format.format(stamp), *map(value_format.format, values)]))
+    return lines
+
+
+def kitti_lines(poses: np.ndarray, value_format: str) -> list[str]:
+    """The 12 row-major values of each pose's top 3x4 block, one pose per line."""
+    return [" ".join(map(value_format.format, pose[:3, :4].ravel())) for pose in poses]
+
+
 def _checked_poses(path: Path, poses: np.ndarray, config: PoseFileConfig) -> np.ndarray:
     poses = np.asarray(poses, dtype=np.float64)
     if poses.ndim != 3 or poses.shape[1:] != (4, 4):
@@ -248,11 +279,8 @@ def write_tum(
         raise FrontendInputError(
             f"{path}: need {len(poses)} finite timestamps, got {len(timestamps)}"
         )
-    digits, decimals = config.value_digits, config.timestamp_decimals
-    lines = []
-    for stamp, pose in zip(timestamps, poses):
-        values = [*pose[:3, 3], *matrix_to_quaternion(pose[:3, :3])]
-        lines.append(f"{stamp:.{decimals}f} " + " ".join(f"{v:.{digits}g}" for v in values))
+    stamp_format = f"{{:.{config.timestamp_decimals}f}}"
+    lines = tum_lines(timestamps, poses, stamp_format, f"{{:.{config.value_digits}g}}")
     atomic_write_text(path, "".join(line + "\n" for line in lines))
 
 
@@ -260,6 +288,5 @@ def write_kitti(path: str | Path, poses: np.ndarray, config: PoseFileConfig | No
     """Write a KITTI trajectory (atomically)."""
     path, config = Path(path), config or PoseFileConfig()
     poses = _checked_poses(path, poses, config)
-    digits = config.value_digits
-    lines = (" ".join(f"{v:.{digits}g}" for v in pose[:3, :4].ravel()) for pose in poses)
+    lines = kitti_lines(poses, f"{{:.{config.value_digits}g}}")
     atomic_write_text(path, "".join(line + "\n" for line in lines))

@@ -54,6 +54,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any, Literal
 
+from loopclosure.atomic import atomic_write
 from loopclosure.errors import LoopClosureInputError, WeightsNotFoundError
 
 if TYPE_CHECKING:
@@ -387,18 +388,7 @@ def _check_imagenet_fingerprint(sd: Mapping[str, torch.Tensor], origin: str) -> 
 def _atomic_torch_save(sd: Mapping[str, torch.Tensor], dest: Path) -> None:
     import torch
 
-    dest.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            torch.save(dict(sd), f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, dest)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write(dest, lambda f: torch.save(dict(sd), f))
 
 
 # --------------------------------------------------------------------------------------------

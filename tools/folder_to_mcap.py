@@ -10,12 +10,11 @@ and/or /odom (Odometry) by ``--pose-role``. Read it back with ``frontend.sources
 from __future__ import annotations
 
 import argparse
-import itertools
 import sys
 
-from frontend.config import FolderSourceConfig, McapWriterConfig
-from frontend.errors import FrontendInputError
-from frontend.sources import FolderSource, write_frames
+from frontend.config import FolderSourceConfig
+from frontend.sources import FolderSource
+from frontend.sources.convert import convert_to_mcap
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -38,16 +37,12 @@ def main(argv: list[str] | None = None) -> int:
     options["pose_role"] = args.pose_role
     if args.frame_period is not None:
         options["frame_period_s"] = args.frame_period
-    try:
-        source = FolderSource(args.folder, FolderSourceConfig(**options))
-        print(source.description)
-        frames = itertools.islice(source, args.max_frames)
-        count = write_frames(frames, args.output, McapWriterConfig(image_format=args.image_format))
-    except FrontendInputError as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 2
-    print(f"wrote {count} frames to {args.output}")
-    return 0
+    return convert_to_mcap(
+        lambda: FolderSource(args.folder, FolderSourceConfig(**options)),
+        args.output,
+        max_frames=args.max_frames,
+        image_format=args.image_format,
+    )
 
 
 if __name__ == "__main__":

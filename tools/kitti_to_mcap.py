@@ -10,12 +10,11 @@ to /ground_truth (PoseStamped). Read it back with ``frontend.sources.open_source
 from __future__ import annotations
 
 import argparse
-import itertools
 import sys
 
-from frontend.config import KittiSourceConfig, McapWriterConfig
-from frontend.errors import FrontendInputError
-from frontend.sources import KittiSource, write_frames
+from frontend.config import KittiSourceConfig
+from frontend.sources import KittiSource
+from frontend.sources.convert import convert_to_mcap
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -33,24 +32,18 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
-    try:
-        source = KittiSource(
-            args.sequence,
-            KittiSourceConfig(
-                camera=args.camera,
-                load_points=not args.no_points,
-                poses_file=args.poses,
-                gt_frame=args.gt_frame,
-            ),
-        )
-        print(source.description)
-        frames = itertools.islice(source, args.max_frames)
-        count = write_frames(frames, args.output, McapWriterConfig(image_format=args.image_format))
-    except FrontendInputError as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 2
-    print(f"wrote {count} frames to {args.output}")
-    return 0
+    config = {
+        "camera": args.camera,
+        "load_points": not args.no_points,
+        "poses_file": args.poses,
+        "gt_frame": args.gt_frame,
+    }
+    return convert_to_mcap(
+        lambda: KittiSource(args.sequence, KittiSourceConfig(**config)),
+        args.output,
+        max_frames=args.max_frames,
+        image_format=args.image_format,
+    )
 
 
 if __name__ == "__main__":

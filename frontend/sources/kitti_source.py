@@ -24,7 +24,7 @@ import numpy as np
 from frontend.config import KittiSourceConfig, PoseFileConfig
 from frontend.errors import FrontendInputError
 from frontend.frame import Frame
-from frontend.poses_io import KITTI_COLUMNS, read_kitti
+from frontend.poses_io import KITTI_COLUMNS, pose_from_kitti_row, read_kitti
 from frontend.sources.base import Source
 from frontend.sources.images import list_images, read_rgb
 
@@ -57,9 +57,7 @@ def read_calib_tr(path: Path) -> np.ndarray | None:
                 raise FrontendInputError(f"{path}:{lineno}: non-numeric value in Tr") from None
             if len(numbers) != KITTI_COLUMNS or not np.all(np.isfinite(numbers)):
                 raise FrontendInputError(f"{path}:{lineno}: Tr needs 12 finite values")
-            tr = np.eye(4)
-            tr[:3, :4] = np.reshape(numbers, (3, 4))
-            return tr
+            return pose_from_kitti_row(numbers)
     return None
 
 

@@ -15,7 +15,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from ssmvpr_slam.evaluation.atomic import atomic_write
+from loopclosure.atomic import atomic_write
 from ssmvpr_slam.evaluation.config import PlotConfig
 from ssmvpr_slam.evaluation.loop_metrics import LoopEvaluation
 
@@ -37,10 +37,15 @@ def new_figure(config: PlotConfig, height_scale: float = 1.0) -> Figure:
     return fig
 
 
-def save_figure(fig: Figure, path: str | os.PathLike[str], config: PlotConfig) -> Path:
-    """Render `fig` to PNG atomically."""
+def save_figure(
+    fig: Figure, path: str | os.PathLike[str], config: PlotConfig | None = None
+) -> Path:
+    """Lay out `fig` and render it to PNG atomically (on an Agg canvas, no pyplot)."""
+    if not isinstance(fig.canvas, FigureCanvasAgg):
+        FigureCanvasAgg(fig)
     fig.tight_layout()
-    return atomic_write(path, lambda handle: fig.savefig(handle, format="png", dpi=config.dpi))
+    dpi = (config or PlotConfig()).dpi
+    return atomic_write(path, lambda handle: fig.savefig(handle, format="png", dpi=dpi))
 
 
 def _positions(name: str, poses: np.ndarray | None) -> np.ndarray | None:

@@ -7,34 +7,16 @@ into place, so a crash never leaves a half-written image behind.
 
 from __future__ import annotations
 
-import os
-import tempfile
 from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from loopclosure.metrics import PRCurve, pr_auc
+from ssmvpr_slam.evaluation.plots import save_figure
 
 __all__ = ["plot_pr_curves", "plot_recall_at_n"]
-
-
-def _save_atomic(fig: Figure, path: str | Path) -> Path:
-    """Render to a temp file in the target folder, then os.replace it over ``path``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    FigureCanvasAgg(fig)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}-", suffix=".png", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fig.savefig(fh, format="png", dpi=120)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
 
 
 def plot_pr_curves(
@@ -50,8 +32,7 @@ def plot_pr_curves(
     ax.set(xlim=(0.0, 1.02), ylim=(0.0, 1.02), xlabel="Recall", ylabel="Precision", title=title)
     ax.grid(True, linestyle=":")
     ax.legend(loc="lower left")
-    fig.tight_layout()
-    return _save_atomic(fig, path)
+    return save_figure(fig, path)
 
 
 def _n_and_recall(values: Mapping[int, float] | object) -> tuple[np.ndarray, np.ndarray]:
@@ -83,5 +64,4 @@ def plot_recall_at_n(
     ax.set(ylim=(0.0, 1.02), xlabel="N (candidates)", ylabel="Recall@N", title=title)
     ax.grid(True, linestyle=":")
     ax.legend(loc="lower right")
-    fig.tight_layout()
-    return _save_atomic(fig, path)
+    return save_figure(fig, path)
