@@ -163,7 +163,7 @@ class SlamPipeline:
             timestamp=frame.timestamp,
             odom_pose=np.array(pose, dtype=np.float64),
             gt_pose=None if frame.gt_pose is None else np.array(frame.gt_pose, dtype=np.float64),
-            scan=self._keep_scan(frame.points),
+            scan=self._keep_scan(self._scan_of(frame)) if self.config.pipeline.use_lidar_for_loops else None,
             image=frame.image,
         )
         self.state.keyframes.append(kf)
@@ -192,6 +192,11 @@ class SlamPipeline:
             "spatial_matching": timings.spatial_matching, "gate": timings.gate,
             "registration": t_reg, "isam2_update": t_graph, "total": time.perf_counter() - t0,
         })  # fmt: skip
+
+    def _scan_of(self, frame: Frame) -> np.ndarray | None:
+        """The odometry's motion-compensated scan when it has one (kiss-icp), else the raw one."""
+        deskewed = getattr(self.odometry, "last_scan", None)
+        return deskewed if deskewed is not None else frame.points
 
     def _keep_scan(self, points: np.ndarray | None) -> np.ndarray | None:
         if points is None or len(points) == 0:
@@ -230,8 +235,8 @@ class SlamPipeline:
         if self.inject_wrong_loops <= 0.0 or kf.id < 2 or self._rng.random() >= self.inject_wrong_loops:
             return
         wrong = int(self._rng.integers(0, kf.id - 1))
-        sigmas = np.array(self.config.backend.registration.lidar.rot_sigma * np.ones(3).tolist()
-                          + (self.config.backend.registration.lidar.trans_sigma * np.ones(3)).tolist())  # fmt: skip
+        lidar = self.config.backend.registration.lidar
+        sigmas = np.array([lidar.rot_sigma] * 3 + [lidar.trans_sigma] * 3)
         proposal = LoopProposal(kf.id, wrong, -1, 0.0, 0.0, 0, 0.0, True, "injected wrong loop (test option)")
         record = LoopRecord(proposal, injected=True)
         record.factor_handle = self.graph.add_loop(wrong, kf.id, np.eye(4), sigmas=sigmas)

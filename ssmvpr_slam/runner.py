@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 from typing import Any
 
@@ -21,11 +20,6 @@ from ssmvpr_slam.results import create_results_dir
 from ssmvpr_slam.run_results import write_run_results
 
 
-def _without_lidar(frames):  # noqa: ANN001, ANN202
-    for frame in frames:
-        yield dataclasses.replace(frame, points=None, point_times=None)
-
-
 def run_log(
     log: Path,
     config: SlamConfig,
@@ -42,8 +36,6 @@ def run_log(
     database = PlaceDatabase.load(prior_map) if prior_map is not None else None
     pipeline = SlamPipeline(config, odometry, backbone, database, inject_wrong_loops)
     frames = iter(source)
-    if not config.pipeline.use_lidar_for_loops and config.frontend.odometry.kind != "kiss_icp":
-        frames = _without_lidar(frames)
 
     total = getattr(source, "length", None)
     columns = [TextColumn("[bold]SLAM"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),

@@ -60,6 +60,9 @@ class KissIcpOdometry:
         self.config = config or KissIcpConfig()
         self.stats = OdometryStats()
         self._kiss = KissICP(kiss_config(self.config))
+        self.last_scan: np.ndarray | None = None
+        """The last registered scan, motion-compensated (deskewed) by kiss-icp; loop closure
+        registration needs undistorted scans, and kiss-icp already computed this one."""
 
     @property
     def pose(self) -> np.ndarray:
@@ -69,16 +72,18 @@ class KissIcpOdometry:
     def update(self, frame: Frame) -> np.ndarray:
         self.stats.updates += 1
         points, times = self._clean(frame)
+        self.last_scan = None
         if points is None:
             return self._predict()
         previous_pose, previous_delta = self._kiss.last_pose.copy(), self._kiss.last_delta.copy()
-        self._kiss.register_frame(points, times)
+        deskewed, _ = self._kiss.register_frame(points, times)
         if not np.all(np.isfinite(self._kiss.last_pose)):
             self.stats.skip(
                 "registration_failed", f"frame {frame.index}: kiss-icp returned a non-finite pose"
             )
             self._kiss.last_pose, self._kiss.last_delta = previous_pose, previous_delta
             return self._predict()
+        self.last_scan = np.asarray(deskewed)
         return self._kiss.last_pose.copy()
 
     def _predict(self) -> np.ndarray:
