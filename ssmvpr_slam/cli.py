@@ -14,6 +14,7 @@ from typing import Annotated, Any, Optional
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 
 app = typer.Typer(
     name="ssmvpr-slam",
@@ -43,6 +44,11 @@ def _user_errors() -> tuple[type[BaseException], ...]:
     return (FrontendInputError, LoopClosureInputError, WeightsNotFoundError, ConfigError, FileNotFoundError)
 
 
+def _print_error(message: str) -> None:
+    # escaped: a path or value with [brackets] must not be read as rich markup
+    err_console.print(f"[bold red]error:[/bold red] {escape(message)}", highlight=False, soft_wrap=True)
+
+
 def friendly_errors(func: Callable[..., Any]) -> Callable[..., Any]:
     """Known input problems -> one line on stderr and exit status 2, never a traceback."""
 
@@ -51,7 +57,17 @@ def friendly_errors(func: Callable[..., Any]) -> Callable[..., Any]:
         try:
             return func(*args, **kwargs)
         except _user_errors() as exc:
-            err_console.print(f"[bold red]error:[/bold red] {exc}", highlight=False, soft_wrap=True)
+            _print_error(str(exc))
+            raise typer.Exit(2) from None
+        except Exception as exc:
+            from pydantic import ValidationError
+
+            if not isinstance(exc, ValidationError):
+                raise
+            # an option value a config model refuses (--device gpu, -n 0)
+            first = exc.errors()[0]
+            where = ".".join(str(p) for p in first["loc"])
+            _print_error(f"invalid value for {exc.title}.{where}: {first['msg']} (got {first.get('input')!r})")
             raise typer.Exit(2) from None
 
     return wrapper

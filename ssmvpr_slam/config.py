@@ -7,6 +7,7 @@ command-line options. Unknown keys are errors, so a typo in a preset fails loudl
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Any
 
@@ -113,10 +114,7 @@ def load_config(config: str | Path | None = None, overrides: dict[str, Any] | No
         path = Path(config)
         if not path.is_file():
             path = _preset_path(str(config), "--config")
-        data = _read_yaml(path)
-        base = data.pop("preset", None)
-        if base is not None:
-            data = _merge(_read_yaml(_preset_path(str(base), str(path))), data)
+        data = _read_with_base(path)
         source = str(path)
     data = _merge(data, overrides or {})
     try:
@@ -124,7 +122,27 @@ def load_config(config: str | Path | None = None, overrides: dict[str, Any] | No
     except ValidationError as exc:
         first = exc.errors()[0]
         where = ".".join(str(p) for p in first["loc"])
-        raise ConfigError(f"config {source}: {where}: {first['msg']} ({exc.error_count()} error(s))") from None
+        variable = _env_variable(first["loc"])
+        origin = f"environment variable {variable}" if variable else f"config {source}"
+        raise ConfigError(f"{origin}: {where}: {first['msg']} ({exc.error_count()} error(s))") from None
+
+
+def _env_variable(loc: tuple[Any, ...]) -> str | None:
+    """The SSMVPR_ variable that set the field at `loc`, if one did (names are case-insensitive)."""
+    name = ("SSMVPR_" + "__".join(str(p) for p in loc)).upper()
+    return next((key for key in os.environ if key.upper() == name), None)
+
+
+def _read_with_base(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
+    """A YAML file merged over its `preset:` base, and that base over its own (fast -> default)."""
+    data = _read_yaml(path)
+    base = data.pop("preset", None)
+    if base is None:
+        return data
+    base_path = _preset_path(str(base), str(path))
+    if base_path.resolve() in seen or base_path.resolve() == path.resolve():
+        raise ConfigError(f"config {path}: preset {base!r} is part of a preset cycle")
+    return _merge(_read_with_base(base_path, (*seen, path.resolve())), data)
 
 
 def _preset_path(name: str, referrer: str) -> Path:

@@ -11,7 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from frontend.errors import FrontendInputError
 
@@ -301,7 +301,7 @@ class SimulationConfig(_Model):
 
     @classmethod
     def from_yaml(cls, path: str | Path) -> "SimulationConfig":
-        """Read a YAML mapping; raises FrontendInputError naming the file when unreadable."""
+        """Read a YAML mapping; raises FrontendInputError naming the file when unreadable or invalid."""
         import yaml
 
         path = Path(path)
@@ -311,4 +311,11 @@ class SimulationConfig(_Model):
             raise FrontendInputError(f"simulation config {path}: cannot read: {exc}") from exc
         if not isinstance(data, dict):
             raise FrontendInputError(f"simulation config {path}: expected a mapping at top level")
-        return cls.model_validate(data)
+        try:
+            return cls.model_validate(data)
+        except ValidationError as exc:  # a bad key or value: name the file and the field
+            first = exc.errors()[0]
+            where = ".".join(str(p) for p in first["loc"]) or "(top level)"
+            raise FrontendInputError(
+                f"simulation config {path}: {where}: {first['msg']} ({exc.error_count()} error(s))"
+            ) from None

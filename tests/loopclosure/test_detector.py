@@ -1,0 +1,294 @@
+"""LoopDetector's bookkeeping without the CNN: PCA warm-up, the exclusion window (keyframes
+and travelled distance), gated revisits, input checks and prior maps.
+
+The backbone is a cheap fake with the real one's call signature: each distinct image gets its
+own deterministic random conv maps of VGG16's shapes at input_size 224, so an identical image
+is a perfect match (stage-II score 1) and distinct images are unrelated (scores near 0).
+Recognition quality itself is tested with the real weights elsewhere.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+from threadpoolctl import threadpool_limits
+
+from loopclosure.config import DetectorConfig, SequenceGateConfig, VPRConfig
+from loopclosure.database import PlaceDatabase
+from loopclosure.detector import LoopDetector, LoopProposal
+from loopclosure.encoder import Encoder
+from loopclosure.errors import LoopClosureInputError
+
+WARMUP = 5
+VPR = VPRConfig.model_validate({
+    "filtering": {"pca": {"dim": 32}},  # 16 stage-I vectors per image: 5 images give 80 samples
+    "spatial": {"pca": {"dim": 32, "l2_normalize_output": False}},
+})  # fmt: skip
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_blas_thread():  # noqa: ANN202
+    # the PCA fits are small: on 2 shared cores, BLAS threads only fight each other (1.2 s vs 0.3 s);
+    # scikit-learn/scipy bring their own BLAS, which must be loaded before it can be limited
+    import sklearn.decomposition  # noqa: F401
+
+    with threadpool_limits(limits=1):
+        yield
+
+
+class FakeBackbone:
+    """(B, 224, 224, 3) uint8 -> (B, 512, 14, 14) conv5_2-like and (B, 512, 28, 28) conv4_2-like maps."""
+
+    def __init__(self) -> None:
+        self.images = 0
+
+    def __call__(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        assert images.dtype == np.uint8 and images.shape[1:] == (224, 224, 3)
+        self.images += len(images)
+        maps1, maps2 = [], []
+        for image in images:
+            seed = int.from_bytes(hashlib.sha1(image.tobytes()).digest()[:8], "little")
+            rng = np.random.default_rng(seed)
+            maps1.append(rng.standard_normal((512, 14, 14), dtype=np.float32))
+            maps2.append(rng.standard_normal((512, 28, 28), dtype=np.float32))
+        return np.stack(maps1), np.stack(maps2)
+
+
+def scene(i: int) -> np.ndarray:
+    """A small image that stands for place `i` (same i, same pixels)."""
+    return np.random.default_rng([7, i]).integers(0, 256, (24, 32, 3), dtype=np.uint8)
+
+
+def detector(
+    database: PlaceDatabase | None = None,
+    *,
+    keyframes: int = 0,
+    distance: float = 0.0,
+    codebooks: str | None = None,
+    **gate: object,
+) -> LoopDetector:
+    config = DetectorConfig(
+        exclusion_keyframes=keyframes,
+        exclusion_distance=distance,
+        min_score=0.2,
+        pca_warmup_keyframes=WARMUP,
+        codebooks=codebooks,
+        gate=SequenceGateConfig(**{"length": 3, "tolerance": 1, **gate}),
+    )
+    return LoopDetector(VPR, config, Encoder(VPR, FakeBackbone()), database)  # type: ignore[arg-type]
+
+
+@pytest.fixture(scope="module")
+def codebooks(tmp_path_factory: pytest.TempPathFactory) -> str:
+    """PCA fitted once by a warm-up (a few seconds on 2 cores); most tests start from it."""
+    det = detector()
+    for k in range(WARMUP):
+        det.process(scene(900 + k), k)
+    path = tmp_path_factory.mktemp("codebooks") / "codebooks.npz"
+    det.encoder.codebooks.save(path)
+    return str(path)
+
+
+def at(x: float) -> np.ndarray:
+    return np.array([x, 0.0, 0.0])
+
+
+def feed(det: LoopDetector, scenes: list[int], first_id: int, positions: list[float] | None = None) -> list[LoopProposal | None]:
+    out = []
+    for k, s in enumerate(scenes):
+        position = None if positions is None else at(positions[k])
+        out.append(det.process(scene(s), first_id + k, position, timestamp=float(first_id + k)))
+    return out
+
+
+# ------------------------------------------------------------------------------- warm-up
+
+
+def test_no_proposals_during_warmup_then_every_keyframe_is_a_place() -> None:
+    det = detector()  # no codebooks, no exclusion at all
+    backbone = det.encoder.backbone
+    # keyframe 3 repeats keyframe 0 exactly: still nothing is proposed while PCA is not fitted
+    results = feed(det, [0, 1, 2, 0], 0)
+    assert results == [None] * 4
+    assert not det.ready and det.database is None and det.encoder.codebooks is None
+    assert det.process(scene(4), 4) is None  # the warm-up's last keyframe fits PCA
+    assert det.ready and det.encoder.codebooks is not None
+    assert len(det.database) == WARMUP
+    assert [p.frame_id for p in det.database.places] == [0, 1, 2, 3, 4]
+    assert backbone.images == WARMUP  # one backbone pass per keyframe, none repeated for the fit
+
+    # the first query after the warm-up is recognised, but the gate has no history yet
+    proposal = det.process(scene(2), 5)
+    assert proposal is not None
+    assert proposal.query_id == 5 and proposal.match_id == proposal.match_place == 2
+    assert proposal.score == pytest.approx(1.0)
+    assert proposal.column_shift == 0 and proposal.yaw_guess == 0.0
+    assert not proposal.accepted and proposal.reason == "keyframe 4 recognised nothing"
+    assert not proposal.prior_map
+    assert len(det.database) == 6
+
+    for k in range(6, 12):
+        assert det.process(scene(100 + k), k) is None
+        assert len(det.database) == k + 1
+    assert backbone.images == 12
+    assert [p.frame_id for p in det.database.places] == list(range(12))
+    assert det.timings.backbone > 0 and det.timings.database_query >= 0 and det.timings.spatial_matching >= 0
+
+
+def test_configured_codebooks_skip_the_warmup(codebooks: str) -> None:
+    det = detector(codebooks=codebooks)
+    assert det.process(scene(0), 0) is None  # the first keyframe only creates the database
+    assert det.ready and len(det.database) == 1
+    assert det.process(scene(1), 1) is None
+    proposal = det.process(scene(0), 2)
+    assert proposal is not None and proposal.match_place == 0 and proposal.score == pytest.approx(1.0)
+    assert len(det.database) == 3
+
+
+def test_distinct_images_are_not_proposed(codebooks: str) -> None:
+    det = detector(codebooks=codebooks)
+    results = feed(det, list(range(30)), 0)
+    assert results == [None] * 30  # below min_score: unrelated places are no loop candidates
+
+
+# ------------------------------------------------------------------------------ exclusion
+
+
+def test_recent_keyframes_are_never_candidates(codebooks: str) -> None:
+    det = detector(codebooks=codebooks, keyframes=5)
+    feed(det, list(range(20)), 0)
+    # keyframe 15 is the 5th most recent place: excluded even though the image is identical
+    for query_id, repeat in ((20, 19), (21, 17)):
+        proposal = det.process(scene(repeat), query_id)
+        assert proposal is None or (proposal.match_id != repeat and proposal.score < 0.5), proposal
+    proposal = det.process(scene(15), 22)  # places 17..21 are the recent five now; 15 is not
+    assert proposal is not None and proposal.match_id == 15 and proposal.score == pytest.approx(1.0)
+
+
+def test_exclusion_window_boundary_in_keyframes(codebooks: str) -> None:
+    det = detector(codebooks=codebooks, keyframes=5)
+    feed(det, list(range(20)), 0)
+    assert det.process(scene(15), 20) is None  # 5 keyframes back: inside the window
+    proposal = det.process(scene(15), 21)  # 6 back now; its copy (place 20) is inside
+    assert proposal is not None and proposal.match_place == 15
+
+
+def test_control_without_exclusion_the_identical_recent_image_is_found(codebooks: str) -> None:
+    # what the exclusion tests rule out really happens without the window
+    det = detector(codebooks=codebooks)
+    feed(det, list(range(20)), 0)
+    proposal = det.process(scene(19), 20)
+    assert proposal is not None and proposal.match_id == 19 and proposal.score == pytest.approx(1.0)
+
+
+def test_places_within_the_travelled_distance_are_never_candidates() -> None:
+    det = detector(distance=10.0)  # warm-up fitted here: its places' distances must be kept too
+    feed(det, list(range(12)), 0, positions=[float(k) for k in range(12)])  # 1 m per keyframe
+    # keyframe 12 at 12 m: warm-up place 3 was passed 9 m ago -> excluded
+    assert det.process(scene(3), 12, at(12.0)) is None
+    # keyframe 13 at 13 m: place 3 is exactly 10 m back -> a candidate again (its copy, place 12, is not)
+    proposal = det.process(scene(3), 13, at(13.0))
+    assert proposal is not None and proposal.match_place == 3 and proposal.score == pytest.approx(1.0)
+    # place 5 is 9 m behind keyframe 14
+    assert det.process(scene(5), 14, at(14.0)) is None
+
+
+def test_distance_window_counts_travel_not_keyframes(codebooks: str) -> None:
+    det = detector(distance=10.0, codebooks=codebooks)
+    # moving 1 m per keyframe, then standing still for 25 keyframes
+    positions = [float(k) for k in range(5)] + [4.0] * 25
+    feed(det, list(range(30)), 0, positions)
+    # keyframes 8 and 9 are 21-22 keyframes old but 0 m away: still excluded
+    assert det.process(scene(8), 30, at(4.0)) is None
+    # 10 m further on they are candidates
+    proposal = det.process(scene(9), 31, at(14.0))
+    assert proposal is not None and proposal.match_place == 9 and proposal.score == pytest.approx(1.0)
+
+
+def test_position_none_does_not_advance_the_distance(codebooks: str) -> None:
+    det = detector(distance=10.0, codebooks=codebooks)
+    feed(det, list(range(10)), 0, positions=[0.0] * 10)
+    assert det.process(scene(2), 10, None) is None  # no position: still 0 m travelled
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+def test_non_finite_position_is_an_input_error(bad: float, codebooks: str) -> None:
+    det = detector(distance=10.0, codebooks=codebooks)
+    feed(det, list(range(6)), 0, positions=[float(k) for k in range(6)])
+    before = len(det.database)
+    with pytest.raises(LoopClosureInputError, match="not finite"):
+        det.process(scene(50), 6, np.array([1.0, bad, 0.0]))
+    assert len(det.database) == before  # nothing half-added
+    # and the stream carries on from where it was
+    det.process(scene(51), 6, at(6.0))
+    assert len(det.database) == before + 1
+
+
+# --------------------------------------------------------------------------- revisits + gate
+
+
+def test_revisit_beyond_the_window_is_proposed_and_gated_forward_then_reverse(codebooks: str) -> None:
+    det = detector(keyframes=5, distance=10.0, codebooks=codebooks)
+    first_pass = list(range(20))
+    results = feed(det, first_pass, 0, positions=[2.0 * k for k in range(20)])
+    assert all(r is None for r in results)
+
+    # forward revisit of places 5..8, then a reverse one of 15..12, far along the route
+    revisit = [5, 6, 7, 8, 15, 14, 13, 12]
+    proposals = feed(det, revisit, 20, positions=[100.0 + 2.0 * k for k in range(len(revisit))])
+    assert all(p is not None for p in proposals)
+    assert [p.match_id for p in proposals] == revisit
+    assert [p.query_id for p in proposals] == list(range(20, 28))
+    for p in proposals:
+        assert p.score == pytest.approx(1.0) and p.stage1_score > 0 and not p.prior_map
+    assert [p.accepted for p in proposals] == [False, False, True, True, False, False, True, True]
+    assert [p.direction for p in proposals] == [None, None, "forward", "forward", None, None, "reverse", "reverse"]
+    assert proposals[0].reason == "keyframe 19 recognised nothing"
+    assert proposals[1].reason == "keyframe 19 recognised nothing"
+    assert "keyframe 23 matched 8" in proposals[4].reason  # direction change breaks the run
+    assert len(det.database) == 28
+
+
+def test_reverse_revisit_rejected_when_reverse_is_off(codebooks: str) -> None:
+    det = detector(keyframes=5, allow_reverse=False, codebooks=codebooks)
+    feed(det, list(range(20)), 0)
+    proposals = feed(det, [12, 11, 10, 9], 20)
+    assert [p.match_id for p in proposals] == [12, 11, 10, 9]
+    assert not any(p.accepted for p in proposals)
+
+
+# ------------------------------------------------------------------------------ prior map
+
+
+def test_prior_map_matches_are_flagged_and_not_excluded(tmp_path: Path, codebooks: str) -> None:
+    first = detector(codebooks=codebooks)
+    feed(first, list(range(10)), 0)
+    first.database.save(tmp_path / "db")
+
+    prior = PlaceDatabase.load(tmp_path / "db")
+    assert len(prior) == 10
+    # a huge exclusion window, standing still: only this session's places fall inside it
+    det = detector(prior, keyframes=2, distance=1000.0)
+    assert det.ready and det.encoder.codebooks is prior.codebooks
+    proposals = feed(det, [3, 4, 5], 0, positions=[0.0] * 3)
+    assert [p.match_place for p in proposals] == [3, 4, 5]
+    assert [p.match_id for p in proposals] == [3, 4, 5]  # the earlier session's keyframe ids
+    assert all(p.prior_map and p.score == pytest.approx(1.0) for p in proposals)
+    assert [p.accepted for p in proposals] == [False, False, True]
+    assert proposals[2].direction == "forward"
+    assert len(det.database) == 13  # this session's keyframes join after the prior places
+    assert det.database.places[10].frame_id == 0
+
+
+def test_session_places_after_a_prior_map_are_not_flagged(tmp_path: Path, codebooks: str) -> None:
+    first = detector(codebooks=codebooks)
+    feed(first, list(range(10)), 0)
+    first.database.save(tmp_path / "db")
+    det = detector(PlaceDatabase.load(tmp_path / "db"), keyframes=2)
+    feed(det, [50, 51, 52, 53], 0)
+    proposal = det.process(scene(50), 4)
+    assert proposal is not None
+    assert proposal.match_place == 10 and proposal.match_id == 0 and not proposal.prior_map

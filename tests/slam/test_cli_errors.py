@@ -1,0 +1,234 @@
+"""The command line on bad input: one "error: ..." line naming the culprit, exit status 2,
+never a traceback (typer.testing.CliRunner on ssmvpr_slam.cli.app)."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from frontend.config import McapWriterConfig
+from frontend.simulation import SimulationConfig, TraverseSimulator
+from frontend.sources import write_frames
+from ssmvpr_slam.cli import app
+from ssmvpr_slam.evaluation.trajectory_io import read_tum
+
+
+@pytest.fixture(autouse=True)
+def _clean_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    for key in list(os.environ):
+        if key.upper().startswith("SSMVPR_"):
+            monkeypatch.delenv(key)
+
+
+def invoke(*args: object, env: dict[str, str] | None = None):  # noqa: ANN201
+    return CliRunner().invoke(app, [str(a) for a in args], env=env)
+
+
+def assert_user_error(result, *fragments: str) -> str:  # noqa: ANN001
+    """Exit 2, exactly one `error:` line on stderr holding every fragment, no traceback."""
+    assert result.exit_code == 2, (result.exit_code, result.output, result.exception)
+    assert isinstance(result.exception, SystemExit)
+    assert "Traceback" not in result.output
+    errors = [line for line in result.stderr.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1, result.stderr
+    for fragment in fragments:
+        assert fragment in errors[0], (fragment, errors[0])
+    return errors[0]
+
+
+def _write_images(folder: Path, n: int, seed: int) -> list[Path]:
+    folder.mkdir(parents=True)
+    rng = np.random.default_rng(seed)
+    paths = []
+    for i in range(n):
+        path = folder / f"img{i}.png"
+        assert cv2.imwrite(str(path), rng.integers(0, 256, (48, 64, 3), dtype=np.uint8))
+        paths.append(path)
+    return paths
+
+
+@pytest.fixture
+def folders(tmp_path: Path) -> dict[str, Path]:
+    _write_images(tmp_path / "ref", 3, 0)
+    _write_images(tmp_path / "query", 3, 1)
+    (tmp_path / "empty").mkdir()
+    return {"ref": tmp_path / "ref", "query": tmp_path / "query", "empty": tmp_path / "empty", "out": tmp_path / "out"}
+
+
+# ---------------------------------------------------------------------------------- vpr-eval
+
+
+def test_vpr_eval_missing_folder(folders: dict[str, Path], weights_path: Path) -> None:
+    missing = folders["ref"].parent / "no_such_folder"
+    result = invoke("vpr-eval", missing, folders["query"], "--weights", weights_path, "--out", folders["out"])
+    assert_user_error(result, str(missing), "not found")
+    result = invoke("vpr-eval", folders["ref"], missing, "--weights", weights_path, "--out", folders["out"])
+    assert_user_error(result, str(missing))
+    assert not folders["out"].exists()  # nothing written on a refused run
+
+
+def test_vpr_eval_empty_folder(folders: dict[str, Path], weights_path: Path) -> None:
+    result = invoke("vpr-eval", folders["empty"], folders["query"], "--weights", weights_path, "--out", folders["out"])
+    assert_user_error(result, str(folders["empty"]), "no images")
+
+
+def test_vpr_eval_corrupt_reference_image(folders: dict[str, Path], weights_path: Path) -> None:
+    corrupt = folders["ref"] / "img1.png"
+    corrupt.write_bytes(b"\x89PNG\r\n\x1a\nthis is not a png")
+    result = invoke("vpr-eval", folders["ref"], folders["query"], "--weights", weights_path,
+                    "--device", "cpu", "--out", folders["out"])  # fmt: skip
+    assert_user_error(result, str(corrupt), "cannot decode")
+
+
+def test_vpr_eval_ground_truth_naming_an_unknown_file(folders: dict[str, Path], weights_path: Path) -> None:
+    gt = folders["ref"].parent / "gt.csv"
+    gt.write_text("Reference,Live\nimg0.png,img0.png\nnot_there.png,img1.png\n")
+    result = invoke("vpr-eval", folders["ref"], folders["query"], "--gt", gt, "--weights", weights_path,
+                    "--out", folders["out"])  # fmt: skip
+    assert_user_error(result, str(gt), "not_there.png")
+
+
+def test_vpr_eval_missing_ground_truth_and_weights(folders: dict[str, Path], weights_path: Path) -> None:
+    gt = folders["ref"].parent / "missing.csv"
+    result = invoke("vpr-eval", folders["ref"], folders["query"], "--gt", gt, "--weights", weights_path)
+    assert_user_error(result, str(gt), "does not exist")
+    weights = folders["ref"].parent / "missing.pth"
+    result = invoke("vpr-eval", folders["ref"], folders["query"], "--weights", weights, "--out", folders["out"])
+    assert_user_error(result, str(weights))
+
+
+@pytest.mark.parametrize(
+    ("option", "value", "field"),
+    [("--device", "gpu", "device"), ("-n", "0", "num_candidates")],
+)
+def test_vpr_eval_invalid_option_values(folders: dict[str, Path], option: str, value: str, field: str) -> None:
+    result = invoke("vpr-eval", folders["ref"], folders["query"], option, value, "--out", folders["out"])
+    assert_user_error(result, field, repr(value) if option == "--device" else "greater than or equal to 1")
+
+
+def test_error_text_with_brackets_is_printed_verbatim(tmp_path: Path) -> None:
+    # rich markup must not eat "[x]" from a path, nor crash on the closing tag "[/x]"
+    folder = tmp_path / "scans[x]"
+    folder.mkdir()
+    assert_user_error(invoke("vpr-eval", folder, folder), str(folder), "no images")
+    missing = tmp_path / "odd[" / "x]"  # its text holds "[/x]"
+    assert_user_error(invoke("vpr-eval", missing, missing), str(missing), "not found")
+
+
+# --------------------------------------------------------------------------------------- run
+
+
+@pytest.fixture(scope="module")
+def truncated_log(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, int]:
+    """A small simulated log (camera + poses, 8 frames) cut short part-way through."""
+    folder = tmp_path_factory.mktemp("logs")
+    full = folder / "full.mcap"
+    sim = TraverseSimulator(SimulationConfig(max_frames=8, lidar={"enabled": False}))
+    assert write_frames(sim.frames(), full, McapWriterConfig(chunk_size=64 * 1024)) == 8
+    data = full.read_bytes()
+    cut = folder / "cut.mcap"
+    cut.write_bytes(data[: int(0.3 * len(data))])
+    return cut, 8
+
+
+def _run_folders(out: Path) -> list[Path]:
+    return sorted(p for p in out.glob("run_*") if p.is_dir()) if out.exists() else []
+
+
+def test_run_truncated_log_strict_exits_with_one_line(truncated_log, weights_path: Path, tmp_path: Path) -> None:  # noqa: ANN001
+    cut, _ = truncated_log
+    out = tmp_path / "out"
+    result = invoke("run", cut, "--odometry", "logged", "--weights", weights_path, "--device", "cpu", "--out", out)
+    line = assert_user_error(result, str(cut), "truncated")
+    assert "after 2 frames" in line
+    # nothing half-written: either no results folder, or a complete one
+    for folder in _run_folders(out):
+        assert (folder / "metrics.json").is_file()
+
+
+def test_run_truncated_log_lenient_keeps_the_frames_before_the_cut(
+    truncated_log, weights_path: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture  # noqa: ANN001
+) -> None:
+    cut, total = truncated_log
+    out = tmp_path / "out"
+    with caplog.at_level("WARNING"):
+        result = invoke("run", cut, "--odometry", "logged", "--weights", weights_path, "--device", "cpu", "--out", out,
+                        env={"SSMVPR_FRONTEND__SOURCE__MCAP__STRICT": "false"})  # fmt: skip
+    assert result.exit_code == 0, (result.output, result.exception)
+    assert f"{cut}: log is truncated or corrupt after 2 frames" in caplog.text  # the clear message, once
+    (folder,) = _run_folders(out)
+    metrics = json.loads((folder / "metrics.json").read_text())
+    assert 0 < metrics["frames"] < total
+    assert metrics["source_stats"]["skipped"].get("truncated") == 1
+    stamps, poses = read_tum(folder / "odometry.tum")
+    assert len(stamps) == len(poses) == metrics["keyframes"] >= 1
+
+
+def test_run_missing_path(tmp_path: Path) -> None:
+    missing = tmp_path / "nothing.mcap"
+    assert_user_error(invoke("run", missing), str(missing), "no such file")
+
+
+def test_run_unrecognised_inputs(tmp_path: Path) -> None:
+    text = tmp_path / "notes.txt"
+    text.write_text("not a log")
+    assert_user_error(invoke("run", text), str(text), "not a .mcap")
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    assert_user_error(invoke("run", empty), str(empty), "not recognised")
+    garbage = tmp_path / "garbage.mcap"
+    garbage.write_bytes(b"definitely not an mcap file" * 10)
+    assert_user_error(invoke("run", garbage), str(garbage))
+
+
+def test_run_invalid_odometry_kind(truncated_log) -> None:  # noqa: ANN001
+    cut, _ = truncated_log
+    assert_user_error(invoke("run", cut, "--odometry", "wheels"), "kind", "'wheels'")
+
+
+# ------------------------------------------------------------------------ config, simulate
+
+
+def test_config_unknown_preset() -> None:
+    assert_user_error(invoke("config", "-c", "nonexistent"), "'nonexistent'", "default", "ras2020")
+
+
+def test_config_missing_file_path(tmp_path: Path) -> None:
+    missing = tmp_path / "missing.yaml"
+    assert_user_error(invoke("config", "-c", missing), str(missing))
+
+
+def test_config_typo_in_file(tmp_path: Path) -> None:
+    path = tmp_path / "typo.yaml"
+    path.write_text("preset: default\ndetector: {min_scor: 0.3}\n")
+    assert_user_error(invoke("config", "-c", path), str(path), "detector.min_scor")
+
+
+def test_config_bad_environment_variable() -> None:
+    result = invoke("config", env={"SSMVPR_DETECTOR__MIN_SCORE": "high"})
+    assert_user_error(result, "SSMVPR_DETECTOR__MIN_SCORE", "detector.min_score")
+
+
+def test_config_prints_effective_yaml() -> None:
+    result = invoke("config", "-c", "ras2020", env={"SSMVPR_DETECTOR__GATE__LENGTH": "4"})
+    assert result.exit_code == 0, result.output
+    assert "cube_size: 9" in result.output and "length: 4" in result.output
+    assert "# presets:" in result.output
+
+
+@pytest.mark.parametrize(
+    ("text", "fragment"),
+    [("route: {speed_mps: -1}\n", "route.speed_mps"), ("rout: {laps: 1}\n", "rout"), ("- 1\n", "mapping")],
+)
+def test_simulate_bad_sim_config(tmp_path: Path, text: str, fragment: str) -> None:
+    path = tmp_path / "sim.yaml"
+    path.write_text(text)
+    out = tmp_path / "sim.mcap"
+    assert_user_error(invoke("simulate", "--sim-config", path, "--out", out), str(path), fragment)
+    assert not out.exists()

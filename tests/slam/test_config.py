@@ -1,0 +1,189 @@
+"""ssmvpr_slam.config.load_config: presets from configs/, YAML files over a `preset:` base,
+SSMVPR_<SECTION>__<FIELD> environment overrides, and errors that name their source."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+import ssmvpr_slam.config as config_module
+from loopclosure.config import DetectorConfig
+from ssmvpr_slam.backend.config import LidarRegistrationConfig
+from ssmvpr_slam.config import ConfigError, SlamConfig, available_presets, dump_config, load_config
+
+
+@pytest.fixture(autouse=True)
+def _no_ssmvpr_environment(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A developer's SSMVPR_* variables must not leak into these tests."""
+    import os
+
+    for key in list(os.environ):
+        if key.upper().startswith("SSMVPR_"):
+            monkeypatch.delenv(key)
+
+
+def test_presets_are_listed() -> None:
+    assert {"default", "fast", "ras2020"} <= set(available_presets())
+
+
+def test_no_argument_loads_the_default_preset() -> None:
+    cfg = load_config()
+    assert cfg == load_config("default")
+    vpr = cfg.vpr
+    assert vpr.filtering.num_candidates == 50
+    assert (vpr.filtering.cubes.cube_size, vpr.filtering.cubes.stride) == (7, 2)
+    assert (vpr.spatial.cubes.cube_size, vpr.spatial.cubes.stride) == (3, 2)
+    assert (vpr.backbone.stage1_layer, vpr.backbone.stage2_layer) == ("conv5_2", "conv4_2")
+    assert vpr.filtering.pca.dim == vpr.spatial.pca.dim == 100
+    assert not vpr.frame_correlation.enabled
+    gate = cfg.detector.gate
+    assert (gate.length, gate.tolerance, gate.allow_reverse) == (3, 2, True)
+    # values the preset sets away from the models' own defaults: proof the file was applied
+    assert DetectorConfig().min_score != 0.5 and cfg.detector.min_score == 0.5
+    assert LidarRegistrationConfig().min_inlier_ratio != 0.8
+    assert cfg.backend.registration.lidar.min_inlier_ratio == 0.8
+
+
+def test_ras2020_changes_cubes_and_inherits_the_rest_from_default() -> None:
+    default, ras = load_config("default"), load_config("ras2020")
+    assert (ras.vpr.filtering.cubes.cube_size, ras.vpr.filtering.cubes.stride) == (9, 1)
+    assert (ras.vpr.spatial.cubes.cube_size, ras.vpr.spatial.cubes.stride) == (3, 1)
+    assert ras.vpr.frame_correlation.enabled
+    assert ras.vpr.filtering.pca.whiten and ras.vpr.filtering.pca.dim == 125
+    # not in ras2020.yaml: comes from default.yaml, not from the models' defaults
+    assert ras.detector == default.detector and ras.detector.min_score == 0.5
+    assert ras.vpr.filtering.num_candidates == 50
+    assert ras.backend == default.backend
+
+
+def test_fast_preset_inherits_default() -> None:
+    fast = load_config("fast")
+    assert fast.vpr.filtering.num_candidates == 15
+    assert fast.vpr.database.stage1_dtype == "float16"
+    assert fast.vpr.filtering.cubes == load_config().vpr.filtering.cubes
+    assert fast.detector.min_score == 0.5
+
+
+def test_yaml_file_over_a_preset_base(tmp_path: Path) -> None:
+    path = tmp_path / "mine.yaml"
+    path.write_text("preset: ras2020\ndetector:\n  gate: {length: 5}\nvpr:\n  filtering: {num_candidates: 20}\n")
+    cfg = load_config(path)
+    assert cfg.detector.gate.length == 5
+    assert cfg.detector.gate.tolerance == 2  # sibling keys of the override survive (deep merge)
+    assert cfg.vpr.filtering.num_candidates == 20
+    assert cfg.vpr.filtering.cubes.cube_size == 9  # from ras2020
+    assert cfg.detector.min_score == 0.5  # from default, below ras2020
+
+
+def test_yaml_file_over_a_preset_that_has_its_own_base(tmp_path: Path) -> None:
+    # fast.yaml itself says `preset: default`; the chain must resolve, not leak a `preset` key
+    path = tmp_path / "mine.yaml"
+    path.write_text("preset: fast\ndetector: {min_score: 0.3}\n")
+    cfg = load_config(path)
+    assert cfg.detector.min_score == 0.3
+    assert cfg.vpr.filtering.num_candidates == 15  # fast
+    assert cfg.backend.registration.lidar.min_inlier_ratio == 0.8  # default, under fast
+
+
+def test_yaml_without_preset_starts_from_model_defaults(tmp_path: Path) -> None:
+    path = tmp_path / "bare.yaml"
+    path.write_text("detector: {min_score: 0.4}\n")
+    cfg = load_config(path)
+    assert cfg.detector.min_score == 0.4
+    assert cfg.backend.registration.lidar.min_inlier_ratio == LidarRegistrationConfig().min_inlier_ratio
+
+
+@pytest.mark.parametrize(
+    ("text", "where"),
+    [
+        ("vpr:\n  filtering:\n    num_candidate: 3\n", "vpr.filtering.num_candidate"),
+        ("preset: fast\nvpr:\n  filtering:\n    num_candidate: 3\n", "vpr.filtering.num_candidate"),
+        ("detectr: {min_score: 0.3}\n", "detectr"),
+        ("detector: {min_score: 2.0}\n", "detector.min_score"),
+    ],
+)
+def test_bad_key_or_value_names_file_and_key(tmp_path: Path, text: str, where: str) -> None:
+    path = tmp_path / "typo.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError) as info:
+        load_config(path)
+    message = str(info.value)
+    assert str(path) in message and where in message
+    assert "\n" not in message
+    assert "(1 error(s))" in message  # the typo is the only problem (no stray `preset` key)
+
+
+@pytest.mark.parametrize(
+    ("text", "fragment"),
+    [("vpr: [1, 2\n", "not valid YAML"), ("- 1\n- 2\n", "must be a mapping"), ("preset: nope\n", "'nope'")],
+)
+def test_unusable_yaml_names_the_file(tmp_path: Path, text: str, fragment: str) -> None:
+    path = tmp_path / "broken.yaml"
+    path.write_text(text)
+    with pytest.raises(ConfigError, match=fragment) as info:
+        load_config(path)
+    assert str(path) in str(info.value) and "\n" not in str(info.value)
+
+
+def test_unknown_preset_lists_presets() -> None:
+    with pytest.raises(ConfigError) as info:
+        load_config("no_such_preset")
+    message = str(info.value)
+    assert "'no_such_preset'" in message
+    for name in available_presets():
+        assert name in message
+
+
+def test_preset_cycle_is_an_error(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    (tmp_path / "a.yaml").write_text("preset: b\n")
+    (tmp_path / "b.yaml").write_text("preset: a\n")
+    monkeypatch.setattr(config_module, "PRESETS_DIR", tmp_path)
+    with pytest.raises(ConfigError, match="cycle"):
+        load_config("a")
+
+
+def test_environment_overrides_a_preset(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("SSMVPR_VPR__FILTERING__NUM_CANDIDATES", "15")
+    monkeypatch.setenv("SSMVPR_DETECTOR__GATE__ALLOW_REVERSE", "false")
+    cfg = load_config()
+    assert cfg.vpr.filtering.num_candidates == 15
+    assert cfg.detector.gate.allow_reverse is False
+    # only those fields: their siblings keep the preset's values
+    assert cfg.vpr.filtering.cubes.cube_size == 7
+    assert cfg.detector.gate.length == 3 and cfg.detector.min_score == 0.5
+    # and it beats a YAML file's value too
+    ras = load_config("ras2020")
+    assert ras.vpr.filtering.num_candidates == 15 and ras.vpr.filtering.cubes.cube_size == 9
+
+
+def test_environment_beats_a_yaml_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    path = tmp_path / "mine.yaml"
+    path.write_text("preset: default\ndetector: {min_score: 0.3}\n")
+    monkeypatch.setenv("SSMVPR_DETECTOR__MIN_SCORE", "0.7")
+    assert load_config(path).detector.min_score == pytest.approx(0.7)
+
+
+@pytest.mark.parametrize(
+    ("name", "value", "where"),
+    [
+        ("SSMVPR_VPR__FILTERING__NUM_CANDIDATES", "abc", "vpr.filtering.num_candidates"),
+        ("SSMVPR_VPR__FILTERING__NUM_CANDIDATE", "3", "vpr.filtering.num_candidate"),
+    ],
+)
+def test_bad_environment_override_names_the_variable(
+    monkeypatch: pytest.MonkeyPatch, name: str, value: str, where: str
+) -> None:
+    monkeypatch.setenv(name, value)
+    with pytest.raises(ConfigError) as info:
+        load_config()
+    assert f"environment variable {name}" in str(info.value) and where in str(info.value)
+
+
+def test_overrides_argument_and_dump_roundtrip(tmp_path: Path) -> None:
+    cfg = load_config(overrides={"detector": {"exclusion_keyframes": 7}})
+    assert cfg.detector.exclusion_keyframes == 7 and cfg.detector.exclusion_distance == 15.0
+    path = tmp_path / "dumped.yaml"
+    path.write_text(dump_config(cfg))
+    assert load_config(path) == cfg
+    assert isinstance(cfg, SlamConfig)

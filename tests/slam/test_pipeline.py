@@ -1,0 +1,362 @@
+"""SlamPipeline end to end: a simulated traverse with revisits, the real VGG16 weights,
+drifting logged odometry (and kiss-icp), SSM-VPR loops, iSAM2, the results files.
+
+Traverse: the block_grid route in a city of 14 m blocks, 5 Hz, 210 frames (294 m, the second
+lap revisiting the first from ~180 m on); a keyframe every second frame (by time, so every run
+picks the same keyframes and one memoised backbone pass per keyframe serves all runs): 105
+keyframes. Each configuration runs once (module fixtures) and its tests share the result.
+
+Measured on this setup (default preset, logged odometry with the simulator's drift plus
+2 mrad/m yaw bias and 2 % scale error): ATE RMSE odometry 5.29 m -> optimised 1.10 m (0.21x);
+38 proposals, 29 gate-accepted, all in the graph, precision 1.0, recall 0.71 (29 of 41
+revisit keyframes), stream PR-AUC 0.90; RPE rotation 0.42 -> 0.19 deg. With wrong loops
+injected at rate 0.2 (6 of them, as confident as ICP loops): ATE 1.12 m. kiss-icp (180
+frames, 16x512 LiDAR): ATE 0.227 m -> 0.223 m, 14 ICP loops, precision 1.0, each within
+0.21 m / 0.4 deg of the true relative pose. The thresholds keep a clear margin on these.
+Runtime ~90 s on 2 shared cores, most of it the 105 VGG16 passes.
+"""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+import os
+import signal
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from frontend.config import KeyframeConfig
+from frontend.frame import Frame
+from frontend.odometry import make_odometry
+from frontend.simulation import SimulationConfig, TraverseSimulator
+from loopclosure.backbone import load_backbone
+from ssmvpr_slam.config import SlamConfig, load_config
+from ssmvpr_slam.evaluation.trajectory_io import read_kitti, read_tum
+from ssmvpr_slam.pipeline import SlamPipeline
+from ssmvpr_slam.run_results import LOOP_COLUMNS, evaluate_run, write_run_results
+
+pytestmark = pytest.mark.slow
+
+FRAMES = 210
+KISS_FRAMES = 180
+INTERRUPT_AFTER = 150  # frames; the second lap's loops have started by then
+CORRECT_RADIUS = 10.0
+
+
+def simulation(frames: int, lidar: bool) -> SimulationConfig:
+    return SimulationConfig(
+        frame_rate_hz=5.0,
+        city={"block_size_m": 14.0},
+        route={"preset": "block_grid", "laps": 2},
+        max_frames=frames,
+        lidar={"enabled": lidar, "beams": 16, "azimuths": 512},
+    )
+
+
+class MemoBackbone:
+    """The real backbone, remembering each image's maps: the runs share one pass per keyframe."""
+
+    def __init__(self, backbone) -> None:  # noqa: ANN001
+        self.backbone = backbone
+        self.passes = 0
+        self._memo: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
+
+    def __call__(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        key = hashlib.sha1(np.ascontiguousarray(images).tobytes()).digest()
+        if key not in self._memo:
+            self.passes += 1
+            self._memo[key] = self.backbone(images)
+        return self._memo[key]
+
+
+def slam_config(weights_path: Path, odometry: str) -> SlamConfig:
+    cfg = load_config()  # the default (paper) preset
+    cfg.vpr.backbone.weights = str(weights_path)
+    cfg.vpr.backbone.device = "cpu"
+    cfg.detector.pca_warmup_keyframes = 30  # the first revisit comes at keyframe ~64
+    cfg.frontend.keyframes = KeyframeConfig(min_distance_m=None, min_angle_deg=None, max_interval_s=0.35)
+    cfg.frontend.odometry.kind = odometry  # type: ignore[assignment]
+    if odometry == "logged":
+        logged = cfg.frontend.odometry.logged
+        logged.pose_source = "logged"  # the simulator's wheel odometry, drifting already...
+        logged.drift.enabled = True  # ...plus a heading bias and scale error on top
+        logged.drift.yaw_bias_per_m = 0.002
+        logged.drift.translation_scale_error = 0.02
+        cfg.pipeline.use_lidar_for_loops = False
+    cfg.evaluation.loops.min_frame_gap = 25  # keyframes; a lap is ~60
+    cfg.results.plots = False
+    return cfg
+
+
+@dataclass
+class Run:
+    pipeline: SlamPipeline
+    config: SlamConfig
+    metrics: dict[str, Any]
+    folder: Path
+
+
+@pytest.fixture(scope="module")
+def limited_blas() -> Iterator[None]:
+    """One BLAS thread for numpy/scipy (torch keeps its own threads): on 2 shared cores the
+    detector's PCA warm-up fit took 16 s with two contending BLAS threads and 1.6 s with one."""
+    import sklearn.decomposition  # noqa: F401  (its scipy BLAS must be loaded to be limited)
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1, user_api="blas"):
+        yield
+
+
+@pytest.fixture(scope="module")
+def backbone(weights_path: Path, limited_blas: None) -> MemoBackbone:
+    return MemoBackbone(load_backbone(slam_config(weights_path, "logged").vpr.backbone))
+
+
+@pytest.fixture(scope="module")
+def camera_frames() -> list[Frame]:
+    """The traverse without LiDAR, rendered once (~50 MB of images) for the logged-odometry runs."""
+    return list(TraverseSimulator(simulation(FRAMES, lidar=False)).frames())
+
+
+def _run(
+    folder: Path, cfg: SlamConfig, backbone: MemoBackbone, frames, inject: float = 0.0, plots: bool = False  # noqa: ANN001
+) -> Run:
+    pipeline = SlamPipeline(cfg, make_odometry(cfg.frontend.odometry, cfg.frontend.pose_files), backbone,
+                            inject_wrong_loops=inject, seed=0)  # type: ignore[arg-type]  # fmt: skip
+    pipeline.run(frames)
+    cfg.results.plots = plots
+    folder.mkdir(parents=True)
+    metrics = write_run_results(folder, pipeline, cfg, {"test": folder.name})
+    return Run(pipeline, cfg, metrics, folder)
+
+
+@pytest.fixture(scope="module")
+def clean(tmp_path_factory, weights_path, backbone, camera_frames) -> Run:  # noqa: ANN001
+    run = _run(tmp_path_factory.mktemp("slam") / "clean", slam_config(weights_path, "logged"), backbone,
+               iter(camera_frames), plots=True)  # fmt: skip
+    assert backbone.passes == len(run.pipeline.state.keyframes)
+    return run
+
+
+@pytest.fixture(scope="module")
+def injected(tmp_path_factory, weights_path, backbone, camera_frames, clean) -> Run:  # noqa: ANN001
+    passes = backbone.passes
+    run = _run(tmp_path_factory.mktemp("slam") / "injected", slam_config(weights_path, "logged"), backbone,
+               iter(camera_frames), inject=0.2)  # fmt: skip
+    assert backbone.passes == passes  # same keyframes, no new backbone pass
+    return run
+
+
+@pytest.fixture(scope="module")
+def kiss(tmp_path_factory, weights_path, backbone, clean) -> Run:  # noqa: ANN001
+    frames = TraverseSimulator(simulation(KISS_FRAMES, lidar=True)).frames()
+    return _run(tmp_path_factory.mktemp("slam") / "kiss", slam_config(weights_path, "kiss_icp"), backbone, frames)
+
+
+def _gt_distance(run: Run, query: int, match: int) -> float:
+    kfs = run.pipeline.state.keyframes
+    return float(np.linalg.norm(kfs[query].gt_pose[:3, 3] - kfs[match].gt_pose[:3, 3]))
+
+
+def _graph_loops(run: Run) -> list:
+    return [r for r in run.pipeline.state.loops if r.in_graph and not r.injected]
+
+
+# ------------------------------------------------------------------------- logged odometry
+
+
+def test_every_other_frame_is_a_keyframe_and_the_backbone_ran_once_each(clean: Run) -> None:
+    state = clean.pipeline.state
+    assert state.frames_seen == FRAMES and not state.interrupted and not state.frames_skipped
+    assert len(state.keyframes) == FRAMES // 2
+    assert [k.id for k in state.keyframes] == list(range(FRAMES // 2))
+    assert [k.frame_index for k in state.keyframes] == list(range(0, FRAMES, 2))
+    assert len(state.times.rows) == len(state.keyframes)
+    assert len(clean.pipeline.detector.database) == len(state.keyframes)
+
+
+def test_loops_are_found_and_all_correct(clean: Run) -> None:
+    loops = clean.metrics["loops"]
+    graph = _graph_loops(clean)
+    assert loops["in_graph"] == len(graph) >= 20
+    assert loops["precision"] == 1.0
+    assert loops["recall"] >= 0.5
+    assert clean.metrics["stream_pr_auc"] >= 0.75
+    for record in graph:
+        p = record.proposal
+        assert p.accepted and record.registration is not None and record.registration.accepted
+        assert p.query_id - p.match_id >= 40  # a revisit a lap later, not the recent past
+        assert _gt_distance(clean, p.query_id, p.match_id) <= 5.0  # well inside the correct radius
+    # nothing was proposed during the PCA warm-up
+    assert min(r.proposal.query_id for r in clean.pipeline.state.loops) >= clean.config.detector.pca_warmup_keyframes
+
+
+def test_loop_closure_reduces_the_trajectory_error(clean: Run) -> None:
+    odom = clean.metrics["ate_odometry"]["rmse"]
+    optimised = clean.metrics["ate_optimised"]["rmse"]
+    assert odom >= 3.0  # there is drift to correct
+    assert optimised <= 0.5 * odom
+    assert clean.metrics["ate_ratio"] == pytest.approx(optimised / odom)
+    # locally the optimised trajectory is no worse (translation) and better (rotation) than odometry
+    rpe_odom, rpe_opt = clean.metrics["rpe_odometry"], clean.metrics["rpe_optimised"]
+    assert rpe_opt["translation_m"]["rmse"] <= 1.05 * rpe_odom["translation_m"]["rmse"]
+    assert rpe_opt["rotation_deg"]["rmse"] <= 0.8 * rpe_odom["rotation_deg"]["rmse"]
+
+
+def test_results_files_are_consistent(clean: Run) -> None:
+    folder, n = clean.folder, len(clean.pipeline.state.keyframes)
+    stamps_odom, odom = read_tum(folder / "odometry.tum")
+    stamps_opt, optimised = read_tum(folder / "optimised.tum")
+    stamps_gt, gt = read_tum(folder / "ground_truth.tum")
+    assert len(odom) == len(optimised) == len(gt) == n
+    np.testing.assert_array_equal(stamps_odom, stamps_opt)
+    np.testing.assert_array_equal(stamps_odom, stamps_gt)
+    for name in ("odometry", "optimised", "ground_truth"):
+        assert len(read_kitti(folder / f"{name}.kitti")) == n
+    np.testing.assert_allclose(read_kitti(folder / "optimised.kitti"), optimised, atol=1e-6)
+    # the files hold what the pipeline has
+    stamps, odom_poses, opt_poses = clean.pipeline.trajectories()
+    np.testing.assert_allclose(odom, odom_poses, atol=1e-6)
+    np.testing.assert_allclose(optimised, opt_poses, atol=1e-6)
+    np.testing.assert_allclose(stamps_odom, stamps, atol=1e-6)
+
+    with open(folder / "loop_closures.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert list(rows[0].keys()) == LOOP_COLUMNS
+    assert len(rows) == len(clean.pipeline.state.loops)
+    in_graph = [r for r in rows if r["in_graph"] == "1"]
+    assert len(in_graph) == clean.metrics["loops"]["in_graph"]
+    assert all(float(r["gt_distance_m"]) <= CORRECT_RADIUS for r in in_graph)
+    assert all(r["gate_accepted"] == "1" and r["direction"] in ("forward", "reverse") for r in in_graph)
+    assert all(r["injected"] == "0" and r["prior_map"] == "0" for r in rows)
+
+    metrics = json.loads((folder / "metrics.json").read_text())
+    assert metrics["keyframes"] == n and metrics["frames"] == FRAMES and metrics["interrupted"] is False
+    assert metrics["ate_optimised"]["rmse"] == pytest.approx(clean.metrics["ate_optimised"]["rmse"])
+    assert metrics["loops"]["precision"] == 1.0
+    assert (folder / "config.yaml").is_file() and (folder / "database" / "manifest.json").is_file()
+    for plot in ("trajectory_top_view.png", "translation_error.png", "loop_closures.png"):
+        assert (folder / plot).stat().st_size > 1000
+
+
+def test_metrics_recomputed_from_the_pipeline_agree(clean: Run) -> None:
+    _, odom, optimised = clean.pipeline.trajectories()
+    again = evaluate_run(clean.pipeline, odom, optimised, clean.config)
+    assert again["ate_optimised"]["rmse"] == pytest.approx(clean.metrics["ate_optimised"]["rmse"])
+    assert again["loops"]["n_loops"] == clean.metrics["loops"]["n_loops"]
+
+
+# -------------------------------------------------------------------------- injected loops
+
+
+def test_wrong_loops_are_injected_and_recorded(injected: Run, clean: Run) -> None:
+    records = [r for r in injected.pipeline.state.loops if r.injected]
+    assert len(records) >= 3
+    assert all(r.factor_handle is not None for r in records)
+    assert injected.metrics["loops"]["injected"] == len(records)
+    # they are far from right: most join places tens of metres apart
+    assert sum(_gt_distance(injected, r.proposal.query_id, r.proposal.match_id) > 20.0 for r in records) >= 3
+    # the recogniser saw the same stream: its own proposals and metrics do not change
+    assert injected.metrics["loops"]["proposed"] == clean.metrics["loops"]["proposed"]
+    assert injected.metrics["loops"]["in_graph"] == clean.metrics["loops"]["in_graph"]
+    assert injected.metrics["loops"]["precision"] == 1.0
+    assert injected.metrics["stream_pr_auc"] == pytest.approx(clean.metrics["stream_pr_auc"])
+    with open(injected.folder / "loop_closures.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert sum(r["injected"] == "1" for r in rows) == len(records)
+
+
+def test_wrong_loops_barely_move_the_trajectory(injected: Run, clean: Run) -> None:
+    clean_ate = clean.metrics["ate_optimised"]["rmse"]
+    injected_ate = injected.metrics["ate_optimised"]["rmse"]
+    assert injected_ate <= max(1.10 * clean_ate, clean_ate + 0.2)
+    assert injected_ate <= 0.5 * injected.metrics["ate_odometry"]["rmse"]
+
+
+# ------------------------------------------------------------------------------- interrupt
+
+
+def test_sigint_mid_run_stops_cleanly_and_results_are_consistent(
+    tmp_path: Path, weights_path: Path, backbone: MemoBackbone, camera_frames: list[Frame]
+) -> None:
+    def frames() -> Iterator[Frame]:
+        for k, frame in enumerate(camera_frames):
+            if k == INTERRUPT_AFTER:
+                os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C, delivered to the pipeline's handler
+            yield frame
+
+    previous = signal.getsignal(signal.SIGINT)
+    cfg = slam_config(weights_path, "logged")
+    pipeline = SlamPipeline(cfg, make_odometry(cfg.frontend.odometry), backbone)  # type: ignore[arg-type]
+    state = pipeline.run(frames())
+    assert signal.getsignal(signal.SIGINT) is previous  # the handler is handed back
+    assert state.interrupted
+    assert state.frames_seen == INTERRUPT_AFTER  # the frame after the request is not processed
+    assert len(state.keyframes) == INTERRUPT_AFTER // 2
+    assert any(r.in_graph for r in state.loops)  # it got into the second lap
+
+    metrics = write_run_results(tmp_path, pipeline, cfg, {})
+    n = len(state.keyframes)
+    _, odom = read_tum(tmp_path / "odometry.tum")
+    _, optimised = read_tum(tmp_path / "optimised.tum")
+    assert len(odom) == len(optimised) == n
+    assert len(read_kitti(tmp_path / "optimised.kitti")) == n
+    with open(tmp_path / "loop_closures.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == len(state.loops) and all(int(r["query_kf"]) < n for r in rows)
+    written = json.loads((tmp_path / "metrics.json").read_text())
+    assert written["interrupted"] is True and metrics["interrupted"] is True
+    assert written["frames"] == INTERRUPT_AFTER and written["keyframes"] == n
+    assert written["loops"]["precision"] == 1.0
+
+
+def test_stop_flag_before_the_first_frame_gives_an_empty_but_valid_run(
+    tmp_path: Path, weights_path: Path, backbone: MemoBackbone, camera_frames: list[Frame]
+) -> None:
+    cfg = slam_config(weights_path, "logged")
+    pipeline = SlamPipeline(cfg, make_odometry(cfg.frontend.odometry), backbone)  # type: ignore[arg-type]
+
+    def frames() -> Iterator[Frame]:
+        pipeline.stop.requested = True  # e.g. SIGTERM while the source was opening
+        yield from camera_frames[:3]
+
+    state = pipeline.run(frames())
+    assert state.interrupted and state.frames_seen == 0 and not state.keyframes
+    metrics = write_run_results(tmp_path, pipeline, cfg, {})
+    assert metrics["keyframes"] == 0 and metrics["interrupted"] is True
+    assert json.loads((tmp_path / "metrics.json").read_text())["interrupted"] is True
+    assert not (tmp_path / "odometry.tum").exists()  # no trajectory, rather than an empty one
+    with open(tmp_path / "loop_closures.csv", newline="") as f:
+        assert list(csv.reader(f)) == [LOOP_COLUMNS]
+
+
+# -------------------------------------------------------------------------------- kiss-icp
+
+
+def test_kiss_icp_run_closes_loops_by_icp_without_harm(kiss: Run) -> None:
+    state = kiss.pipeline.state
+    assert len(state.keyframes) == KISS_FRAMES // 2 and not state.frames_skipped
+    assert kiss.pipeline.odometry.stats.skipped == {} or not any(kiss.pipeline.odometry.stats.skipped.values())
+    loops = kiss.metrics["loops"]
+    assert loops["in_graph"] >= 8 and loops["precision"] == 1.0
+    graph = _graph_loops(kiss)
+    assert all(r.registration.method == "icp" for r in graph)
+    # each accepted ICP loop agrees with the true relative pose of the two keyframes
+    kfs = state.keyframes
+    for record in graph:
+        q, m = kfs[record.proposal.query_id], kfs[record.proposal.match_id]
+        truth = np.linalg.inv(m.gt_pose) @ q.gt_pose
+        error = np.linalg.inv(truth) @ record.registration.T_mq
+        assert np.linalg.norm(error[:3, 3]) <= 0.5
+        angle = np.degrees(np.arccos(np.clip((np.trace(error[:3, :3]) - 1) / 2, -1, 1)))
+        assert angle <= 1.5
+    # kiss-icp hardly drifts here: the loops must at least not make it worse
+    odom, optimised = kiss.metrics["ate_odometry"]["rmse"], kiss.metrics["ate_optimised"]["rmse"]
+    assert odom <= 1.0
+    assert optimised <= 1.05 * odom + 0.02
