@@ -27,6 +27,7 @@ from loopclosure.database import PlaceDatabase
 from loopclosure.detector import LoopDetector, LoopProposal
 from loopclosure.encoder import Encoder
 from ssmvpr_slam.backend.loop_registration import LoopRegistrar, LoopRegistration
+from ssmvpr_slam.backend.noise import sigmas6
 from ssmvpr_slam.backend.pose_graph import PoseGraph
 from ssmvpr_slam.config import SlamConfig
 
@@ -236,7 +237,7 @@ class SlamPipeline:
             return
         wrong = int(self._rng.integers(0, kf.id - 1))
         lidar = self.config.backend.registration.lidar
-        sigmas = np.array([lidar.rot_sigma] * 3 + [lidar.trans_sigma] * 3)
+        sigmas = sigmas6(lidar.rot_sigma, lidar.trans_sigma)  # as confident as a real ICP loop
         proposal = LoopProposal(kf.id, wrong, -1, 0.0, 0.0, 0, 0.0, True, "injected wrong loop (test option)")
         record = LoopRecord(proposal, injected=True)
         record.factor_handle = self.graph.add_loop(wrong, kf.id, np.eye(4), sigmas=sigmas)
