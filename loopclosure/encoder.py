@@ -140,6 +140,13 @@ class _FitSamples:
     def fit(self) -> Codebooks:
         if not self.stage1:
             raise LoopClosureInputError("no images to fit the PCA codebooks on")
+        import sklearn.decomposition  # noqa: F401  (loads scipy's BLAS so the limit below reaches it)
+
+        # one BLAS thread: right after backbone passes a 2-thread BLAS fit was measured 10x slower
+        with threadpool_limits(limits=1, user_api="blas"):
+            return self._fit_both()
+
+    def _fit_both(self) -> Codebooks:
         return Codebooks(
             fit_pca(np.concatenate(self.stage1), self.config.filtering.pca, "stage-I PCA"),
             fit_pca(np.concatenate(self.stage2), self.config.spatial.pca, "stage-II PCA"),

@@ -145,7 +145,7 @@ def run(
     odometry: Annotated[Optional[str], typer.Option(help="kiss-icp | logged")] = None,
     map_dir: Annotated[Optional[Path], typer.Option("--map", help="Place database of an earlier run to close loops against.")] = None,
     no_lidar_loops: Annotated[bool, typer.Option("--no-lidar-loops", help="Ignore scans for loop registration (place prior).")] = False,
-    inject_wrong_loops: Annotated[float, typer.Option(help="Test option: share of keyframes given a wrong loop factor.")] = 0.0,
+    inject_wrong_loops: Annotated[float, typer.Option(help="Test option: probability, per keyframe with a loop proposal, of adding a deliberately wrong loop factor.")] = 0.0,
     config: ConfigOpt = None,
     weights: WeightsOpt = None,
     device: DeviceOpt = None,

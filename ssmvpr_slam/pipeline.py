@@ -19,6 +19,7 @@ from typing import Iterator
 
 import numpy as np
 
+from frontend.errors import FrontendInputError
 from frontend.frame import Frame
 from frontend.keyframes import KeyframeSelector
 from frontend.odometry.base import Odometry
@@ -84,6 +85,7 @@ class RunState:
     frames_seen: int = 0
     frames_skipped: Counter = field(default_factory=Counter)
     interrupted: bool = False
+    source_error: str | None = None  # why the source ended early (truncated log, ...)
     seconds: float = 0.0
     times: StageTimes = field(default_factory=StageTimes)
 
@@ -133,14 +135,23 @@ class SlamPipeline:
     def run(self, frames: Iterable[Frame], on_frame=None) -> RunState:  # noqa: ANN001
         """Process every frame (or until a stop request); returns the run state."""
         start = time.perf_counter()
+        iterator = iter(frames)
         with self.stop.installed():
-            for frame in frames:
-                if self.stop.requested:
-                    self.state.interrupted = True
+            while not self.stop.requested:
+                try:
+                    frame = next(iterator)
+                except StopIteration:
+                    break
+                except FrontendInputError as exc:  # e.g. a log cut short: keep what came before
+                    self.state.source_error = str(exc)
+                    log.error("source stopped: %s", exc)
+                    break
+                if self.stop.requested:  # requested while the source was producing this frame
                     break
                 self.step(frame)
                 if on_frame is not None:
                     on_frame(self.state)
+            self.state.interrupted = self.stop.requested
         self.state.seconds = time.perf_counter() - start
         return self.state
 

@@ -9,6 +9,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+from frontend.errors import FrontendInputError
 from frontend.frame import Frame
 from frontend.odometry import make_odometry
 from frontend.sources import open_source
@@ -60,6 +61,9 @@ def run_log(
     if pipeline.state.interrupted:
         console.print("[yellow]stopped early on request: results cover the frames processed so far[/yellow]")
     console.print(f"results in [bold]{folder}[/bold]")
+    if pipeline.state.source_error is not None:
+        # the frames before the fault are processed and written; the run still reports failure
+        raise FrontendInputError(f"{pipeline.state.source_error} (results up to there are in {folder})")
     return folder, metrics
 
 

@@ -147,9 +147,13 @@ def test_run_truncated_log_strict_exits_with_one_line(truncated_log, weights_pat
     result = invoke("run", cut, "--odometry", "logged", "--weights", weights_path, "--device", "cpu", "--out", out)
     line = assert_user_error(result, str(cut), "truncated")
     assert "after 2 frames" in line
-    # nothing half-written: either no results folder, or a complete one
-    for folder in _run_folders(out):
-        assert (folder / "metrics.json").is_file()
+    # the frames before the cut are not lost: a complete results folder records the fault
+    folders = _run_folders(out)
+    assert len(folders) == 1
+    metrics = json.loads((folders[0] / "metrics.json").read_text())
+    assert "truncated" in metrics["source_error"]
+    assert metrics["frames"] == 2
+    assert (folders[0] / "loop_closures.csv").is_file()
 
 
 def test_run_truncated_log_lenient_keeps_the_frames_before_the_cut(
