@@ -68,6 +68,7 @@ def evaluate_run(pipeline: SlamPipeline, odom: np.ndarray, optimised: np.ndarray
         out["rpe_optimised"] = rpe(gt, optimised, traj.rpe_delta, traj.rpe_unit).to_dict()
         out["drift_odometry"] = drift_per_100m(gt, odom, traj.drift_segment_m).to_dict()
         out["_errors"] = (a_odom.errors, a_opt.errors)
+        out["_aligned"] = (a_odom.aligned, a_opt.aligned)  # in the ground truth's frame, for plots
 
     loops_cfg = config.evaluation.loops
     # injected wrong loops (a test option) are not proposals: counting them, or letting their
@@ -117,6 +118,7 @@ def write_run_results(folder: Path, pipeline: SlamPipeline, config: SlamConfig, 
 
     evaluation = evaluate_run(pipeline, odom, optimised, config) if len(kfs) else {"ground_truth": False}
     errors = evaluation.pop("_errors", None)
+    odom, optimised = evaluation.pop("_aligned", (odom, optimised))
     loop_eval = evaluation.pop("_loop_evaluation", None)
     state = pipeline.state
     metrics = {
@@ -150,8 +152,8 @@ def _plots(folder, kfs, odom, optimised, pipeline, errors, loop_eval, config) ->
         radius = config.evaluation.loops.correct_radius
         correct = [bool(np.linalg.norm(gt[q, :3, 3] - gt[m, :3, 3]) <= radius) for q, m in edges]
     plot_cfg = config.evaluation.plots
-    plot_trajectories(folder / "trajectory_top_view.png", gt, odom, optimised, edges, correct,
-                      "Top view: odometry vs optimised", plot_cfg)  # fmt: skip
+    title = "Top view: odometry vs optimised" + (" (aligned to ground truth)" if gt is not None else "")
+    plot_trajectories(folder / "trajectory_top_view.png", gt, odom, optimised, edges, correct, title, plot_cfg)
     if errors is not None:
         plot_translation_error(folder / "translation_error.png", errors[0], errors[1], path_lengths(gt), config=plot_cfg)
     if loop_eval is not None:
