@@ -68,7 +68,7 @@ def evaluate_run(pipeline: SlamPipeline, odom: np.ndarray, optimised: np.ndarray
         out["rpe_optimised"] = rpe(gt, optimised, traj.rpe_delta, traj.rpe_unit).to_dict()
         out["drift_odometry"] = drift_per_100m(gt, odom, traj.drift_segment_m).to_dict()
         out["_errors"] = (a_odom.errors, a_opt.errors)
-        out["_aligned"] = (a_odom.aligned, a_opt.aligned)  # in the ground truth's frame, for plots
+        out["_aligned"] = (a_odom.aligned_poses, a_opt.aligned_poses)  # in the ground truth's frame, for plots
 
     loops_cfg = config.evaluation.loops
     # injected wrong loops (a test option) are not proposals: counting them, or letting their
