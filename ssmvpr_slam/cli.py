@@ -86,6 +86,16 @@ def _config(config: str | None, weights: Path | None = None, device: str | None 
     return cfg
 
 
+def _odometry_kind(name: str) -> str:
+    """CLI spelling (kiss-icp) to the config's (kiss_icp); anything else is left for validation."""
+    return name.replace("-", "_")
+
+
+def _validated_update(model: Any, updates: dict[str, Any]) -> Any:
+    """Like model_copy(update=...), but the new values are validated (e.g. --frames 0)."""
+    return type(model).model_validate({**model.model_dump(), **updates})
+
+
 @app.command("vpr-eval")
 @friendly_errors
 def vpr_eval(
@@ -133,7 +143,7 @@ def simulate(
     if sim_config is not None:
         cfg.simulation = SimulationConfig.from_yaml(sim_config)
     updates = {k: v for k, v in {"max_frames": frames, "seed": seed}.items() if v is not None}
-    cfg.simulation = cfg.simulation.model_copy(update=updates)
+    cfg.simulation = _validated_update(cfg.simulation, updates)
     simulate_to_mcap(cfg, out, console)
     console.print(f"wrote [bold]{out}[/bold]")
 
@@ -156,7 +166,7 @@ def run(
 
     cfg = _config(config, weights, device, out)
     if odometry is not None:
-        cfg.frontend.odometry.kind = {"kiss-icp": "kiss_icp", "kiss_icp": "kiss_icp", "logged": "logged"}.get(odometry, odometry)  # type: ignore[assignment]
+        cfg.frontend.odometry.kind = _odometry_kind(odometry)  # type: ignore[assignment]
     if no_lidar_loops:
         cfg.pipeline.use_lidar_for_loops = False
     run_log(log, cfg, map_dir, inject_wrong_loops, console)
@@ -177,8 +187,8 @@ def demo(
 
     cfg = demo_frames_config(_config(config, weights, device, out))
     if frames is not None:
-        cfg.simulation = cfg.simulation.model_copy(update={"max_frames": frames})
-    cfg.frontend.odometry.kind = "kiss_icp" if odometry.replace("-", "_") == "kiss_icp" else "logged"  # type: ignore[assignment]
+        cfg.simulation = _validated_update(cfg.simulation, {"max_frames": frames})
+    cfg.frontend.odometry.kind = _odometry_kind(odometry)  # type: ignore[assignment]
     if cfg.frontend.odometry.kind == "logged":
         cfg.pipeline.use_lidar_for_loops = False
     log = Path(cfg.results.out_dir) / "demo.mcap"
