@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
@@ -75,12 +75,12 @@ class LoopDetector:
         self._warmup: list[tuple[RawCubes, PlaceInfo, float]] = []
         self._travelled = 0.0
         self._last_position: np.ndarray | None = None
-        self._place_keyframe: dict[int, int] = {}
         gw = grid_side(feature_side(vpr.backbone.stage2_layer, vpr.backbone.input_size), vpr.spatial.cubes)
         self._yaw_per_column = math.radians(config.camera_hfov_deg) / gw
 
     @property
     def ready(self) -> bool:
+        """Codebooks exist and places are being matched (the PCA warm-up is over)."""
         return self.database is not None
 
     def process(

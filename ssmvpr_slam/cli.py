@@ -107,7 +107,9 @@ def vpr_eval(
                      "Default: frame-aligned sorted filenames."),
     ] = None,
     tolerance: Annotated[Optional[int], typer.Option(help="± frames counted as correct (default 2).")] = None,
-    sequential: Annotated[bool, typer.Option(help="Apply the frame-correlation prior (RAS 2020).")] = False,
+    sequential: Annotated[
+        Optional[bool], typer.Option("--sequential/--no-sequential", help="Frame-correlation prior (RAS 2020); default: as configured.")
+    ] = None,
     num_candidates: Annotated[Optional[int], typer.Option("--num-candidates", "-n", help="N of the filtering stage.")] = None,
     pca: Annotated[Optional[Path], typer.Option(help="Codebooks from `fit-pca` (default: fit on the references).")] = None,
     config: ConfigOpt = None,
@@ -123,6 +125,8 @@ def vpr_eval(
         cfg.vpr_eval.tolerance = tolerance
     if num_candidates is not None:
         cfg.vpr.filtering.num_candidates = num_candidates
+    if sequential is None:
+        sequential = cfg.vpr.frame_correlation.enabled
     run_vpr_eval(ref, query, cfg, gt, sequential, pca, console)
 
 

@@ -31,7 +31,7 @@ class ConfigError(ValueError):
 class VPREvalConfig(BaseModel):
     """How `vpr-eval` scores recognition, as the paper does."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
     tolerance: int = Field(default=2, ge=0, description="A match within ±tolerance frames of the truth is correct.")
     plot_tolerances: list[int] = Field(default=[1, 2, 3], description="Tolerances drawn in the PR plot.")
@@ -39,7 +39,7 @@ class VPREvalConfig(BaseModel):
 
 
 class ResultsConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
     out_dir: str = "results"
     save_database: bool = True
@@ -47,7 +47,7 @@ class ResultsConfig(BaseModel):
 
 
 class PipelineConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
     use_lidar_for_loops: bool = Field(default=True, description="Register loops by ICP when scans exist.")
 
@@ -137,6 +137,8 @@ def _read_with_base(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
     """A YAML file merged over its `preset:` base, and that base over its own (fast -> default)."""
     data = _read_yaml(path)
     base = data.pop("preset", None)
+    if base is None and path.resolve() != (PRESETS_DIR / "default.yaml").resolve():
+        base = "default"  # a user file refines the default preset unless it names another
     if base is None:
         return data
     base_path = _preset_path(str(base), str(path))

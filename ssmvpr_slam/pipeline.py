@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import signal
+import threading
 import time
 from collections import Counter
 from collections.abc import Iterable
@@ -27,7 +28,7 @@ from loopclosure.backbone import Backbone
 from loopclosure.database import PlaceDatabase
 from loopclosure.detector import LoopDetector, LoopProposal
 from loopclosure.encoder import Encoder
-from ssmvpr_slam.backend.loop_registration import LoopRegistrar, LoopRegistration
+from ssmvpr_slam.backend.loop_registration import LoopRegistrar, LoopRegistration, build_local_map
 from ssmvpr_slam.backend.noise import sigmas6
 from ssmvpr_slam.backend.pose_graph import PoseGraph
 from ssmvpr_slam.config import SlamConfig
@@ -86,6 +87,7 @@ class RunState:
     frames_skipped: Counter = field(default_factory=Counter)
     interrupted: bool = False
     source_error: str | None = None  # why the source ended early (truncated log, ...)
+    step_error: Exception | None = None  # an unexpected failure while processing a frame
     seconds: float = 0.0
     times: StageTimes = field(default_factory=StageTimes)
 
@@ -102,6 +104,9 @@ class StopFlag:
             self.requested = True
             log.warning("stop requested (%s): finishing the current frame", signal.Signals(signum).name)
 
+        if threading.current_thread() is not threading.main_thread():
+            yield self  # signal handlers can only be installed from the main thread
+            return
         previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
         try:
             yield self
@@ -148,7 +153,12 @@ class SlamPipeline:
                     break
                 if self.stop.requested:  # requested while the source was producing this frame
                     break
-                self.step(frame)
+                try:
+                    self.step(frame)
+                except Exception as exc:  # keep everything processed so far; the caller re-raises
+                    self.state.step_error = exc
+                    log.exception("frame %s failed", frame.index)
+                    break
                 if on_frame is not None:
                     on_frame(self.state)
             self.state.interrupted = self.stop.requested
@@ -157,12 +167,12 @@ class SlamPipeline:
 
     def step(self, frame: Frame) -> None:
         self.state.frames_seen += 1
-        if frame.image is None:
-            self.state.frames_skipped["no camera image"] += 1
-            return
-        pose = self.odometry.update(frame)
+        pose = self.odometry.update(frame)  # every scan feeds the odometry, camera or not
         if pose is None or not np.all(np.isfinite(pose)):
             self.state.frames_skipped["odometry gave no pose"] += 1
+            return
+        if frame.image is None:
+            self.state.frames_skipped["no camera image"] += 1
             return
         if not self.selector.select(pose, frame.timestamp):
             return
@@ -224,11 +234,10 @@ class SlamPipeline:
     def _register(self, kf: Keyframe, proposal: LoopProposal) -> LoopRegistration:
         """ICP against a local map around the match when both have scans, else a place prior."""
         if proposal.prior_map:
-            return self._place_prior_without_image(kf, proposal)
+            reason = "match is in a prior map: no cross-session pose link"
+            return LoopRegistration(np.eye(4), False, reason, np.nan, np.nan)
         match = self.state.keyframes[proposal.match_id]
         if kf.scan is not None and match.scan is not None:
-            from ssmvpr_slam.backend.loop_registration import build_local_map
-
             half = self.config.backend.registration.lidar.local_map_half_window
             window = self.state.keyframes[max(0, match.id - half) : match.id + half + 1]
             window = [k for k in window if k.scan is not None]
@@ -238,9 +247,6 @@ class SlamPipeline:
             )  # fmt: skip
             return self.registrar.register_scans(kf.scan, local_map, proposal.yaw_guess)
         return self.registrar.register_images(kf.image, match.image, proposal.yaw_guess)
-
-    def _place_prior_without_image(self, kf: Keyframe, proposal: LoopProposal) -> LoopRegistration:
-        return LoopRegistration(np.eye(4), False, "match is in a prior map: no cross-session pose link", np.nan, np.nan)
 
     def _maybe_inject_wrong_loop(self, kf: Keyframe) -> None:
         """Test option: with the given probability per proposal, add a deliberately wrong loop."""

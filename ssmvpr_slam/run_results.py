@@ -100,6 +100,10 @@ def evaluate_run(pipeline: SlamPipeline, odom: np.ndarray, optimised: np.ndarray
 def write_run_results(folder: Path, pipeline: SlamPipeline, config: SlamConfig, extra: dict[str, Any]) -> dict[str, Any]:
     """Trajectories (TUM + KITTI), loop_closures.csv, database, config, metrics.json, plots."""
     stamps, odom, optimised = pipeline.trajectories()
+    final = set(pipeline.graph.loop_handles)  # a final GNC pass may have dropped loops
+    for record in pipeline.state.loops:
+        if record.factor_handle is not None and record.factor_handle not in final:
+            record.factor_handle = None
     kfs = pipeline.state.keyframes
     if len(kfs):
         write_tum(folder / "odometry.tum", stamps, odom)
@@ -111,7 +115,7 @@ def write_run_results(folder: Path, pipeline: SlamPipeline, config: SlamConfig, 
             write_tum(folder / "ground_truth.tum", stamps, gt)
             write_kitti(folder / "ground_truth.kitti", gt)
     write_loop_csv(folder / "loop_closures.csv", pipeline.state.loops,
-                   [_gt_distance(pipeline, r) for r in pipeline.state.loops], set(pipeline.graph.loop_handles))  # fmt: skip
+                   [_gt_distance(pipeline, r) for r in pipeline.state.loops], final)  # fmt: skip
     atomic_write_text(folder / "config.yaml", dump_config(config))
     if config.results.save_database and pipeline.detector.database is not None:
         pipeline.detector.database.save(folder / "database")
@@ -127,6 +131,7 @@ def write_run_results(folder: Path, pipeline: SlamPipeline, config: SlamConfig, 
         "keyframes": len(kfs),
         "interrupted": state.interrupted,
         "source_error": state.source_error,
+        "error": None if state.step_error is None else f"{type(state.step_error).__name__}: {state.step_error}",
         "seconds": state.seconds,
         "frames_per_second": state.frames_seen / state.seconds if state.seconds else None,
         "latency_per_keyframe": state.times.summary(),

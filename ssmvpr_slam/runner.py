@@ -10,7 +10,6 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from frontend.errors import FrontendInputError
-from frontend.frame import Frame
 from frontend.odometry import make_odometry
 from frontend.sources import open_source
 from loopclosure.backbone import load_backbone
@@ -61,6 +60,8 @@ def run_log(
     if pipeline.state.interrupted:
         console.print("[yellow]stopped early on request: results cover the frames processed so far[/yellow]")
     console.print(f"results in [bold]{folder}[/bold]")
+    if pipeline.state.step_error is not None:
+        raise pipeline.state.step_error  # results up to the failing frame are written above
     if pipeline.state.source_error is not None:
         # the frames before the fault are processed and written; the run still reports failure
         raise FrontendInputError(f"{pipeline.state.source_error} (results up to there are in {folder})")
@@ -124,4 +125,4 @@ def demo_frames_config(config: SlamConfig) -> SlamConfig:
     return config
 
 
-__all__ = ["Frame", "run_log", "simulate_to_mcap", "demo_frames_config"]
+__all__ = ["run_log", "simulate_to_mcap", "demo_frames_config"]
