@@ -8,6 +8,7 @@ the first keyframes are buffered, PCA is fitted on them, and querying starts aft
 
 from __future__ import annotations
 
+import bisect
 import math
 import time
 from dataclasses import dataclass
@@ -50,13 +51,6 @@ class DetectorTimings:
     gate: float = 0.0
 
 
-@dataclass
-class _SessionPlace:
-    place: int
-    keyframe: int
-    travelled: float
-
-
 class LoopDetector:
     def __init__(
         self, vpr: VPRConfig, config: DetectorConfig, encoder: Encoder, database: PlaceDatabase | None = None
@@ -71,7 +65,9 @@ class LoopDetector:
         self._recognizer = Recognizer(vpr, database) if database is not None else None
         self.gate = SequenceGate(config.gate)
         self.timings = DetectorTimings()
-        self._session: list[_SessionPlace] = []
+        # distance travelled when each session place was added, in order; it never decreases,
+        # so the places too near to the query are always a suffix of the session
+        self._session_travelled: list[float] = []
         self._warmup: list[tuple[RawCubes, PlaceInfo, float]] = []
         self._travelled = 0.0
         self._last_position: np.ndarray | None = None
@@ -134,14 +130,16 @@ class LoopDetector:
     def _add(self, codes: PlaceCodes, info: PlaceInfo, travelled: float | None = None) -> int:
         assert self.database is not None
         place = self.database.add(codes, info)[0]
-        self._session.append(_SessionPlace(place, info.frame_id, self._travelled if travelled is None else travelled))
+        self._session_travelled.append(self._travelled if travelled is None else travelled)
         return place
 
     def _excluded(self) -> np.ndarray:
         """Session places too recent in keyframes or in travelled distance to be loop candidates."""
-        recent = self._session[-self.config.exclusion_keyframes :] if self.config.exclusion_keyframes else []
-        near = [p for p in self._session if self._travelled - p.travelled < self.config.exclusion_distance]
-        return np.array(sorted({p.place for p in recent} | {p.place for p in near}), dtype=np.int64)
+        n = len(self._session_travelled)
+        first_recent = n - min(self.config.exclusion_keyframes, n)
+        # near: travelled_now - travelled_place < exclusion_distance
+        first_near = bisect.bisect_right(self._session_travelled, self._travelled - self.config.exclusion_distance)
+        return np.arange(self.prior_places + min(first_recent, first_near), self.prior_places + n, dtype=np.int64)
 
     def _query(self, codes: PlaceCodes, keyframe_id: int) -> LoopProposal | None:
         assert self.database is not None
