@@ -6,43 +6,39 @@ Gaussian factors (it supplies the robust loss itself) and the indices of the kno
 
 from __future__ import annotations
 
-from collections.abc import Callable
-
 import gtsam
 import numpy as np
 
 from ssmvpr_slam.backend.config import GncConfig
 
-Edge = tuple[int, int, np.ndarray, gtsam.noiseModel.Base]
-
 
 def run_gnc(
-    prior: tuple[int, np.ndarray, gtsam.noiseModel.Base],
-    odom_edges: list[Edge],
-    loops: dict[int, Edge],
+    known: list[gtsam.NonlinearFactor],
+    loops: dict[int, gtsam.NonlinearFactor],
     initial: gtsam.Values,
-    key: Callable[[int], int],
+    pose_keys: dict[int, int],
     config: GncConfig,
 ):
-    """Optimise prior + odometry + loops with GNC; return a `GncResult` keyed by loop handle."""
+    """Optimise known-inlier factors plus Gaussian loop factors with GNC.
+
+    Returns a `GncResult` with the poses of `pose_keys` (keyframe id -> variable key) and the
+    loops classified by handle.
+    """
     from ssmvpr_slam.backend.pose_graph import GncResult
 
     graph = gtsam.NonlinearFactorGraph()
-    kf0, pose0, prior_noise = prior
-    graph.add(gtsam.PriorFactorPose3(key(kf0), gtsam.Pose3(pose0), prior_noise))
-    for i, j, measured, gauss in odom_edges:
-        graph.add(gtsam.BetweenFactorPose3(key(i), key(j), gtsam.Pose3(measured), gauss))
+    for factor in known:
+        graph.add(factor)
     known_inliers = list(range(graph.size()))
     slots: dict[int, int] = {}
-    for handle, (i, j, measured, gauss) in loops.items():
+    for handle, factor in loops.items():
         slots[handle] = graph.size()
-        graph.add(gtsam.BetweenFactorPose3(key(i), key(j), gtsam.Pose3(measured), gauss))
+        graph.add(factor)
 
-    kf_ids = _kf_ids(prior, odom_edges)
     if not loops:
         # Nothing to classify; GNC would only re-run LM with every factor a known inlier.
         values = gtsam.LevenbergMarquardtOptimizer(graph, initial).optimize()
-        return GncResult(_poses(values, kf_ids, key), [], [], {})
+        return GncResult(_poses(values, pose_keys), [], [], {})
 
     lm_params = gtsam.LevenbergMarquardtParams()
     params = gtsam.GncLMParams(lm_params)
@@ -57,14 +53,8 @@ def run_gnc(
     weights = {h: float(weights_all[s]) for h, s in slots.items()}
     inliers = [h for h, w in weights.items() if w >= config.weight_threshold]
     outliers = [h for h, w in weights.items() if w < config.weight_threshold]
-    return GncResult(_poses(values, kf_ids, key), inliers, outliers, weights)
+    return GncResult(_poses(values, pose_keys), inliers, outliers, weights)
 
 
-def _kf_ids(prior: tuple[int, np.ndarray, object], odom_edges: list[Edge]) -> list[int]:
-    return [prior[0]] + [edge[1] for edge in odom_edges]
-
-
-def _poses(
-    values: gtsam.Values, kf_ids: list[int], key: Callable[[int], int]
-) -> dict[int, np.ndarray]:
-    return {kf: values.atPose3(key(kf)).matrix() for kf in kf_ids}
+def _poses(values: gtsam.Values, pose_keys: dict[int, int]) -> dict[int, np.ndarray]:
+    return {kf: values.atPose3(key).matrix() for kf, key in pose_keys.items()}

@@ -6,6 +6,11 @@ Conventions
 * A relative pose ``T_ij`` is the pose of keyframe j expressed in the frame of keyframe i,
   ``T_ij = inv(T_i) @ T_j`` (GTSAM's ``BetweenFactorPose3(i, j, T_ij)``, ``T_i.between(T_j)``).
 * Sigmas are in Pose3 tangent order: (rx, ry, rz) in rad, then (tx, ty, tz) in m.
+* A prior map (places of an earlier session, posed in that session's frame) joins through one
+  anchor variable ``a0`` = the map frame expressed in this session's frame: a map place p
+  becomes a node ``m<p>`` tied rigidly to the anchor at its map pose, and a loop to it is an
+  ordinary robust loop factor. One map loop places the session in the map frame; more loops
+  correct the session's trajectory against the (fixed) map.
 
 Changes (keyframes, loops, loop removals) are queued and applied by `update()`; the read
 methods (`optimized_poses`, `loop_residuals`) flush the queue first so they always describe
@@ -25,10 +30,19 @@ from ssmvpr_slam.backend.config import PoseGraphConfig
 from ssmvpr_slam.backend.se3 import as_pose, relative
 
 _KEY_CHAR = "x"
+_ANCHOR_KEY = gtsam.symbol("a", 0)
+# The anchor is free until map loops fix it; a weak link to the keyframe of the first map
+# loop only keeps the system well posed (and connected: iSAM2 fails on a component cut off
+# by removals) should every map loop be removed again.
+_ANCHOR_PRIOR_SIGMAS = np.array([1.0, 1.0, 1.0, 100.0, 100.0, 100.0])
 
 
 def _key(kf_id: int) -> int:
     return gtsam.symbol(_KEY_CHAR, kf_id)
+
+
+def _map_key(place: int) -> int:
+    return gtsam.symbol("m", place)
 
 
 def _check_kf_id(name: str, kf_id: object) -> int:
@@ -76,6 +90,11 @@ class _Edge:
 class _Loop(_Edge):
     factor: gtsam.BetweenFactorPose3
     index: int | None = None  # iSAM2 factor index once applied
+    on_map: bool = False  # i is a prior-map place, not a keyframe of this session
+
+    @property
+    def key_i(self) -> int:
+        return _map_key(self.i) if self.on_map else _key(self.i)
 
 
 class PoseGraph:
@@ -98,6 +117,9 @@ class PoseGraph:
         self._pending_values = gtsam.Values()
         self._pending_removals: list[int] = []
         self._estimate = gtsam.Values()
+        self._map_places: dict[int, tuple[np.ndarray, gtsam.noiseModel.Base]] = {}
+        self._anchor_initial: np.ndarray | None = None
+        self._anchor_link: tuple[int, np.ndarray] | None = None
 
     # ------------------------------------------------------------------ building
     @property
@@ -192,6 +214,58 @@ class PoseGraph:
         self._pending_factors.append((factor, handle))
         return handle
 
+    def add_map_loop(
+        self,
+        place: int,
+        place_pose: np.ndarray,
+        j: int,
+        T_pj: np.ndarray,
+        sigmas: Sequence[float] | np.ndarray | None = None,
+    ) -> int:
+        """Queue a robust loop saying keyframe j sits at ``T_pj`` in the frame of prior-map
+        place `place`, whose pose in the map frame is `place_pose`. Returns a loop handle."""
+        place = _check_kf_id("place", place)
+        j = _check_kf_id("j", j)
+        if j not in self._odom:
+            raise ValueError(f"j: keyframe {j} has not been added")
+        pose = as_pose(f"place_pose of map place {place}", place_pose, self.config.rotation_tolerance)
+        measured = as_pose("T_pj", T_pj, self.config.rotation_tolerance)
+        if place in self._map_places and not np.allclose(self._map_places[place][0], pose, atol=1e-9):
+            raise ValueError(f"place_pose: map place {place} was added before with another pose")
+        if self._anchor_initial is None:
+            # the first map loop fixes the anchor: map pose p @ T_pj is keyframe j's pose
+            anchor = self._current_pose(j) @ np.linalg.inv(measured) @ np.linalg.inv(pose)
+            self._anchor_initial = anchor
+            self._pending_values.insert(_ANCHOR_KEY, gtsam.Pose3(anchor))
+            self._anchor_link = (j, relative(self._current_pose(j), anchor))
+            self._pending_factors.append((self._anchor_link_factor(), None))
+        if place not in self._map_places:
+            pcfg = self.config.prior
+            rigid = noise.gaussian(noise.sigmas6(pcfg.rot_sigma, pcfg.trans_sigma))
+            self._map_places[place] = (pose, rigid)
+            self._pending_values.insert(_map_key(place), gtsam.Pose3(self._anchor_pose() @ pose))
+            tie = gtsam.BetweenFactorPose3(_ANCHOR_KEY, _map_key(place), gtsam.Pose3(pose), rigid)
+            self._pending_factors.append((tie, None))
+        base = noise.gaussian(noise.check_sigmas("sigmas", sigmas) if sigmas is not None else
+                              noise.sigmas6(self.config.loop.rot_sigma, self.config.loop.trans_sigma))  # fmt: skip
+        factor = gtsam.BetweenFactorPose3(_map_key(place), _key(j), gtsam.Pose3(measured), noise.robustify(base, self._kernel))
+        handle = self._next_handle
+        self._next_handle += 1
+        self._loops[handle] = _Loop(place, j, measured, base, factor, on_map=True)
+        self._pending_factors.append((factor, handle))
+        return handle
+
+    def anchor(self) -> np.ndarray | None:
+        """The prior map's frame expressed in this session's frame (None before a map loop).
+
+        A pose P in the map frame is ``anchor() @ P`` in this session; a session pose X is
+        ``inv(anchor()) @ X`` in the map frame.
+        """
+        if self._anchor_initial is None:
+            return None
+        self._flush()
+        return self._anchor_pose()
+
     def remove_loop(self, handle: int) -> None:
         """Take a loop out of the graph (applied at the next `update()`)."""
         loop = self._get_loop(handle)
@@ -213,7 +287,12 @@ class PoseGraph:
                 loop_slots.append((graph.size(), handle))
             graph.add(factor)
         loops_changed = bool(loop_slots or self._pending_removals)
-        result = self._isam.update(graph, self._pending_values, self._pending_removals)
+        # One removal per iSAM2 step: removing the last two map loops in one step made iSAM2
+        # report an indeterminate system at the anchor; one at a time it re-solves cleanly.
+        first, rest = self._pending_removals[:1], self._pending_removals[1:]
+        result = self._isam.update(graph, self._pending_values, first)
+        for index in rest:
+            self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [index])
         new_indices = list(result.getNewFactorsIndices())
         for slot, handle in loop_slots:
             self._loops[handle].index = int(new_indices[slot])
@@ -235,7 +314,7 @@ class PoseGraph:
         self._flush()
         out = []
         for handle, loop in self._loops.items():
-            pred = relative(self._pose_of(loop.i), self._pose_of(loop.j))
+            pred = relative(self._estimate.atPose3(loop.key_i).matrix(), self._pose_of(loop.j))
             err = gtsam.Pose3(loop.measured).localCoordinates(gtsam.Pose3(pred))
             white = np.asarray(loop.gaussian.whiten(err))
             chi2 = float(white @ white)
@@ -255,14 +334,17 @@ class PoseGraph:
         self._flush()
         if self._prior is None:
             return GncResult({}, [], [], {})
-        return run_gnc(
-            prior=self._prior,
-            odom_edges=[(e.i, e.j, e.measured, e.gaussian) for e in self._odom_edges],
-            loops={h: (lp.i, lp.j, lp.measured, lp.gaussian) for h, lp in self._loops.items()},
-            initial=self._initial_for_gnc(),
-            key=_key,
-            config=self.config.gnc,
-        )
+        kf0, pose0, prior_noise = self._prior
+        known: list[gtsam.NonlinearFactor] = [gtsam.PriorFactorPose3(_key(kf0), gtsam.Pose3(pose0), prior_noise)]
+        known += [gtsam.BetweenFactorPose3(_key(e.i), _key(e.j), gtsam.Pose3(e.measured), e.gaussian)
+                  for e in self._odom_edges]  # fmt: skip
+        if self._anchor_initial is not None:
+            known.append(self._anchor_link_factor())
+            known += [gtsam.BetweenFactorPose3(_ANCHOR_KEY, _map_key(p), gtsam.Pose3(pose), rigid)
+                      for p, (pose, rigid) in self._map_places.items()]  # fmt: skip
+        loops = {h: gtsam.BetweenFactorPose3(lp.key_i, _key(lp.j), gtsam.Pose3(lp.measured), lp.gaussian)
+                 for h, lp in self._loops.items()}  # fmt: skip
+        return run_gnc(known, loops, self._initial_for_gnc(), {kf: _key(kf) for kf in self._order}, self.config.gnc)
 
     def finalize(self) -> dict[int, np.ndarray]:
         """Final poses: iSAM2's estimate, or, with `gnc.enabled`, the GNC solution after the
@@ -296,11 +378,24 @@ class PoseGraph:
     def _pose_of(self, kf_id: int) -> np.ndarray:
         return self._estimate.atPose3(_key(kf_id)).matrix()
 
+    def _anchor_link_factor(self) -> gtsam.BetweenFactorPose3:
+        kf, measured = self._anchor_link
+        return gtsam.BetweenFactorPose3(_key(kf), _ANCHOR_KEY, gtsam.Pose3(measured), noise.gaussian(_ANCHOR_PRIOR_SIGMAS))
+
+    def _anchor_pose(self) -> np.ndarray:
+        if self._pending_values.exists(_ANCHOR_KEY):
+            return self._pending_values.atPose3(_ANCHOR_KEY).matrix()
+        return self._estimate.atPose3(_ANCHOR_KEY).matrix()
+
     def _initial_for_gnc(self) -> gtsam.Values:
         values = gtsam.Values()
         for kf in self._order:
             pose = self._odom[kf] if self.config.gnc.init == "odometry" else self._pose_of(kf)
             values.insert(_key(kf), gtsam.Pose3(pose))
+        if self._anchor_initial is not None:  # map nodes start where iSAM2 has them
+            values.insert(_ANCHOR_KEY, gtsam.Pose3(self._anchor_pose()))
+            for place in self._map_places:
+                values.insert(_map_key(place), self._estimate.atPose3(_map_key(place)))
         return values
 
     def _get_loop(self, handle: int) -> _Loop:
