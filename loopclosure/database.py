@@ -67,6 +67,7 @@ class PlaceDatabase:
         self._stage1: _GrowingArray | None = None
         self._stage2: _GrowingArray | None = None
         self.places: list[PlaceInfo] = []
+        self.extra: dict[str, Any] = {}  # the manifest's free-form record (e.g. encoder settings)
 
     def __len__(self) -> int:
         return len(self.places)
@@ -143,7 +144,7 @@ class PlaceDatabase:
             "stage1_shape": list(self.stage1.shape[1:]),
             "stage2_shape": list(self.stage2.shape[1:]),
             "config": self.config.model_dump(),
-            "extra": extra or {},
+            "extra": {**self.extra, **(extra or {})},
         }
         atomic_write_text(folder / MANIFEST, json.dumps(manifest, indent=2))
         return folder
@@ -166,6 +167,7 @@ class PlaceDatabase:
             )
         n = int(manifest["num_places"])
         db = cls(Codebooks.load(folder / "codebooks.npz"), DatabaseConfig(**manifest["config"]))
+        db.extra = dict(manifest.get("extra") or {})
         try:
             places = json.loads((folder / "places.json").read_text())
         except (OSError, json.JSONDecodeError) as exc:

@@ -25,13 +25,13 @@ from frontend.frame import Frame
 from frontend.keyframes import KeyframeSelector
 from frontend.odometry.base import Odometry
 from loopclosure.backbone import Backbone
-from loopclosure.database import PlaceDatabase
 from loopclosure.detector import LoopDetector, LoopProposal
 from loopclosure.encoder import Encoder
 from ssmvpr_slam.backend.loop_registration import LoopRegistrar, LoopRegistration, build_local_map
 from ssmvpr_slam.backend.noise import sigmas6
 from ssmvpr_slam.backend.pose_graph import PoseGraph
 from ssmvpr_slam.config import SlamConfig
+from ssmvpr_slam.prior_map import PriorMap
 
 log = logging.getLogger(__name__)
 
@@ -121,14 +121,16 @@ class SlamPipeline:
         config: SlamConfig,
         odometry: Odometry,
         backbone: Backbone,
-        prior_map: PlaceDatabase | None = None,
+        prior_map: PriorMap | None = None,
         inject_wrong_loops: float = 0.0,
         seed: int = 0,
     ) -> None:
         self.config = config
         self.odometry = odometry
         self.selector = KeyframeSelector(config.frontend.keyframes)
-        self.detector = LoopDetector(config.vpr, config.detector, Encoder(config.vpr, backbone), prior_map)
+        self.prior_map = prior_map
+        database = prior_map.database if prior_map is not None else None
+        self.detector = LoopDetector(config.vpr, config.detector, Encoder(config.vpr, backbone), database)
         self.registrar = LoopRegistrar(config.backend.registration)
         self.graph = PoseGraph(config.backend.pose_graph)
         self.state = RunState()
@@ -200,10 +202,12 @@ class SlamPipeline:
                 t1 = time.perf_counter()
                 record.registration = self._register(kf, proposal)
                 t_reg = time.perf_counter() - t1
-                if record.registration.accepted:
-                    record.factor_handle = self.graph.add_loop(
-                        proposal.match_id, kf.id, record.registration.T_mq, sigmas=record.registration.sigmas
-                    )
+                reg = record.registration
+                if reg.accepted and proposal.prior_map:
+                    pose = self.prior_map.pose(proposal.match_place)
+                    record.factor_handle = self.graph.add_map_loop(proposal.match_place, pose, kf.id, reg.T_mq, reg.sigmas)
+                elif reg.accepted:
+                    record.factor_handle = self.graph.add_loop(proposal.match_id, kf.id, reg.T_mq, sigmas=reg.sigmas)
             self._maybe_inject_wrong_loop(kf)
         t2 = time.perf_counter()
         self.graph.update()
@@ -234,8 +238,7 @@ class SlamPipeline:
     def _register(self, kf: Keyframe, proposal: LoopProposal) -> LoopRegistration:
         """ICP against a local map around the match when both have scans, else a place prior."""
         if proposal.prior_map:
-            reason = "match is in a prior map: no cross-session pose link"
-            return LoopRegistration(np.eye(4), False, reason, np.nan, np.nan)
+            return self._register_to_map(kf, proposal)
         match = self.state.keyframes[proposal.match_id]
         if kf.scan is not None and match.scan is not None:
             half = self.config.backend.registration.lidar.local_map_half_window
@@ -247,6 +250,21 @@ class SlamPipeline:
             )  # fmt: skip
             return self.registrar.register_scans(kf.scan, local_map, proposal.yaw_guess)
         return self.registrar.register_images(kf.image, match.image, proposal.yaw_guess)
+
+    def _register_to_map(self, kf: Keyframe, proposal: LoopProposal) -> LoopRegistration:
+        """ICP against the prior map's scans around the place, else the visual place prior."""
+        place = proposal.match_place
+        pose = self.prior_map.pose(place) if self.prior_map is not None else None
+        if pose is None:
+            reason = "prior place has no pose in its map (its session was never anchored)"
+            return LoopRegistration(np.eye(4), False, reason, np.nan, np.nan)
+        lidar = self.config.backend.registration.lidar
+        parts = self.prior_map.neighbourhood(place, lidar.local_map_half_window)
+        if kf.scan is not None and parts:
+            scans, poses = zip(*parts)
+            local_map = build_local_map(scans, poses, pose, lidar.max_range)
+            return self.registrar.register_scans(kf.scan, local_map, proposal.yaw_guess)
+        return self.registrar.yaw_prior(proposal.yaw_guess, "prior-map place: no scans to align")
 
     def _maybe_inject_wrong_loop(self, kf: Keyframe) -> None:
         """Test option: with the given probability per proposal, add a deliberately wrong loop."""

@@ -16,6 +16,7 @@ from ssmvpr_slam.evaluation.loop_metrics import evaluate_loops, find_revisits
 from ssmvpr_slam.evaluation.metrics import ate, drift_per_100m, rpe
 from ssmvpr_slam.evaluation.trajectory_io import write_kitti, write_tum
 from ssmvpr_slam.pipeline import LoopRecord, SlamPipeline
+from ssmvpr_slam.prior_map import save_map
 from ssmvpr_slam.results import write_json
 
 LOOP_COLUMNS = [
@@ -49,6 +50,53 @@ def _gt_distance(pipeline: SlamPipeline, record: LoopRecord) -> float | None:
         return None
     q, m = kfs[p.query_id].gt_pose, kfs[p.match_id].gt_pose
     return None if q is None or m is None else float(np.linalg.norm(q[:3, 3] - m[:3, 3]))
+
+
+def _session_places(pipeline: SlamPipeline) -> dict[int, int]:
+    """Keyframe id -> database place index of this session's places."""
+    database = pipeline.detector.database
+    first = pipeline.detector.prior_places
+    return {database.places[i].frame_id: i for i in range(first, len(database))}
+
+
+def map_frame_poses(pipeline: SlamPipeline, optimised: np.ndarray) -> np.ndarray | None:
+    """The session's optimised poses in the map frame: its own frame without a prior map,
+    the prior map's frame once a map loop anchored it, None if it never was."""
+    if pipeline.prior_map is None:
+        return optimised
+    anchor = pipeline.graph.anchor()
+    return None if anchor is None else np.linalg.inv(anchor) @ optimised
+
+
+def _save_map(folder: Path, pipeline: SlamPipeline, optimised: np.ndarray, config: SlamConfig) -> None:
+    kfs = pipeline.state.keyframes
+    places = _session_places(pipeline)
+    in_map = map_frame_poses(pipeline, optimised) if len(kfs) else None
+    poses = {} if in_map is None else {places[k.id]: in_map[k.id] for k in kfs if k.id in places}
+    scans = {places[k.id]: k.scan for k in kfs if k.id in places and k.scan is not None}
+    gt = {places[k.id]: k.gt_pose for k in kfs if k.id in places and k.gt_pose is not None}
+    if pipeline.prior_map is not None:  # carry the prior places' scans into the grown map
+        scans.update(pipeline.prior_map.scans)
+    save_map(folder, pipeline.detector.database, config.vpr, poses, scans, gt)
+
+
+def _prior_map_metrics(pipeline: SlamPipeline, config: SlamConfig) -> dict[str, Any]:
+    prior = pipeline.prior_map
+    loops = [r for r in pipeline.state.loops if r.proposal.prior_map]
+    out: dict[str, Any] = {
+        "places": len(prior), "places_with_pose": len(prior.poses), "places_with_scan": len(prior.scans),
+        "loops_proposed": len(loops), "loops_gate_accepted": sum(r.proposal.accepted for r in loops),
+        "loops_in_graph": sum(r.in_graph for r in loops), "anchored": pipeline.graph.anchor() is not None,
+    }  # fmt: skip
+    kfs = pipeline.state.keyframes
+    judged = [r for r in loops if r.in_graph and r.proposal.match_place in prior.gt_poses and kfs[r.proposal.query_id].gt_pose is not None]
+    if judged:
+        radius = config.evaluation.loops.correct_radius
+        distances = [np.linalg.norm(kfs[r.proposal.query_id].gt_pose[:3, 3] - prior.gt_poses[r.proposal.match_place][:3, 3])
+                     for r in judged]  # fmt: skip
+        out["loops_correct"] = int(sum(d <= radius for d in distances))
+        out["precision"] = out["loops_correct"] / len(judged)
+    return out
 
 
 def evaluate_run(pipeline: SlamPipeline, odom: np.ndarray, optimised: np.ndarray, config: SlamConfig) -> dict[str, Any]:
@@ -118,7 +166,7 @@ def write_run_results(folder: Path, pipeline: SlamPipeline, config: SlamConfig, 
                    [_gt_distance(pipeline, r) for r in pipeline.state.loops], final)  # fmt: skip
     atomic_write_text(folder / "config.yaml", dump_config(config))
     if config.results.save_database and pipeline.detector.database is not None:
-        pipeline.detector.database.save(folder / "database")
+        _save_map(folder / "database", pipeline, optimised, config)
 
     evaluation = evaluate_run(pipeline, odom, optimised, config) if len(kfs) else {"ground_truth": False}
     errors = evaluation.pop("_errors", None)
@@ -139,6 +187,8 @@ def write_run_results(folder: Path, pipeline: SlamPipeline, config: SlamConfig, 
         **extra,
         **evaluation,
     }
+    if pipeline.prior_map is not None:
+        metrics["prior_map_loops"] = _prior_map_metrics(pipeline, config)
     write_json(folder / "metrics.json", metrics)
     if config.results.plots and len(kfs) >= 2:
         _plots(folder, kfs, odom, optimised, pipeline, errors, loop_eval, config)

@@ -13,9 +13,9 @@ from frontend.errors import FrontendInputError
 from frontend.odometry import make_odometry
 from frontend.sources import open_source
 from loopclosure.backbone import load_backbone
-from loopclosure.database import PlaceDatabase
 from ssmvpr_slam.config import SlamConfig
 from ssmvpr_slam.pipeline import RunState, SlamPipeline
+from ssmvpr_slam.prior_map import PriorMap
 from ssmvpr_slam.results import create_results_dir
 from ssmvpr_slam.run_results import write_run_results
 
@@ -33,7 +33,7 @@ def run_log(
     source = open_source(log, config.frontend.source, config.frontend.pose_files)
     odometry = make_odometry(config.frontend.odometry, config.frontend.pose_files)
     backbone = load_backbone(config.vpr.backbone, progress=True)
-    database = PlaceDatabase.load(prior_map) if prior_map is not None else None
+    database = PriorMap.load(prior_map, config.vpr) if prior_map is not None else None
     pipeline = SlamPipeline(config, odometry, backbone, database, inject_wrong_loops)
     frames = iter(source)
 

@@ -173,20 +173,8 @@ class LoopRegistrar:
         yaw_guess = _finite_yaw(yaw_guess)
         est = estimate_rotation(match_image, query_image, cfg)
         if est.rotation_mq is None:
-            rot = rot_z(yaw_guess)
-            sigmas = np.array(
-                [cfg.yaw_prior_tilt_sigma, cfg.yaw_prior_tilt_sigma, cfg.yaw_prior_yaw_sigma]
-                + [cfg.translation_sigma] * 3
-            )
-            return LoopRegistration(
-                T_mq=make_pose(rot, np.zeros(3)),
-                accepted=True,
-                reason=f"yaw prior from the visual match ({est.reason})",
-                inlier_ratio=est.n_inliers / est.n_matches if est.n_matches else 0.0,
-                rmse=float("nan"),
-                sigmas=sigmas,
-                method="yaw_prior",
-            )
+            ratio = est.n_inliers / est.n_matches if est.n_matches else 0.0
+            return self.yaw_prior(yaw_guess, est.reason, ratio)
         body_from_cam = project_to_so3(np.asarray(cfg.body_from_camera, dtype=np.float64))
         rot = project_to_so3(body_from_cam @ est.rotation_mq @ body_from_cam.T)
         return LoopRegistration(
@@ -197,6 +185,24 @@ class LoopRegistrar:
             rmse=est.error_px,
             sigmas=sigmas6(cfg.rot_sigma, cfg.translation_sigma),
             method=f"two_view_{est.model}",
+        )
+
+
+    def yaw_prior(self, yaw_guess: float, why: str, inlier_ratio: float = 0.0) -> LoopRegistration:
+        """Place prior from the visual match alone: zero translation within the place radius,
+        yaw from the spatial matching's column shift, loose roll and pitch."""
+        cfg = self.config.two_view
+        sigmas = np.array(
+            [cfg.yaw_prior_tilt_sigma, cfg.yaw_prior_tilt_sigma, cfg.yaw_prior_yaw_sigma] + [cfg.translation_sigma] * 3
+        )
+        return LoopRegistration(
+            T_mq=make_pose(rot_z(_finite_yaw(yaw_guess)), np.zeros(3)),
+            accepted=True,
+            reason=f"yaw prior from the visual match ({why})",
+            inlier_ratio=inlier_ratio,
+            rmse=float("nan"),
+            sigmas=sigmas,
+            method="yaw_prior",
         )
 
 

@@ -233,6 +233,9 @@ class PoseGraph:
         if place in self._map_places and not np.allclose(self._map_places[place][0], pose, atol=1e-9):
             raise ValueError(f"place_pose: map place {place} was added before with another pose")
         if self._anchor_initial is None:
+            # keyframe j solved first: creating the anchor in the same iSAM2 step as a new
+            # keyframe with a loose (place prior) loop was reported indeterminate
+            self._flush()
             # the first map loop fixes the anchor: map pose p @ T_pj is keyframe j's pose
             anchor = self._current_pose(j) @ np.linalg.inv(measured) @ np.linalg.inv(pose)
             self._anchor_initial = anchor

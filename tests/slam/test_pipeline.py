@@ -36,9 +36,11 @@ from frontend.frame import Frame
 from frontend.odometry import make_odometry
 from frontend.simulation import SimulationConfig, TraverseSimulator
 from loopclosure.backbone import load_backbone
+from loopclosure.errors import LoopClosureInputError
 from ssmvpr_slam.config import SlamConfig, load_config
 from ssmvpr_slam.evaluation.trajectory_io import read_kitti, read_tum
 from ssmvpr_slam.pipeline import SlamPipeline
+from ssmvpr_slam.prior_map import PriorMap
 from ssmvpr_slam.run_results import LOOP_COLUMNS, evaluate_run, write_run_results
 
 pytestmark = pytest.mark.slow
@@ -360,3 +362,79 @@ def test_kiss_icp_run_closes_loops_by_icp_without_harm(kiss: Run) -> None:
     odom, optimised = kiss.metrics["ate_odometry"]["rmse"], kiss.metrics["ate_optimised"]["rmse"]
     assert odom <= 1.0
     assert optimised <= 1.05 * odom + 0.02
+
+
+# ------------------------------------------------------------------------ prior map (--map)
+
+
+def _second_session(folder: Path, cfg: SlamConfig, backbone: MemoBackbone, frames, prior: Run) -> Run:  # noqa: ANN001
+    prior_map = PriorMap.load(prior.folder / "database", cfg.vpr)
+    pipeline = SlamPipeline(cfg, make_odometry(cfg.frontend.odometry, cfg.frontend.pose_files), backbone, prior_map)  # type: ignore[arg-type]
+    pipeline.run(frames)
+    folder.mkdir(parents=True)
+    return Run(pipeline, cfg, write_run_results(folder, pipeline, cfg, {"test": folder.name}), folder)
+
+
+@pytest.fixture(scope="module")
+def second_logged(tmp_path_factory, weights_path, backbone, camera_frames, clean) -> Run:  # noqa: ANN001
+    """The traverse again, with another odometry drift, against the clean run's saved map."""
+    cfg = slam_config(weights_path, "logged")
+    cfg.frontend.odometry.logged.drift.seed = 7
+    cfg.frontend.odometry.logged.drift.yaw_bias_per_m = -0.002
+    return _second_session(tmp_path_factory.mktemp("slam") / "second", cfg, backbone, iter(camera_frames), clean)
+
+
+@pytest.fixture(scope="module")
+def second_kiss(tmp_path_factory, weights_path, backbone, kiss) -> Run:  # noqa: ANN001
+    frames = TraverseSimulator(simulation(KISS_FRAMES, lidar=True)).frames()
+    return _second_session(tmp_path_factory.mktemp("slam") / "second_kiss", slam_config(weights_path, "kiss_icp"),
+                           backbone, frames, kiss)  # fmt: skip
+
+
+def test_saved_map_holds_every_place_with_pose_and_ground_truth(clean: Run) -> None:
+    prior = PriorMap.load(clean.folder / "database", clean.config.vpr)
+    n = len(clean.pipeline.state.keyframes)
+    assert len(prior) == n and len(prior.poses) == n and len(prior.gt_poses) == n
+    assert prior.scans == {}  # logged odometry without LiDAR: nothing to align against later
+    _, optimised = read_tum(clean.folder / "optimised.tum")
+    first = prior.database.places[0].frame_id
+    assert np.allclose(prior.poses[0], optimised[first], atol=1e-6)
+
+
+def test_a_second_session_closes_loops_against_the_prior_map(second_logged: Run) -> None:
+    prior = second_logged.metrics["prior_map_loops"]
+    assert prior["anchored"] and prior["loops_in_graph"] >= 20
+    assert prior["precision"] == 1.0
+    graph = [r for r in second_logged.pipeline.state.loops if r.proposal.prior_map and r.in_graph]
+    assert all(r.registration.method == "yaw_prior" for r in graph)  # no scans in this map
+    # map and session loops together correct the new (differently drifting) odometry
+    assert second_logged.metrics["ate_optimised"]["rmse"] <= 0.5 * second_logged.metrics["ate_odometry"]["rmse"]
+    # the grown map holds both sessions; the new places are posed in the first session's frame
+    grown = PriorMap.load(second_logged.folder / "database", second_logged.config.vpr)
+    n = len(second_logged.pipeline.state.keyframes)
+    assert len(grown) == 2 * n and len(grown.poses) == 2 * n
+    first_session_end = grown.poses[n - 1][:3, 3]
+    second_session_end = grown.poses[2 * n - 1][:3, 3]
+    assert np.linalg.norm(first_session_end - second_session_end) <= 3.0  # the same place, both sessions
+
+
+def test_a_second_kiss_icp_session_aligns_to_the_prior_scans(second_kiss: Run, kiss: Run) -> None:
+    prior = second_kiss.metrics["prior_map_loops"]
+    assert prior["places_with_scan"] == len(kiss.pipeline.state.keyframes)
+    assert prior["anchored"] and prior["loops_in_graph"] >= 20 and prior["precision"] == 1.0
+    graph = [r for r in second_kiss.pipeline.state.loops if r.proposal.prior_map and r.in_graph]
+    assert all(r.registration.method == "icp" for r in graph)
+    grown = PriorMap.load(second_kiss.folder / "database", second_kiss.config.vpr)
+    n = len(second_kiss.pipeline.state.keyframes)
+    truth = np.array([k.gt_pose for k in kiss.pipeline.state.keyframes])
+    # same frames, same odometry: each new place lands on its prior twin, to ICP accuracy
+    offsets = [np.linalg.norm(grown.poses[n + k][:3, 3] - grown.poses[k][:3, 3]) for k in range(n)]
+    assert np.median(offsets) <= 0.2
+    assert truth.shape[0] == n
+
+
+def test_a_map_from_other_encoder_settings_is_refused(clean: Run) -> None:
+    other = clean.config.vpr.model_copy(deep=True)
+    other.backbone.input_size = 320
+    with pytest.raises(LoopClosureInputError, match=r"prior map .*database: encoded with other settings \(input_size\)"):
+        PriorMap.load(clean.folder / "database", other)

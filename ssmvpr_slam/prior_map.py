@@ -1,0 +1,124 @@
+"""A saved session as a prior map: its place database plus each place's pose and scan.
+
+A run writes its place database into the results folder; with the places' optimised poses
+(in that session's map frame) and their down-sampled scans beside it, a later run given
+``--map DIR`` can turn a recognised prior place into a loop factor against the fixed map.
+The manifest records the encoder settings, because codes from another backbone layer, input
+size or cube layout are not comparable and would match nonsense.
+"""
+
+from __future__ import annotations
+
+import io
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from loopclosure.atomic import atomic_write_bytes
+from loopclosure.config import VPRConfig
+from loopclosure.database import PlaceDatabase
+from loopclosure.errors import LoopClosureInputError
+
+SCANS_FILE = "scans.npz"
+
+
+def encoder_signature(vpr: VPRConfig) -> dict[str, Any]:
+    """The settings that make two databases' codes comparable."""
+    backbone = vpr.backbone
+    return {
+        "input_size": backbone.input_size,
+        "preprocessing": backbone.preprocessing,
+        "pre_relu": backbone.pre_relu,
+        "stage1_layer": backbone.stage1_layer,
+        "stage2_layer": backbone.stage2_layer,
+        "stage1_cubes": vpr.filtering.cubes.model_dump(),
+        "stage2_cubes": vpr.spatial.cubes.model_dump(),
+    }
+
+
+@dataclass
+class PriorMap:
+    """Places of an earlier session: codes (in `database`), map-frame poses and scans."""
+
+    database: PlaceDatabase
+    poses: dict[int, np.ndarray] = field(default_factory=dict)
+    scans: dict[int, np.ndarray] = field(default_factory=dict)
+    gt_poses: dict[int, np.ndarray] = field(default_factory=dict)
+    folder: Path | None = None
+
+    def __len__(self) -> int:
+        return len(self.database)
+
+    def pose(self, place: int) -> np.ndarray | None:
+        return self.poses.get(place)
+
+    def neighbourhood(self, place: int, half_window: int) -> list[tuple[np.ndarray, np.ndarray]]:
+        """(scan, map pose) of the places around `place` that have both: a local map's parts."""
+        out = []
+        for p in range(place - half_window, place + half_window + 1):
+            if p in self.scans and p in self.poses:
+                out.append((self.scans[p], self.poses[p]))
+        return out
+
+    @classmethod
+    def load(cls, folder: str | Path, vpr: VPRConfig) -> PriorMap:
+        """Read a saved database folder; refuses one written with other encoder settings."""
+        folder = Path(folder)
+        database = PlaceDatabase.load(folder)
+        saved = database.extra.get("encoder")
+        wanted = encoder_signature(vpr)
+        if saved is not None and saved != wanted:
+            diff = sorted(k for k in wanted if saved.get(k) != wanted[k])
+            raise LoopClosureInputError(
+                f"prior map {folder}: encoded with other settings ({', '.join(diff)}); "
+                "its places cannot be matched with this configuration"
+            )
+        poses, gt = {}, {}
+        for index, info in enumerate(database.places):
+            for key, target in (("map_pose", poses), ("gt_pose", gt)):
+                value = info.extra.get(key)
+                if value is not None:
+                    pose = np.asarray(value, dtype=np.float64).reshape(4, 4)
+                    if np.all(np.isfinite(pose)):
+                        target[index] = pose
+        return cls(database, poses, _load_scans(folder / SCANS_FILE, len(database)), gt, folder)
+
+
+def save_map(
+    folder: Path,
+    database: PlaceDatabase,
+    vpr: VPRConfig,
+    poses: dict[int, np.ndarray],
+    scans: dict[int, np.ndarray],
+    gt_poses: dict[int, np.ndarray],
+) -> None:
+    """Write the database with each place's map pose (and ground truth) and the scans.
+
+    Scans go first and the database's manifest last, so an interrupted save leaves either the
+    previous map or the new one readable.
+    """
+    folder.mkdir(parents=True, exist_ok=True)
+    buffer = io.BytesIO()
+    np.savez_compressed(buffer, **{f"p{place}": np.asarray(scan, np.float32) for place, scan in scans.items()})
+    atomic_write_bytes(folder / SCANS_FILE, buffer.getvalue())
+    for index, info in enumerate(database.places):
+        for key, source in (("map_pose", poses), ("gt_pose", gt_poses)):
+            if index in source:  # a place without one keeps what its own session saved
+                info.extra[key] = np.asarray(source[index], dtype=np.float64).ravel().tolist()
+    database.save(folder, extra={"encoder": encoder_signature(vpr)})
+
+
+def _load_scans(path: Path, num_places: int) -> dict[int, np.ndarray]:
+    if not path.is_file():
+        return {}
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            scans = {int(name[1:]): np.asarray(data[name], dtype=np.float64) for name in data.files}
+    except (OSError, ValueError, KeyError) as exc:
+        raise LoopClosureInputError(f"cannot read the prior map's scans {path}: {exc}") from None
+    bad = [p for p, s in scans.items() if not 0 <= p < num_places or s.ndim != 2 or s.shape[1] != 3]
+    if bad:
+        raise LoopClosureInputError(f"{path}: scans for unknown places or not Nx3: {bad[:5]}")
+    return scans
