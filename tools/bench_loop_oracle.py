@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from frontend.keyframes import KeyframeSelector  # noqa: E402
 from frontend.odometry import make_odometry  # noqa: E402
-from frontend.simulation import TraverseSimulator, default_demo_config  # noqa: E402
+from frontend.simulation import TraverseSimulator, default_demo_config, ground_truth_revisits  # noqa: E402
 from ssmvpr_slam.backend import PoseGraph  # noqa: E402
 from ssmvpr_slam.backend.noise import sigmas6  # noqa: E402
 from ssmvpr_slam.config import SlamConfig, load_config  # noqa: E402
@@ -55,16 +55,13 @@ def keyframe_trajectories(config: SlamConfig, kind: str, frames: int | None) -> 
 
 def ideal_loops(gt: np.ndarray, radius: float, min_gap: int) -> list[tuple[int, int, bool]]:
     """(match, query, is_forward) for every keyframe with a ground-truth revisit."""
-    xy = gt[:, :2, 3]
     yaw = np.arctan2(gt[:, 1, 0], gt[:, 0, 0])
-    loops = []
-    for q in range(min_gap, len(gt)):
-        d = np.linalg.norm(xy[: q - min_gap + 1] - xy[q], axis=1)
-        m = int(np.argmin(d))
-        if d[m] <= radius:
-            forward = abs(np.angle(np.exp(1j * (yaw[q] - yaw[m])))) <= np.pi / 2
-            loops.append((m, q, bool(forward)))
-    return loops
+    matches = ground_truth_revisits(gt[:, :3, 3], radius, min_gap)
+    return [
+        (int(m), q, bool(abs(np.angle(np.exp(1j * (yaw[q] - yaw[m])))) <= np.pi / 2))
+        for q, m in enumerate(matches)
+        if m >= 0
+    ]
 
 
 def optimise(config: SlamConfig, gt: np.ndarray, odom: np.ndarray, loops: list[tuple[int, int, bool]]) -> np.ndarray:

@@ -45,6 +45,11 @@ def _map_key(place: int) -> int:
     return gtsam.symbol("m", place)
 
 
+def _loop_key(i: int, on_map: bool) -> int:
+    """Variable of a loop's first end: a prior-map place node or a keyframe."""
+    return _map_key(i) if on_map else _key(i)
+
+
 def _check_kf_id(name: str, kf_id: object) -> int:
     if isinstance(kf_id, bool) or not isinstance(kf_id, (int, np.integer)):
         raise ValueError(f"{name}: keyframe id must be an int, got {type(kf_id).__name__}")
@@ -94,7 +99,7 @@ class _Loop(_Edge):
 
     @property
     def key_i(self) -> int:
-        return _map_key(self.i) if self.on_map else _key(self.i)
+        return _loop_key(self.i, self.on_map)
 
 
 class PoseGraph:
@@ -193,26 +198,7 @@ class PoseGraph:
         if i == j:
             raise ValueError(f"i, j: a loop needs two different keyframes, got {i} twice")
         measured = as_pose("T_ij", T_ij, self.config.rotation_tolerance)
-        if sigmas is not None and information is not None:
-            raise ValueError("sigmas, information: give one of them, not both")
-        if information is not None:
-            info = noise.check_information("information", information)
-            base = noise.gaussian_from_information(info)
-        else:
-            if sigmas is None:
-                lcfg = self.config.loop
-                sig = noise.sigmas6(lcfg.rot_sigma, lcfg.trans_sigma)
-            else:
-                sig = noise.check_sigmas("sigmas", sigmas)
-            base = noise.gaussian(sig)
-        factor = gtsam.BetweenFactorPose3(
-            _key(i), _key(j), gtsam.Pose3(measured), noise.robustify(base, self._kernel)
-        )
-        handle = self._next_handle
-        self._next_handle += 1
-        self._loops[handle] = _Loop(i, j, measured, base, factor)
-        self._pending_factors.append((factor, handle))
-        return handle
+        return self._queue_loop(i, j, measured, self._loop_noise(sigmas, information), on_map=False)
 
     def add_map_loop(
         self,
@@ -249,14 +235,7 @@ class PoseGraph:
             self._pending_values.insert(_map_key(place), gtsam.Pose3(self._anchor_pose() @ pose))
             tie = gtsam.BetweenFactorPose3(_ANCHOR_KEY, _map_key(place), gtsam.Pose3(pose), rigid)
             self._pending_factors.append((tie, None))
-        base = noise.gaussian(noise.check_sigmas("sigmas", sigmas) if sigmas is not None else
-                              noise.sigmas6(self.config.loop.rot_sigma, self.config.loop.trans_sigma))  # fmt: skip
-        factor = gtsam.BetweenFactorPose3(_map_key(place), _key(j), gtsam.Pose3(measured), noise.robustify(base, self._kernel))
-        handle = self._next_handle
-        self._next_handle += 1
-        self._loops[handle] = _Loop(place, j, measured, base, factor, on_map=True)
-        self._pending_factors.append((factor, handle))
-        return handle
+        return self._queue_loop(place, j, measured, self._loop_noise(sigmas, None), on_map=True)
 
     def anchor(self) -> np.ndarray | None:
         """The prior map's frame expressed in this session's frame (None before a map loop).
@@ -380,6 +359,26 @@ class PoseGraph:
 
     def _pose_of(self, kf_id: int) -> np.ndarray:
         return self._estimate.atPose3(_key(kf_id)).matrix()
+
+    def _loop_noise(
+        self, sigmas: Sequence[float] | np.ndarray | None, information: np.ndarray | None
+    ) -> gtsam.noiseModel.Base:
+        """The Gaussian part of a loop factor: given sigmas or information, else the configured loop noise."""
+        if sigmas is not None and information is not None:
+            raise ValueError("sigmas, information: give one of them, not both")
+        if information is not None:
+            return noise.gaussian_from_information(noise.check_information("information", information))
+        if sigmas is None:
+            return noise.gaussian(noise.sigmas6(self.config.loop.rot_sigma, self.config.loop.trans_sigma))
+        return noise.gaussian(noise.check_sigmas("sigmas", sigmas))
+
+    def _queue_loop(self, i: int, j: int, measured: np.ndarray, base: gtsam.noiseModel.Base, on_map: bool) -> int:
+        factor = gtsam.BetweenFactorPose3(_loop_key(i, on_map), _key(j), gtsam.Pose3(measured), noise.robustify(base, self._kernel))
+        handle = self._next_handle
+        self._next_handle += 1
+        self._loops[handle] = _Loop(i, j, measured, base, factor, on_map=on_map)
+        self._pending_factors.append((factor, handle))
+        return handle
 
     def _anchor_link_factor(self) -> gtsam.BetweenFactorPose3:
         kf, measured = self._anchor_link
