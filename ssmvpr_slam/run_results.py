@@ -13,7 +13,7 @@ from loopclosure.atomic import atomic_write_text
 from loopclosure.metrics import pr_auc, precision_recall_curve
 from ssmvpr_slam.config import SlamConfig, dump_config
 from ssmvpr_slam.evaluation.loop_metrics import evaluate_loops, find_revisits
-from ssmvpr_slam.evaluation.metrics import ate, drift_per_100m, rpe
+from ssmvpr_slam.evaluation.metrics import ate, drift_per_100m, kitti_relative_error, rpe
 from ssmvpr_slam.evaluation.trajectory_io import write_kitti, write_tum
 from ssmvpr_slam.pipeline import LoopRecord, SlamPipeline
 from ssmvpr_slam.prior_map import save_map
@@ -100,7 +100,7 @@ def _prior_map_metrics(pipeline: SlamPipeline, config: SlamConfig) -> dict[str, 
 
 
 def evaluate_run(pipeline: SlamPipeline, odom: np.ndarray, optimised: np.ndarray, config: SlamConfig) -> dict[str, Any]:
-    """ATE/RPE of odometry vs optimised, loop precision/recall and the stream's PR-AUC."""
+    """ATE/RPE/KITTI error of odometry vs optimised, loop precision/recall and the stream's PR-AUC."""
     kfs = pipeline.state.keyframes
     if not kfs or any(k.gt_pose is None for k in kfs):
         return {"ground_truth": False}
@@ -115,6 +115,11 @@ def evaluate_run(pipeline: SlamPipeline, odom: np.ndarray, optimised: np.ndarray
         out["rpe_odometry"] = rpe(gt, odom, traj.rpe_delta, traj.rpe_unit).to_dict()
         out["rpe_optimised"] = rpe(gt, optimised, traj.rpe_delta, traj.rpe_unit).to_dict()
         out["drift_odometry"] = drift_per_100m(gt, odom, traj.drift_segment_m).to_dict()
+        kitti = {"lengths": tuple(traj.kitti_lengths_m), "step_frames": traj.kitti_step_frames}
+        out["kitti_rel_error"] = {  # per keyframe pose; 100 m+ segments, so null on short runs
+            "odometry": kitti_relative_error(gt, odom, **kitti).to_dict(),
+            "optimised": kitti_relative_error(gt, optimised, **kitti).to_dict(),
+        }
         out["_errors"] = (a_odom.errors, a_opt.errors)
         out["_aligned"] = (a_odom.aligned_poses, a_opt.aligned_poses)  # in the ground truth's frame, for plots
 

@@ -1,11 +1,14 @@
 #!/usr/bin/env python3
-"""kiss-icp odometry on the simulated demo traverse: accuracy and speed; prints JSON.
+"""kiss-icp odometry on a simulated traverse (the demo's by default): accuracy and speed; prints JSON.
 
 Frames are rendered first, so the timing covers odometry alone (validation, deskew,
-registration, map update). Accuracy: ATE after SE(3) alignment and drift per 100 m against
-the simulator's ground truth.
+registration, map update). Accuracy against the simulator's ground truth: ATE after SE(3)
+alignment, also of the first 25 / 50 / 75 % of the frames (each aligned on its own, to see
+whether ATE grows with route length), drift per 100 m, and the KITTI devkit's relative error
+(% and deg / 100 m over 100..800 m segments, comparable with the KITTI leaderboard).
 
-    python tools/bench_odometry.py [--frames N]
+    python tools/bench_odometry.py [--frames N] [--config SIM_YAML] [--route POSES_FILE]
+                                   [--poses-frame auto|camera|body]
 """
 
 from __future__ import annotations
@@ -23,15 +26,34 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from frontend.config import KissIcpConfig  # noqa: E402
 from frontend.odometry import KissIcpOdometry  # noqa: E402
-from frontend.simulation import TraverseSimulator, default_demo_config  # noqa: E402
-from ssmvpr_slam.evaluation.metrics import ate, drift_per_100m  # noqa: E402
+from frontend.simulation import TraverseSimulator  # noqa: E402
+from ssmvpr_slam.evaluation.metrics import ate, drift_per_100m, kitti_relative_error, path_lengths  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _sim_options import add_simulation_options, simulation_config  # noqa: E402
+
+PREFIXES = (0.25, 0.5, 0.75, 1.0)
+"""Fractions of the frames whose ATE is reported, each SE(3)-aligned on its own."""
+
+
+def ate_by_prefix(gt: np.ndarray, est: np.ndarray) -> list[dict[str, float | int]]:
+    """ATE RMSE of growing prefixes: a global alignment hides where along the route error builds up."""
+    lengths = path_lengths(gt)
+    out = []
+    for fraction in PREFIXES:
+        n = min(len(gt), max(3, round(fraction * len(gt))))
+        out.append({"fraction": fraction, "frames": n, "path_m": round(float(lengths[n - 1]), 1),
+                    "ate_rmse_m": ate(gt[:n], est[:n]).stats.rmse})  # fmt: skip
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--frames", type=int, default=None, help="default: the whole demo traverse")
+    add_simulation_options(parser, ("--config", "--sim-config"))
     args = parser.parse_args(argv)
-    simulator = TraverseSimulator(default_demo_config(camera={"enabled": False}, max_frames=args.frames))
+    if args.frames is not None and args.frames < 3:
+        parser.error("--frames must be at least 3")
+    simulator = TraverseSimulator(simulation_config(parser, args, camera={"enabled": False}))
     frames = list(simulator.frames())
     odometry = KissIcpOdometry(KissIcpConfig())
     estimates, seconds = [], []
@@ -47,8 +69,11 @@ def main(argv: list[str] | None = None) -> int:
         "points_per_scan": int(np.median([len(f.points) for f in frames])),
         "frames_per_second": len(frames) / sum(seconds),
         "ms_per_frame": {"median": 1000 * float(np.median(seconds)), "p90": 1000 * float(np.percentile(seconds, 90))},
+        "path_m": float(path_lengths(gt)[-1]),
         "ate_rmse_m": ate(gt, est).stats.rmse,
+        "ate_by_prefix": ate_by_prefix(gt, est),
         "drift_per_100m": drift_per_100m(gt, est).to_dict(),
+        "kitti_rel_error": kitti_relative_error(gt, est).to_dict(),
         "skipped": odometry.stats.skipped if hasattr(odometry.stats, "skipped") else None,
         "target": {"frames_per_second": 10.0},
     }

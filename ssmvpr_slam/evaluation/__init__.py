@@ -1,5 +1,6 @@
-"""Evaluation of a run: trajectory I/O (TUM, KITTI), Umeyama alignment, ATE / RPE / drift,
-loop-closure precision / recall, and plots. Plots (matplotlib) load only when imported."""
+"""Evaluation of a run: trajectory I/O (TUM, KITTI), Umeyama alignment, ATE / RPE / drift /
+KITTI relative error, loop-closure precision / recall, and plots. Plots (matplotlib) load only
+when imported."""
 
 from ssmvpr_slam.evaluation.alignment import Alignment, align_trajectory, umeyama
 from ssmvpr_slam.evaluation.config import (
@@ -12,10 +13,13 @@ from ssmvpr_slam.evaluation.metrics import (
     AteResult,
     DriftResult,
     ErrorStats,
+    KittiLengthError,
+    KittiRelativeError,
     RpeResult,
     associate,
     ate,
     drift_per_100m,
+    kitti_relative_error,
     rpe,
 )
 from ssmvpr_slam.evaluation.trajectory_io import read_kitti, read_tum, write_kitti, write_tum
@@ -26,6 +30,8 @@ __all__ = [
     "DriftResult",
     "ErrorStats",
     "EvaluationConfig",
+    "KittiLengthError",
+    "KittiRelativeError",
     "LoopEvaluation",
     "LoopMetricsConfig",
     "RpeResult",
@@ -36,6 +42,7 @@ __all__ = [
     "drift_per_100m",
     "evaluate_loops",
     "find_revisits",
+    "kitti_relative_error",
     "read_kitti",
     "read_tum",
     "rpe",

@@ -1,4 +1,4 @@
-"""Tunables of the evaluation: alignment, RPE deltas, drift segments and loop-correctness radii."""
+"""Tunables of the evaluation: alignment, RPE deltas, drift and KITTI segments, loop-correctness radii."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ class _Strict(BaseModel):
 
 
 class TrajectoryMetricsConfig(_Strict):
-    """ATE / RPE / drift, following evo's definitions."""
+    """ATE / RPE / drift, following evo's definitions; KITTI relative error, the devkit's."""
 
     alignment: Literal["se3", "sim3", "none"] = Field(
         "se3", description="Umeyama alignment of the estimate to the reference before ATE"
@@ -21,6 +21,14 @@ class TrajectoryMetricsConfig(_Strict):
     rpe_unit: Literal["frames", "m"] = "frames"
     rpe_all_pairs: bool = False
     drift_segment_m: float = Field(100.0, gt=0, description="segment length for drift per 100 m")
+    kitti_lengths_m: list[float] = Field(
+        default=[100.0, 200.0, 300.0, 400.0, 500.0, 600.0, 700.0, 800.0],
+        min_length=1,
+        description="segment lengths of the KITTI relative error (the devkit's by default)",
+    )
+    kitti_step_frames: int = Field(
+        10, ge=1, description="first frames of KITTI segments are this many poses apart (devkit: 10)"
+    )
     association_max_dt: float = Field(
         0.01, ge=0, description="s; max timestamp difference when associating trajectories"
     )

@@ -7,6 +7,9 @@
 * Drift: the RPE over segments of `segment_m` metres of reference path (every start frame),
   divided by the segment's length and scaled to 100 m; if the traverse is shorter than one
   segment, the whole traverse is the segment.
+* KITTI relative error: the KITTI odometry devkit's protocol (Geiger et al. 2012), so numbers
+  compare with the KITTI leaderboard: segments of 100, 200, ..., 800 m of ground-truth path
+  from every 10th frame, error divided by the nominal length; no alignment (it is relative).
 Results are frozen dataclasses with ``to_dict()`` for metrics.json.
 """
 
@@ -21,6 +24,10 @@ from ssmvpr_slam.backend.se3 import as_pose_array, invert, rotation_angle
 from ssmvpr_slam.evaluation.alignment import Alignment, align_trajectory
 
 PER_100M = 100.0
+KITTI_LENGTHS_M = (100.0, 200.0, 300.0, 400.0, 500.0, 600.0, 700.0, 800.0)
+"""The devkit's segment lengths."""
+KITTI_STEP_FRAMES = 10
+"""The devkit takes a first frame every 10 frames (1 s at KITTI's 10 Hz)."""
 
 
 @dataclass(frozen=True)
@@ -107,15 +114,71 @@ class DriftResult:
         return dict(self.__dict__)
 
 
-def _pair(ref: object, est: object) -> tuple[np.ndarray, np.ndarray]:
-    ref_arr = as_pose_array("ref_poses", ref)
-    est_arr = as_pose_array("est_poses", est)
+@dataclass(frozen=True)
+class KittiLengthError:
+    """KITTI relative error of the segments of one nominal length (NaN when there are none)."""
+
+    length_m: float
+    translation_pct: float
+    rotation_deg_per_100m: float
+    n_segments: int
+
+    def to_dict(self) -> dict[str, float | int | None]:
+        return {k: _json_number(v) for k, v in self.__dict__.items()}
+
+
+@dataclass(frozen=True)
+class KittiRelativeError:
+    """KITTI odometry relative error: means over all segments of all lengths, as the devkit.
+
+    A route shorter than the shortest length has no segment: n_segments is 0 and the means are
+    NaN (None in ``to_dict()``, since metrics.json is strict JSON), not an error, so a short run
+    still reports its other metrics.
+    """
+
+    translation_pct: float
+    rotation_deg_per_100m: float
+    n_segments: int
+    per_length: tuple[KittiLengthError, ...]
+    step_frames: int
+    path_length_m: float
+    pairs: list[tuple[int, int]]
+    segment_lengths_m: np.ndarray  # nominal length L of each pair
+    translation_errors_pct: np.ndarray  # per pair, |t_err| / L * 100
+    rotation_errors_deg_per_100m: np.ndarray  # per pair, angle(R_err) / L * 100
+
+    def to_dict(self) -> dict[str, object]:
+        return {
+            "translation_pct": _json_number(self.translation_pct),
+            "rotation_deg_per_100m": _json_number(self.rotation_deg_per_100m),
+            "n_segments": self.n_segments,
+            "step_frames": self.step_frames,
+            "path_length_m": self.path_length_m,
+            "per_length": {f"{e.length_m:g}": e.to_dict() for e in self.per_length},
+        }
+
+
+def _json_number(value: float | int) -> float | int | None:
+    """NaN / inf become None: metrics.json is written with allow_nan=False."""
+    return None if isinstance(value, float) and not np.isfinite(value) else value
+
+
+def _mean_or_nan(values: np.ndarray) -> float:
+    return float(np.mean(values)) if len(values) else float("nan")
+
+
+def _pair(
+    ref: object, est: object, names: tuple[str, str] = ("ref_poses", "est_poses")
+) -> tuple[np.ndarray, np.ndarray]:
+    ref_name, est_name = names
+    ref_arr = as_pose_array(ref_name, ref)
+    est_arr = as_pose_array(est_name, est)
     if len(ref_arr) != len(est_arr):
         raise ValueError(
-            f"est_poses: {len(est_arr)} poses for {len(ref_arr)} reference poses; associate first"
+            f"{est_name}: {len(est_arr)} poses for {len(ref_arr)} reference poses; associate first"
         )
     if len(ref_arr) < 2:
-        raise ValueError(f"ref_poses: need at least 2 poses, got {len(ref_arr)}")
+        raise ValueError(f"{ref_name}: need at least 2 poses, got {len(ref_arr)}")
     return ref_arr, est_arr
 
 
@@ -227,6 +290,66 @@ def drift_per_100m(
         segment_m=float(np.mean(seg_len)),
         n_segments=len(pairs),
         path_length_m=total,
+    )
+
+
+def kitti_relative_error(
+    gt: np.ndarray,
+    est: np.ndarray,
+    lengths: tuple[float, ...] = KITTI_LENGTHS_M,
+    step_frames: int = KITTI_STEP_FRAMES,
+) -> KittiRelativeError:
+    """KITTI odometry devkit relative error of `est` against ground truth `gt` ((N, 4, 4) each).
+
+    From every `step_frames`-th first frame i and for each length L, j is the first frame whose
+    ground-truth path distance from i is >= L (the devkit uses >, which differs only on exact
+    ties); ``E = inv(inv(gt_i) gt_j) @ (inv(est_i) est_j)`` gives |t(E)| / L and angle(R(E)) / L.
+    Means are over all segments of all lengths, in % and deg per 100 m.
+    """
+    ref, estimate = _pair(gt, est, ("gt", "est"))
+    lengths_m = tuple(float(length) for length in lengths)
+    if not lengths_m or not all(np.isfinite(length) and length > 0 for length in lengths_m):
+        raise ValueError(f"lengths: expected positive segment lengths in metres, got {lengths!r}")
+    if len(set(lengths_m)) != len(lengths_m):
+        raise ValueError(f"lengths: segment lengths repeat, got {lengths!r}")
+    if int(step_frames) != step_frames or step_frames < 1:
+        raise ValueError(f"step_frames: must be a whole number >= 1, got {step_frames!r}")
+    dist = path_lengths(ref)
+    pairs: list[tuple[int, int]] = []
+    seg_len: list[float] = []
+    for i in range(0, len(ref), int(step_frames)):
+        for length in lengths_m:
+            j = int(np.searchsorted(dist, dist[i] + length, side="left"))
+            if j < len(ref):
+                pairs.append((i, j))
+                seg_len.append(length)
+    nominal = np.asarray(seg_len, dtype=np.float64)
+    if pairs:
+        trans, rot = _relative_errors(ref, estimate, pairs)
+        t_pct = trans / nominal * 100.0
+        r_rate = rot / nominal * PER_100M
+    else:
+        t_pct = r_rate = np.zeros(0)
+    per_length = tuple(
+        KittiLengthError(
+            length_m=length,
+            translation_pct=_mean_or_nan(t_pct[nominal == length]),
+            rotation_deg_per_100m=_mean_or_nan(r_rate[nominal == length]),
+            n_segments=int(np.sum(nominal == length)),
+        )
+        for length in lengths_m
+    )
+    return KittiRelativeError(
+        translation_pct=_mean_or_nan(t_pct),
+        rotation_deg_per_100m=_mean_or_nan(r_rate),
+        n_segments=len(pairs),
+        per_length=per_length,
+        step_frames=int(step_frames),
+        path_length_m=float(dist[-1]),
+        pairs=pairs,
+        segment_lengths_m=nominal,
+        translation_errors_pct=t_pct,
+        rotation_errors_deg_per_100m=r_rate,
     )
 
 
