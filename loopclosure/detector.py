@@ -1,8 +1,10 @@
-"""Streaming loop-closure detection: one keyframe in, at most one gated proposal out.
+"""Streaming loop-closure detection: one keyframe in, at most one proposal out.
 
 Per keyframe: one backbone pass; stage I against the database minus an exclusion window
 (the most recent keyframes and the last metres travelled, which always look alike); stage
-II re-ranking; the sequence gate; then the keyframe joins the database. Without codebooks
+II re-ranking of the candidates plus the places that continue the recent best sequences;
+sequence matching over the last L keyframes (`SequenceMatcher`), whose score decides; the
+optional top-1 `SequenceGate` on top; then the keyframe joins the database. Without codebooks
 the first keyframes are buffered, PCA is fitted on them, and querying starts afterwards.
 """
 
@@ -15,6 +17,7 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from loopclosure.config import DetectorConfig, VPRConfig, feature_side, grid_side
 from loopclosure.database import PlaceDatabase, PlaceInfo
@@ -22,23 +25,27 @@ from loopclosure.encoder import Encoder, PlaceCodes, RawCubes
 from loopclosure.errors import LoopClosureInputError
 from loopclosure.recognizer import Recognizer
 from loopclosure.sequence_gate import SequenceGate
+from loopclosure.sequence_matcher import SequenceMatch, SequenceMatcher
+from loopclosure.spatial import spatial_scores
 
 
 @dataclass
 class LoopProposal:
-    """The best recognition of one keyframe and what the gate made of it."""
+    """The best sequence match of one keyframe and the decision on it."""
 
     query_id: int
     match_id: int  # keyframe id (PlaceInfo.frame_id) of the matched place
     match_place: int  # database index of the matched place
-    score: float  # stage-II score in [0, 1]
+    score: float  # single-frame stage-II score of the query against the matched place, in [0, 1]
     stage1_score: float
     column_shift: int  # dominant grid column displacement (query minus match)
     yaw_guess: float  # rad, rotation of the query about z relative to the match, from the shift
     accepted: bool
     reason: str
-    direction: Literal["forward", "reverse"] | None = None
+    direction: Literal["forward", "reverse"] | None = None  # of the sequence (None: injected loops)
     prior_map: bool = False  # the match comes from a database loaded from an earlier session
+    sequence_score: float | None = None  # the decision score: stage-II scores averaged along the sequence
+    sequence_terms: int = 0  # keyframes of the sequence that could be compared (at most L)
 
 
 @dataclass
@@ -48,6 +55,7 @@ class DetectorTimings:
     backbone: float = 0.0
     database_query: float = 0.0
     spatial_matching: float = 0.0
+    sequence_matching: float = 0.0  # the earlier keyframes' spatial scores and the aggregation
     gate: float = 0.0
 
 
@@ -64,6 +72,7 @@ class LoopDetector:
         self.prior_places = len(database) if database is not None else 0
         self._recognizer = Recognizer(vpr, database) if database is not None else None
         self.gate = SequenceGate(config.gate)
+        self.sequence = SequenceMatcher(config.sequence, self._score_places)
         self.timings = DetectorTimings()
         # distance travelled when each session place was added, in order; it never decreases,
         # so the places too near to the query are always a suffix of the session
@@ -141,39 +150,79 @@ class LoopDetector:
         first_near = bisect.bisect_right(self._session_travelled, self._travelled - self.config.exclusion_distance)
         return np.arange(self.prior_places + min(first_recent, first_near), self.prior_places + n, dtype=np.int64)
 
+    def _score_places(self, grid: np.ndarray, places: np.ndarray) -> np.ndarray:
+        """Stage-II scores of an earlier keyframe's grid against database places (sequence terms)."""
+        assert self.database is not None
+        return spatial_scores(grid, self.database.stage2[places], self.vpr.spatial.chunk_candidates).scores
+
     def _query(self, codes: PlaceCodes, keyframe_id: int) -> LoopProposal | None:
         assert self.database is not None
         start = time.perf_counter()
         filtering = self.vpr.filtering
         excluded = self._excluded()
+        # places [0, limit) may be matched: the exclusion window is always a suffix
+        limit = int(excluded[0]) if len(excluded) else len(self.database)
         candidates = self.database.filter(codes.stage1[0], filtering.k_neighbours, filtering.num_candidates, excluded)
         self.timings.database_query = time.perf_counter() - start
-        start = time.perf_counter()
-        recognition = self._recognizer.rerank(codes, candidates)
-        self.timings.spatial_matching = time.perf_counter() - start
+        # one BLAS thread for the many small products of stage II: right after the backbone pass
+        # torch's threads hold the cores, and two BLAS threads were measured several times slower
+        with threadpool_limits(limits=1, user_api="blas"):
+            start = time.perf_counter()
+            continued = self.sequence.continuations(limit)
+            recognition = self._recognizer.rerank(codes, candidates, extra=continued)
+            self.timings.spatial_matching = time.perf_counter() - start
+
+            start = time.perf_counter()
+            spatial = dict(zip(recognition.ranked_places.tolist(), recognition.spatial_scores.tolist()))
+            match = self.sequence.step(
+                codes.stage2[0], candidates.places, np.array([spatial[p] for p in candidates.places.tolist()], np.float32),
+                limit, continued, np.array([spatial[p] for p in continued.tolist()], np.float32),
+            )  # fmt: skip
+            self.timings.sequence_matching = time.perf_counter() - start
 
         start = time.perf_counter()
-        best = recognition.best_place
         query_place = len(self.database)  # the gate works in place indices: unique across sessions
-        if best is None or recognition.best_score < self.config.min_score:
-            self.gate.observe(query_place, None)
+        top1 = recognition.best_place if recognition.best_score >= self.config.min_score else None
+        if match.place is None or match.score < self.config.min_score:
+            self.gate.observe(query_place, top1)
             self.timings.gate = time.perf_counter() - start
             return None
-        match_id = self.database.places[best].frame_id
-        decision = self.gate.decide(query_place, best)
-        self.gate.observe(query_place, best)
+        best = match.place
+        accepted, reason = self._decide(match)
+        if accepted and self.config.gate.enabled:  # the top-1 consistency check, on request
+            decision = self.gate.decide(query_place, best)
+            accepted = decision.accepted
+            reason = f"{reason}; top-1 gate: {decision.reason}" if accepted else f"top-1 gate rejects: {decision.reason}; {reason}"
+        self.gate.observe(query_place, top1)  # the gate judges each keyframe's own top-1 recognition
         self.timings.gate = time.perf_counter() - start
-        shift = int(recognition.ranked_shifts[0][1])
+        ranked = int(np.flatnonzero(recognition.ranked_places == best)[0])
+        shift = int(recognition.ranked_shifts[ranked][1])
+        in_stage1 = candidates.places == best
         return LoopProposal(
             query_id=keyframe_id,
-            match_id=match_id,
+            match_id=self.database.places[best].frame_id,
             match_place=best,
-            score=recognition.best_score,
-            stage1_score=float(candidates.scores[candidates.places == best][0]) if np.any(candidates.places == best) else 0.0,
+            score=match.single_score,
+            stage1_score=float(candidates.scores[in_stage1][0]) if np.any(in_stage1) else 0.0,
             column_shift=shift,
             yaw_guess=shift * self._yaw_per_column,
-            accepted=decision.accepted,
-            reason=decision.reason,
-            direction=decision.direction,
+            accepted=accepted,
+            reason=reason,
+            direction=match.direction,
             prior_map=best < self.prior_places,
+            sequence_score=match.score,
+            sequence_terms=match.terms,
         )
+
+    def _decide(self, match: SequenceMatch) -> tuple[bool, str]:
+        """Accept on the sequence score; the reason says what was compared."""
+        threshold = self.config.accept_threshold
+        speed = f", speed {match.speed:g}" if len(self.config.sequence.speeds) > 1 else ""
+        detail = (f"({match.terms}/{self.config.sequence.length} keyframes, {match.direction}{speed}); "
+                  f"single frame {match.single_score:.3f}")  # fmt: skip
+        if match.score < threshold:
+            return False, f"sequence score {match.score:.3f} < {threshold:.3f} {detail}"
+        if match.single_score < self.config.min_single_score:
+            return False, (f"single frame {match.single_score:.3f} < {self.config.min_single_score:.3f}: "
+                           f"sequence score {match.score:.3f} {detail.split(';')[0]}")  # fmt: skip
+        return True, f"accepted: sequence score {match.score:.3f} >= {threshold:.3f} {detail}"

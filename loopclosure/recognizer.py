@@ -32,6 +32,11 @@ class Recognition:
     def best_score(self) -> float:
         return float(self.ranked_scores[0]) if len(self.ranked_scores) else 0.0
 
+    @property
+    def won_without_boost(self) -> bool:
+        """The best place would also be best on its stage-II score alone (no prior needed)."""
+        return bool(len(self.spatial_scores)) and bool(self.spatial_scores[0] >= self.spatial_scores.max())
+
 
 class Recognizer:
     def __init__(self, config: VPRConfig, database: PlaceDatabase) -> None:
@@ -55,9 +60,13 @@ class Recognizer:
         candidates: Candidates,
         boosted: np.ndarray | None = None,
         excluded: np.ndarray | None = None,
+        extra: np.ndarray | None = None,
     ) -> Recognition:
-        """Stage II on given stage-I candidates (plus any boosted places not excluded)."""
+        """Stage II on given stage-I candidates (plus any boosted places not excluded, and
+        `extra` places scored without a boost: the continuations of a sequence matcher)."""
         places = candidates.places
+        if extra is not None and len(extra):
+            places = np.concatenate([places, np.setdiff1d(np.asarray(extra, np.int64), places)])
         boost = np.zeros(len(places), np.float32)
         if boosted is not None and len(boosted):
             boosted = np.asarray(boosted, dtype=np.int64)

@@ -111,6 +111,13 @@ def vpr_eval(
         Optional[bool], typer.Option("--sequential/--no-sequential", help="Frame-correlation prior (RAS 2020); default: as configured.")
     ] = None,
     num_candidates: Annotated[Optional[int], typer.Option("--num-candidates", "-n", help="N of the filtering stage.")] = None,
+    sequence: Annotated[
+        Optional[list[int]],
+        typer.Option("--sequence", "-L", help="Also match sequences of L queries (repeat for several L; 1 = single frames)."),
+    ] = None,
+    direction: Annotated[
+        Optional[str], typer.Option(help="Sequence direction: forward | reverse | both (default forward).")
+    ] = None,
     pca: Annotated[Optional[Path], typer.Option(help="Codebooks from `fit-pca` (default: fit on the references).")] = None,
     config: ConfigOpt = None,
     weights: WeightsOpt = None,
@@ -123,6 +130,10 @@ def vpr_eval(
     cfg = _config(config, weights, device, out)
     if tolerance is not None:
         cfg.vpr_eval.tolerance = tolerance
+    if sequence:
+        cfg.vpr_eval.sequence_lengths = sorted(set(sequence))
+    if direction is not None:
+        cfg.vpr_eval.sequence = _validated_update(cfg.vpr_eval.sequence, {"direction": direction})
     if num_candidates is not None:
         cfg.vpr.filtering.num_candidates = num_candidates
     if sequential is None:

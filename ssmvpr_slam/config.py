@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
@@ -17,7 +17,7 @@ from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, Settings
 
 from frontend.config import FrontendConfig
 from frontend.simulation.config import SimulationConfig
-from loopclosure.config import DetectorConfig, VPRConfig
+from loopclosure.config import DetectorConfig, SequenceMatchConfig, VPRConfig
 from ssmvpr_slam.backend.config import BackendConfig
 from ssmvpr_slam.evaluation.config import EvaluationConfig
 
@@ -36,6 +36,13 @@ class VPREvalConfig(BaseModel):
     tolerance: int = Field(default=2, ge=0, description="A match within ±tolerance frames of the truth is correct.")
     plot_tolerances: list[int] = Field(default=[1, 2, 3], description="Tolerances drawn in the PR plot.")
     recall_ns: list[int] = Field(default=[1, 5, 10, 20, 50], description="N values of the recall@N curve.")
+    sequence_lengths: list[Annotated[int, Field(ge=1)]] = Field(
+        default=[], description="Sequence lengths L evaluated beside single frames (1 reproduces single frames)."
+    )
+    sequence: SequenceMatchConfig = Field(
+        default=SequenceMatchConfig(direction="forward"),
+        description="The sequence matcher's settings (its length is replaced by each of sequence_lengths).",
+    )
 
 
 class ResultsConfig(BaseModel):

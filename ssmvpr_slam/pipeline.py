@@ -215,7 +215,8 @@ class SlamPipeline:
         timings = self.detector.timings
         self.state.times.rows.append({
             "backbone": timings.backbone, "database_query": timings.database_query,
-            "spatial_matching": timings.spatial_matching, "gate": timings.gate,
+            "spatial_matching": timings.spatial_matching, "sequence_matching": timings.sequence_matching,
+            "gate": timings.gate,
             "registration": t_reg, "isam2_update": t_graph, "total": time.perf_counter() - t0,
         })  # fmt: skip
 

@@ -21,7 +21,8 @@ from ssmvpr_slam.results import write_json
 
 LOOP_COLUMNS = [
     "query_kf", "match_kf", "score", "stage1_score", "column_shift", "yaw_guess_rad", "gate_accepted",
-    "gate_reason", "direction", "registration", "registration_accepted", "registration_reason",
+    "gate_reason", "direction", "sequence_score", "sequence_terms", "registration", "registration_accepted",
+    "registration_reason",
     "inlier_ratio", "rmse", "in_graph", "prior_map", "injected", "gt_distance_m",
 ]  # fmt: skip
 
@@ -35,7 +36,9 @@ def write_loop_csv(path: Path, loops: list[LoopRecord], gt_distance: list[float 
         p, reg = record.proposal, record.registration
         writer.writerow([
             p.query_id, p.match_id, f"{p.score:.4f}", f"{p.stage1_score:.4f}", p.column_shift, f"{p.yaw_guess:.4f}",
-            int(p.accepted), p.reason, p.direction or "", reg.method if reg else "", int(reg.accepted) if reg else "",
+            int(p.accepted), p.reason, p.direction or "",
+            "" if p.sequence_score is None else f"{p.sequence_score:.4f}", p.sequence_terms,
+            reg.method if reg else "", int(reg.accepted) if reg else "",
             reg.reason if reg else "", f"{reg.inlier_ratio:.3f}" if reg else "", f"{reg.rmse:.3f}" if reg else "",
             int(record.factor_handle in final), int(p.prior_map), int(record.injected),
             "" if distance is None else f"{distance:.2f}",
@@ -147,6 +150,45 @@ def evaluate_run(pipeline: SlamPipeline, odom: np.ndarray, optimised: np.ndarray
     has_truth = np.array([i in revisits for i in range(len(kfs))])
     if has_truth.any():
         out["stream_pr_auc"] = pr_auc(precision_recall_curve(scores, correct, has_truth))
+        # the same proposals ranked by their sequence score, the detector's decision score
+        seq_scores = np.full(len(kfs), -np.inf)
+        for r in session:
+            if r.proposal.sequence_score is not None:
+                seq_scores[r.proposal.query_id] = r.proposal.sequence_score
+        out["stream_pr_auc_sequence"] = pr_auc(precision_recall_curve(seq_scores, correct, has_truth))
+    out["loops"]["by_direction"] = _recall_by_direction(
+        gt, set(evaluation.revisit_ids), session, evaluation, loops_cfg.min_frame_gap
+    )
+    return out
+
+
+def _recall_by_direction(
+    gt: np.ndarray, revisits: set[int], session: list[LoopRecord], evaluation: Any, min_frame_gap: int
+) -> dict[str, Any]:
+    """Recall of forward and reverse revisits apart: a revisit is forward when it is driven the
+    way the nearest earlier visit (at least min_frame_gap keyframes back) was (ground truth)."""
+    pos = gt[:, :3, 3]
+
+    def heading(i: int) -> np.ndarray:
+        v = pos[min(i + 1, len(pos) - 1)] - pos[max(i - 1, 0)]
+        return v / max(float(np.linalg.norm(v)), 1e-9)
+
+    kind = {}
+    for q in revisits:
+        earlier = pos[: q - min_frame_gap + 1]
+        m = int(np.argmin(np.linalg.norm(earlier - pos[q], axis=1)))
+        kind[q] = "forward" if float(heading(q) @ heading(m)) > 0 else "reverse"
+    in_graph = [r for r in session if r.in_graph]
+    recalled = {r.proposal.query_id for r, ok in zip(in_graph, evaluation.loop_correct) if ok} & set(revisits)
+    out: dict[str, Any] = {}
+    for name in ("forward", "reverse"):
+        ids = [q for q, k in kind.items() if k == name]
+        out[name] = {
+            "revisits": len(ids),
+            "recalled": sum(q in recalled for q in ids),
+            "recall": sum(q in recalled for q in ids) / len(ids) if ids else None,
+            "loops_in_graph_by_sequence_direction": sum(r.proposal.direction == name for r in in_graph),
+        }
     return out
 
 

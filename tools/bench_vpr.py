@@ -19,6 +19,16 @@ What is measured (all through the library's own code paths):
                        stage-II store in DatabaseConfig.stage2_dtype (float16 by default, the
                        conversion to float32 happens inside), as `Recognizer.query` does.
   bytes_per_place      `PlaceDatabase.bytes_per_place` (in memory) and the .npy bytes on disk.
+  sequence_query_ms    One query of a stream with sequence matching, as `LoopDetector` runs it:
+                       stage-I vote over --store-places places (minus the exclusion window),
+                       stage II of the N candidates plus the continued places, then
+                       `SequenceMatcher.step` (the earlier queries' terms, scored on demand),
+                       with numpy's BLAS capped at 1 thread as in the detector. The stream is a
+                       synthetic revisit (queries are noisy copies of consecutive places), so the
+                       true sequence is cached as in use and the other candidates are not: about
+                       the worst case for the matcher's cache. For L in --sequence-lengths, one
+                       direction (forward) and both, all N candidates (K=all: L x N scores) and
+                       the default K best.
 
 The machine is shared: every time is a median (and p90, min) over repeats, with the process
 CPU time (cpu_median, all threads) beside it, and the load average before/after is recorded, so
@@ -45,7 +55,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from loopclosure.config import BackboneConfig, DatabaseConfig, VPRConfig, feature_side, grid_side  # noqa: E402
+from loopclosure.config import BackboneConfig, DatabaseConfig, SequenceMatchConfig, VPRConfig, feature_side, grid_side  # noqa: E402
 from loopclosure.database import PlaceDatabase  # noqa: E402
 from loopclosure.encoder import PlaceCodes  # noqa: E402
 from loopclosure.filtering import vote  # noqa: E402
@@ -58,7 +68,7 @@ SHARED_WEIGHTS = SHARED / "weights" / "vgg16_imagenet_conv.pth"
 
 PAPER_SPATIAL_MS = {50: 1600.0, 15: 750.0, 5: 400.0}  # ECMR 2019, per query
 PAPER_BYTES_PER_PLACE = 175_000  # 25 kB stage I + 150 kB stage II
-TARGETS = {"spatial_50_ms": 5.0, "filtering_10k_ms": 20.0}
+TARGETS = {"spatial_50_ms": 5.0, "filtering_10k_ms": 20.0, "sequence_query_L5_N50_ms": 30.0}
 
 
 # ---- helpers ---------------------------------------------------------------------------------
@@ -509,6 +519,72 @@ def bench_spatial(args, config: VPRConfig, counts: list[int], repeats: int) -> d
     return out
 
 
+# ---- sequence matching -------------------------------------------------------------------------
+def bench_sequence(args, config: VPRConfig, lengths: list[int], repeats: int) -> dict:
+    from threadpoolctl import threadpool_limits
+
+    from loopclosure.sequence_matcher import SequenceMatcher
+
+    shape1 = layout(config)["stage1"]
+    gh, gw, d = layout(config)["stage2"]
+    n_places = args.store_places
+    window = min(args.exclude_recent, n_places // 2)
+    limit = n_places - window
+    k, n_cand, chunk = config.filtering.k_neighbours, config.filtering.num_candidates, config.spatial.chunk_candidates
+    rng = np.random.default_rng(5)
+    db1 = synthetic_stage1(n_places, shape1, np.dtype(DatabaseConfig().stage1_dtype), seed=11)
+    store = rng.standard_normal((n_places, gh, gw, d), dtype=np.float32).astype(DatabaseConfig().stage2_dtype)
+    excluded = np.arange(limit, n_places)
+    n_stream = repeats + max(lengths)
+    first = int(rng.integers(0, max(1, limit - n_stream)))
+    truth = [(first + t) % limit for t in range(n_stream)]
+    q1 = [unit_rows(db1[p].astype(np.float32) + 0.3 * rng.standard_normal(shape1, dtype=np.float32)) for p in truth]
+    q2 = [store[p].astype(np.float32) + 0.5 * rng.standard_normal((gh, gw, d), dtype=np.float32) for p in truth]
+
+    def scorer(grid: np.ndarray, places: np.ndarray) -> np.ndarray:
+        return spatial_scores(grid, store[places], chunk).scores
+
+    default_k = SequenceMatchConfig().sequence_candidates
+    out: dict = {
+        "store_places": n_places, "exclusion_window_places": window, "num_candidates": n_cand,
+        "stream_queries": n_stream, "timed_queries": repeats, "blas_threads": 1,
+        "default_sequence_candidates": default_k, "settings": {},
+    }  # fmt: skip
+    for length in lengths:
+        for direction in ("forward", "both"):
+            for k_best in (None, default_k):
+                seq_cfg = SequenceMatchConfig(length=length, direction=direction, sequence_candidates=k_best)
+                matcher = SequenceMatcher(seq_cfg, scorer)
+                rows: dict[str, Samples] = {n: Samples() for n in ("filter", "spatial", "matcher", "total")}
+                scored, found = [], 0
+                log(f"sequence L={length} {direction} K={k_best or 'all'}: {n_stream} queries")
+                with threadpool_limits(limits=1, user_api="blas"):
+                    for t in range(n_stream):
+                        c0, t0 = time.process_time(), time.perf_counter()
+                        cands = vote(q1[t], db1, k, n_cand, excluded)
+                        t1 = time.perf_counter()
+                        extra = np.setdiff1d(matcher.continuations(limit), cands.places)
+                        places = np.concatenate([cands.places, extra])
+                        scores = scorer(q2[t], places)
+                        t2 = time.perf_counter()
+                        m = matcher.step(q2[t], cands.places, scores[: len(cands)], limit, extra, scores[len(cands):])
+                        t3 = time.perf_counter()
+                        if t < n_stream - repeats:
+                            continue  # the sequence warms up
+                        for name, ms in (("filter", t1 - t0), ("spatial", t2 - t1), ("matcher", t3 - t2), ("total", t3 - t0)):
+                            rows[name].append(ms * 1e3)
+                        rows["total"].cpu.append((time.process_time() - c0) * 1e3)
+                        scored.append(len(places) + matcher.scored_last_step)
+                        found += m.place == truth[t]
+                out["settings"][f"L{length}_{direction}_K{k_best or 'all'}"] = {
+                    "length": length, "direction": direction, "sequence_candidates": k_best,
+                    **{f"{name}_ms": stats(v) for name, v in rows.items()},
+                    "spatial_scores_per_query_median": float(np.median(scored)),
+                    "true_place_found": f"{found}/{repeats}",
+                }  # fmt: skip
+    return out
+
+
 # ---- BLAS threads A/B -------------------------------------------------------------------------
 def bench_blas_ab(
     config: VPRConfig, n_places: int, n_candidates: int, repeats: int, window: int, store_places: int
@@ -596,9 +672,18 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--blas-threads", type=int, default=None, help="cap numpy BLAS threads for the whole run")
     ap.add_argument("--ab-repeats", type=int, default=None, help="repeats of the BLAS-threads A/B (0: skip)")
     ap.add_argument("--skip-encode", action="store_true", help="no CNN timing")
+    ap.add_argument("--sequence-lengths", default="3,5", help="L for the sequence matcher timing ('' to skip)")
     ap.add_argument("--quick", action="store_true", help="~30 s: sizes 1000,10000 and few repeats")
     ap.add_argument("--output", default=None, help="also write the JSON to this file")
     return ap.parse_args(argv)
+
+
+def _sequence_total(section: dict, names: tuple[str, ...]) -> float | None:
+    """Worst median total (ms) among the named sequence settings, if all were measured at N = 50."""
+    settings = section.get("settings", {})
+    if section.get("num_candidates") != 50 or not all(n in settings for n in names):
+        return None
+    return max(settings[n]["total_ms"]["median"] for n in names)
 
 
 def _ints(text: str) -> list[int]:
@@ -645,6 +730,8 @@ def main(argv: list[str] | None = None) -> dict:
         filt = result["filtering_query_ms"] = bench_filtering(args, config, sizes, repeats)
         spat = result["spatial_matching_ms"] = bench_spatial(args, config, counts, repeats)
         result["bytes_per_place"] = bench_storage(config)
+        seq_lengths = _ints(args.sequence_lengths)
+        result["sequence_query_ms"] = bench_sequence(args, config, seq_lengths, repeats) if seq_lengths else {"skipped": True}
         if args.ab_repeats:
             log(f"BLAS threads A/B: {args.ab_repeats} repeats")
             ab_size = 10000 if 10000 in sizes else sizes[-1]
@@ -659,7 +746,14 @@ def main(argv: list[str] | None = None) -> dict:
         "filtering_10k_ms": max(f10k["no_exclusion"]["median"], f10k["with_exclusion"]["median"]) if f10k else None,
         # As Recognizer.query pays it: gather the float16 grids, convert, score.
         "spatial_50_ms": s50["gather_and_score"]["median"] if s50 else None,
+        # L = 5, N = 50 as configured by default (the best K candidates get sequence terms), the
+        # worse of one direction and both
+        "sequence_query_L5_N50_ms": _sequence_total(
+            result["sequence_query_ms"], tuple(f"L5_{d}_K{SequenceMatchConfig().sequence_candidates}" for d in ("forward", "both"))
+        ),
     }
+    # not a target: every one of the N candidates scored along its sequence (L x N spatial scores)
+    result["sequence_query_L5_N50_all_candidates_forward_ms"] = _sequence_total(result["sequence_query_ms"], ("L5_forward_Kall",))
     result["targets"] = {
         "targets_ms": TARGETS,
         "measured_median_ms": measured,

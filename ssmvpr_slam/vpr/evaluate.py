@@ -6,7 +6,7 @@ import csv
 import io
 import time
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -14,9 +14,11 @@ import numpy as np
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
+from threadpoolctl import threadpool_limits
 
 from loopclosure.atomic import atomic_write_text
 from loopclosure.backbone import load_backbone
+from loopclosure.config import SequenceMatchConfig
 from loopclosure.database import PlaceDatabase, PlaceInfo
 from loopclosure.encoder import Encoder, PlaceCodes, evenly_spaced
 from loopclosure.frame_correlation import FrameCorrelationPrior
@@ -25,8 +27,24 @@ from loopclosure.images import list_images, read_image
 from loopclosure.metrics import precision_recall_curve, recall_at_n, summarize
 from loopclosure.pca import Codebooks
 from loopclosure.recognizer import Recognizer
+from loopclosure.sequence_matcher import SequenceMatcher
+from loopclosure.spatial import spatial_scores
 from ssmvpr_slam.config import SlamConfig, dump_config
 from ssmvpr_slam.results import create_results_dir, write_json
+
+
+@dataclass
+class SequenceOutcome:
+    """Per-query results of sequence matching with one length L."""
+
+    length: int
+    direction: str  # as configured: forward | reverse | both
+    match: np.ndarray  # (Q,) best place of the best sequence, -1 if none
+    score: np.ndarray  # (Q,) its sequence score
+    match_direction: list[str]  # (Q,) forward | reverse | ""
+    terms: np.ndarray  # (Q,) terms of the winning sequence that existed
+    seconds: np.ndarray  # (Q,) the matcher's own time (earlier queries' spatial scores, aggregation)
+    spatial_scores: np.ndarray  # (Q,) spatial scores the matcher computed itself
 
 
 @dataclass
@@ -39,6 +57,7 @@ class QueryOutcome:
     stage2_score: np.ndarray  # (Q,) final score in [0, 1]
     candidates: np.ndarray  # (Q, N) stage-I candidate lists, -1 padded
     query_seconds: np.ndarray  # (Q,) filtering + spatial matching
+    sequences: dict[int, SequenceOutcome] = field(default_factory=dict)  # by L
 
 
 def _progress(console: Console) -> Progress:
@@ -72,8 +91,14 @@ def encode_folder(
 
 
 def recognise_all(
-    recognizer: Recognizer, queries: PlaceCodes, sequential: bool, progress: Progress
+    recognizer: Recognizer,
+    queries: PlaceCodes,
+    sequential: bool,
+    progress: Progress,
+    sequence_lengths: Sequence[int] = (),
+    sequence_config: SequenceMatchConfig | None = None,
 ) -> QueryOutcome:
+    """Every query in folder order; the queries form one stream (prior and sequences use it)."""
     n = len(queries)
     n_cand = recognizer.config.filtering.num_candidates
     out = QueryOutcome(
@@ -82,12 +107,26 @@ def recognise_all(
     )  # fmt: skip
     prior_config = recognizer.config.frame_correlation.model_copy(update={"enabled": sequential})
     prior = FrameCorrelationPrior(prior_config)
+    database = recognizer.database
+    chunk = recognizer.config.spatial.chunk_candidates
+
+    def score(grid: np.ndarray, places: np.ndarray) -> np.ndarray:
+        return spatial_scores(grid, database.stage2[places], chunk).scores
+
+    base = sequence_config or SequenceMatchConfig()
+    matchers = {L: SequenceMatcher(base.model_copy(update={"length": L}), score) for L in sequence_lengths}
+    for L, matcher in matchers.items():
+        out.sequences[L] = SequenceOutcome(
+            L, matcher.config.direction, np.full(n, -1, np.int64), np.full(n, -np.inf), [""] * n,
+            np.zeros(n, np.int64), np.zeros(n), np.zeros(n, np.int64),
+        )  # fmt: skip
+    limit = len(database)
     task = progress.add_task("matching queries", total=n)
     for q in range(n):
         start = time.perf_counter()
         rec = recognizer.query(queries[q], boosted=prior.boosted())
         out.query_seconds[q] = time.perf_counter() - start
-        prior.update(rec.best_place)
+        prior.update(rec.best_place, rec.won_without_boost)
         cands = rec.candidates
         if len(cands):
             out.stage1_match[q] = cands.places[0]
@@ -96,6 +135,23 @@ def recognise_all(
         if rec.best_place is not None:
             out.stage2_match[q] = rec.best_place
             out.stage2_score[q] = rec.best_score
+        spatial = dict(zip(rec.ranked_places.tolist(), rec.spatial_scores.tolist()))
+        for L, matcher in matchers.items():
+            start = time.perf_counter()
+            continued = matcher.continuations(limit)
+            new = [p for p in continued.tolist() if p not in spatial]
+            if new:  # the continued places stage I did not propose
+                spatial.update(zip(new, score(queries.stage2[q], np.asarray(new, np.int64)).tolist()))
+            match = matcher.step(
+                queries.stage2[q], cands.places, np.array([spatial[p] for p in cands.places.tolist()], np.float32),
+                limit, continued, np.array([spatial[p] for p in continued.tolist()], np.float32),
+            )  # fmt: skip
+            seq = out.sequences[L]
+            seq.seconds[q] = time.perf_counter() - start
+            seq.spatial_scores[q] = matcher.scored_last_step + len(new)
+            if match.place is not None:
+                seq.match[q], seq.score[q] = match.place, match.score
+                seq.match_direction[q], seq.terms[q] = match.direction or "", match.terms
         progress.advance(task)
     return out
 
@@ -106,7 +162,7 @@ def compute_metrics(outcome: QueryOutcome, gt: GroundTruth, config: SlamConfig) 
     ns = sorted({n for n in config.vpr_eval.recall_ns if n <= n_cand} | {n_cand})
     stage2 = summarize(outcome.stage2_score, outcome.stage2_match, gt, tol)
     stage1 = summarize(outcome.stage1_score, outcome.stage1_match, gt, tol, outcome.candidates, ns)
-    return {
+    metrics: dict[str, Any] = {
         "tolerance": tol,
         "n_query": gt.n_query,
         "n_ref": gt.n_ref,
@@ -119,6 +175,27 @@ def compute_metrics(outcome: QueryOutcome, gt: GroundTruth, config: SlamConfig) 
         "stage1": stage1,
         "stage2": stage2,
     }
+    if outcome.sequences:
+        # single frames (stage II) and each sequence length side by side, same truth and tolerance
+        metrics["single_frame"] = {"pr_auc": stage2["pr_auc"], "top1_accuracy": stage2["top1_accuracy"]}
+        metrics["sequence"] = {str(L): _sequence_metrics(seq, gt, tol, stage2["pr_auc"]) for L, seq in outcome.sequences.items()}
+    return metrics
+
+
+def _sequence_metrics(seq: SequenceOutcome, gt: GroundTruth, tol: int, single_auc: float) -> dict[str, Any]:
+    summary = summarize(seq.score, seq.match, gt, tol)
+    return {
+        "length": seq.length,
+        "direction": seq.direction,
+        "pr_auc": summary["pr_auc"],
+        "pr_auc_minus_single_frame": summary["pr_auc"] - single_auc,
+        "top1_accuracy": summary["top1_accuracy"],
+        "precision_at_full_recall": summary["precision_at_full_recall"],
+        "recall_at_full_precision": summary["recall_at_full_precision"],
+        "reverse_matches": sum(d == "reverse" for d in seq.match_direction),
+        "matcher_ms_median": 1000 * float(np.median(seq.seconds)),
+        "matcher_spatial_scores_median": float(np.median(seq.spatial_scores)),
+    }
 
 
 def write_matches_csv(
@@ -127,15 +204,22 @@ def write_matches_csv(
     correct = correct_mask(gt, outcome.stage2_match, tol)
     buffer = io.StringIO()
     writer = csv.writer(buffer)
+    sequences = list(outcome.sequences.values())
+    seq_correct = {seq.length: correct_mask(gt, seq.match, tol) for seq in sequences}
     writer.writerow(["query_index", "query_file", "ref_index", "ref_file", "score", "correct",
-                     "stage1_ref_index", "stage1_score", "true_ref_indices", "query_ms"])  # fmt: skip
+                     "stage1_ref_index", "stage1_score", "true_ref_indices", "query_ms"]
+                    + [f"seq{seq.length}_{c}" for seq in sequences
+                       for c in ("ref_index", "score", "correct", "direction", "terms", "ms")])  # fmt: skip
     for q, query_file in enumerate(query_files):
         m = int(outcome.stage2_match[q])
         writer.writerow([
             q, query_file.name, m, ref_files[m].name if m >= 0 else "", f"{outcome.stage2_score[q]:.6f}",
             int(correct[q]), int(outcome.stage1_match[q]), f"{outcome.stage1_score[q]:.6f}",
             " ".join(map(str, gt.refs[q])), f"{1000 * outcome.query_seconds[q]:.3f}",
-        ])  # fmt: skip
+        ] + [v for seq in sequences for v in (
+            int(seq.match[q]), f"{seq.score[q]:.6f}", int(seq_correct[seq.length][q]), seq.match_direction[q],
+            int(seq.terms[q]), f"{1000 * seq.seconds[q]:.3f}",
+        )])  # fmt: skip
     atomic_write_text(path, buffer.getvalue())
 
 
@@ -152,7 +236,13 @@ def write_plots(folder: Path, outcome: QueryOutcome, gt: GroundTruth, metrics: d
         "stage I (filtering)": curve(outcome.stage1_score, outcome.stage1_match, tol),
         "stage II (spatial matching)": curve(outcome.stage2_score, outcome.stage2_match, tol),
     }
-    plot_pr_curves(by_stage, folder / "pr_stages.png", f"Stage I vs stage II (±{tol} frames)")
+    for L, seq in outcome.sequences.items():
+        by_stage[f"sequence L={L} ({seq.direction})"] = curve(seq.score, seq.match, tol)
+    plot_pr_curves(by_stage, folder / "pr_stages.png", f"Stage I vs stage II vs sequences (±{tol} frames)")
+    if outcome.sequences:
+        single_vs_sequence = {"single frame (stage II)": by_stage["stage II (spatial matching)"]}
+        single_vs_sequence.update({k: v for k, v in by_stage.items() if k.startswith("sequence")})
+        plot_pr_curves(single_vs_sequence, folder / "pr_sequence.png", f"Single frames vs sequences (±{tol} frames)")
     n_cand = outcome.candidates.shape[1]
     recall = recall_at_n(outcome.candidates, gt, tol, list(range(1, n_cand + 1)))
     plot_recall_at_n({"filtering stage": recall}, folder / "recall_at_n.png", f"Filtering recall@N (±{tol} frames)")
@@ -170,11 +260,16 @@ def summary_table(metrics: dict[str, Any]) -> Table:
         ("top-1 accuracy, stage II", metrics["top1_accuracy_stage2"]),
     ]
     rows += [(f"filtering recall@{n}", v) for n, v in metrics["filtering_recall_at_n"].items()]
+    for L, seq in metrics.get("sequence", {}).items():
+        rows.append((f"PR-AUC, sequence L={L} ({seq['direction']})", seq["pr_auc"]))
+        rows.append((f"top-1 accuracy, sequence L={L}", seq["top1_accuracy"]))
     for name, value in rows:
         table.add_row(name, f"{value:.3f}")
     timing = metrics["timing"]
     table.add_row("encode per image", f"{1000 * timing['encode_s_per_image']:.0f} ms")
     table.add_row("query per image (median)", f"{1000 * timing['query_s_median']:.1f} ms")
+    for L, seq in metrics.get("sequence", {}).items():
+        table.add_row(f"sequence matcher L={L}, per query (median)", f"{seq['matcher_ms_median']:.1f} ms")
     return table
 
 
@@ -187,7 +282,9 @@ def run_vpr_eval(
     codebooks_path: Path | None = None,
     console: Console | None = None,
 ) -> tuple[Path, dict[str, Any]]:
-    """Encode both folders, recognise every query, write metrics/matches/plots; returns (folder, metrics)."""
+    """Encode both folders, recognise every query, write metrics/matches/plots; returns (folder, metrics).
+
+    Sequence matching runs for each of `config.vpr_eval.sequence_lengths` beside single frames."""
     console = console or Console()
     ref_files, query_files = list_images(ref_dir), list_images(query_dir)
     gt = load_ground_truth(ground_truth, ref_files, query_files)
@@ -199,7 +296,10 @@ def run_vpr_eval(
         query_codes, query_s = encode_folder(encoder, query_files, progress, "encoding queries", fit=False)
         database = PlaceDatabase(encoder.codebooks, config.vpr.database)
         database.add(ref_codes, [PlaceInfo(frame_id=i, name=p.name) for i, p in enumerate(ref_files)])
-        outcome = recognise_all(Recognizer(config.vpr, database), query_codes, sequential, progress)
+        # one BLAS thread for the many small stage-II products (two contend on a shared 2-core CPU)
+        with threadpool_limits(limits=1, user_api="blas"):
+            outcome = recognise_all(Recognizer(config.vpr, database), query_codes, sequential, progress,
+                                    config.vpr_eval.sequence_lengths, config.vpr_eval.sequence)  # fmt: skip
 
     metrics = compute_metrics(outcome, gt, config)
     metrics["sequential"] = sequential

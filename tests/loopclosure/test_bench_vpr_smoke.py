@@ -26,7 +26,7 @@ def _run(*extra: str) -> dict:
 
 def _check_common(out: dict) -> None:
     for key in ("machine", "settings", "cnn_encode", "filtering_query_ms", "spatial_matching_ms",
-                "bytes_per_place", "targets", "blas_threads_ab_ms"):
+                "bytes_per_place", "targets", "blas_threads_ab_ms", "sequence_query_ms"):
         assert key in out, key
     machine = out["machine"]
     for key in ("cpu_count", "torch", "torch_threads", "device", "cuda_device"):
@@ -47,10 +47,20 @@ def _check_common(out: dict) -> None:
     assert storage["float32"]["bytes_per_place"] == 16 * 100 * 4 + 13 * 13 * 100 * 4
     assert storage["paper_bytes_per_place"] == 175_000
 
+    sequence = out["sequence_query_ms"]
+    assert sequence["num_candidates"] == 50 and sequence["timed_queries"] == 2
+    assert set(sequence["settings"]) == {f"L{L}_{d}_K{k}" for L in (3, 5) for d in ("forward", "both") for k in ("all", 10)}
+    full = sequence["settings"]["L5_forward_Kall"]
+    assert full["total_ms"]["median"] >= full["matcher_ms"]["median"] > 0
+    assert full["total_ms"]["n"] == 2 and "cpu_median" in full["total_ms"]
+    # the store is small here (100 places, 10 excluded), so N = 50 is most of it
+    assert 50 <= full["spatial_scores_per_query_median"] <= 5 * (50 + 3)
+
     targets = out["targets"]
-    assert set(targets["targets_ms"]) == {"spatial_50_ms", "filtering_10k_ms"}
+    assert set(targets["targets_ms"]) == {"spatial_50_ms", "filtering_10k_ms", "sequence_query_L5_N50_ms"}
     assert targets["measured_median_ms"]["filtering_10k_ms"] is None  # no 10k size at these settings
     assert isinstance(targets["pass"]["spatial_50_ms"], bool)
+    assert isinstance(targets["pass"]["sequence_query_L5_N50_ms"], bool)
 
 
 def test_bench_vpr_tiny_json() -> None:

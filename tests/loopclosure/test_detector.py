@@ -1,5 +1,6 @@
 """LoopDetector's bookkeeping without the CNN: PCA warm-up, the exclusion window (keyframes
-and travelled distance), gated revisits, input checks and prior maps.
+and travelled distance), revisits decided on sequence scores (and the optional top-1 gate),
+input checks and prior maps.
 
 The backbone is a cheap fake with the real one's call signature: each distinct image gets its
 own deterministic random conv maps of VGG16's shapes at input_size 224, so an identical image
@@ -16,7 +17,7 @@ import numpy as np
 import pytest
 from threadpoolctl import threadpool_limits
 
-from loopclosure.config import DetectorConfig, SequenceGateConfig, VPRConfig
+from loopclosure.config import DetectorConfig, SequenceGateConfig, SequenceMatchConfig, VPRConfig
 from loopclosure.database import PlaceDatabase
 from loopclosure.detector import LoopDetector, LoopProposal
 from loopclosure.encoder import Encoder
@@ -68,14 +69,21 @@ def detector(
     keyframes: int = 0,
     distance: float = 0.0,
     codebooks: str | None = None,
+    direction: str = "both",
+    accept: float = 0.9,
     **gate: object,
 ) -> LoopDetector:
+    # identical images score 1 and unrelated ones about 0: a sequence of L = 3 scores about
+    # 1/3 per matching keyframe, so 0.9 accepts only when all three match
     config = DetectorConfig(
         exclusion_keyframes=keyframes,
         exclusion_distance=distance,
         min_score=0.2,
+        accept_score=accept,
+        min_single_score=0.5,
         pca_warmup_keyframes=WARMUP,
         codebooks=codebooks,
+        sequence=SequenceMatchConfig(length=3, direction=direction),
         gate=SequenceGateConfig(**{"length": 3, "tolerance": 1, **gate}),
     )
     return LoopDetector(VPR, config, Encoder(VPR, FakeBackbone()), database)  # type: ignore[arg-type]
@@ -120,18 +128,23 @@ def test_no_proposals_during_warmup_then_every_keyframe_is_a_place() -> None:
     assert [p.frame_id for p in det.database.places] == [0, 1, 2, 3, 4]
     assert backbone.images == WARMUP  # one backbone pass per keyframe, none repeated for the fit
 
-    # the first query after the warm-up is recognised, but the gate has no history yet
+    # the first query after the warm-up is recognised, but its sequence has no history yet:
+    # the two missing terms count as 0
     proposal = det.process(scene(2), 5)
     assert proposal is not None
     assert proposal.query_id == 5 and proposal.match_id == proposal.match_place == 2
     assert proposal.score == pytest.approx(1.0)
+    assert proposal.sequence_terms == 1 and proposal.sequence_score == pytest.approx(1 / 3)
     assert proposal.column_shift == 0 and proposal.yaw_guess == 0.0
-    assert not proposal.accepted and proposal.reason == "keyframe 4 recognised nothing"
+    assert not proposal.accepted
+    assert proposal.reason == "sequence score 0.333 < 0.900 (1/3 keyframes, forward); single frame 1.000"
     assert not proposal.prior_map
     assert len(det.database) == 6
 
     for k in range(6, 12):
-        assert det.process(scene(100 + k), k) is None
+        # unrelated keyframes; at most the tail of the last sequence is proposed, and refused
+        p = det.process(scene(100 + k), k)
+        assert p is None or (not p.accepted and p.score < 0.2)
         assert len(det.database) == k + 1
     assert backbone.images == 12
     assert [p.frame_id for p in det.database.places] == list(range(12))
@@ -188,12 +201,14 @@ def test_places_within_the_travelled_distance_are_never_candidates() -> None:
     det = detector(distance=10.0)  # warm-up fitted here: its places' distances must be kept too
     feed(det, list(range(12)), 0, positions=[float(k) for k in range(12)])  # 1 m per keyframe
     # keyframe 12 at 12 m: warm-up place 3 was passed 9 m ago -> excluded
-    assert det.process(scene(3), 12, at(12.0)) is None
+    proposal = det.process(scene(3), 12, at(12.0))
+    assert proposal is None or proposal.match_place != 3
     # keyframe 13 at 13 m: place 3 is exactly 10 m back -> a candidate again (its copy, place 12, is not)
     proposal = det.process(scene(3), 13, at(13.0))
     assert proposal is not None and proposal.match_place == 3 and proposal.score == pytest.approx(1.0)
-    # place 5 is 9 m behind keyframe 14
-    assert det.process(scene(5), 14, at(14.0)) is None
+    # place 5 is 9 m behind keyframe 14 (the tail of the sequence through place 3 may be proposed)
+    proposal = det.process(scene(5), 14, at(14.0))
+    assert proposal is None or (proposal.match_place != 5 and not proposal.accepted)
 
 
 def test_distance_window_counts_travel_not_keyframes(codebooks: str) -> None:
@@ -227,37 +242,74 @@ def test_non_finite_position_is_an_input_error(bad: float, codebooks: str) -> No
     assert len(det.database) == before + 1
 
 
-# --------------------------------------------------------------------------- revisits + gate
+# ------------------------------------------------------------------------ revisits + sequences
 
 
-def test_revisit_beyond_the_window_is_proposed_and_gated_forward_then_reverse(codebooks: str) -> None:
+def test_revisit_beyond_the_window_is_accepted_on_sequence_scores_forward_then_reverse(codebooks: str) -> None:
     det = detector(keyframes=5, distance=10.0, codebooks=codebooks)
     first_pass = list(range(20))
     results = feed(det, first_pass, 0, positions=[2.0 * k for k in range(20)])
     assert all(r is None for r in results)
 
-    # forward revisit of places 5..8, then a reverse one of 15..12, far along the route
-    revisit = [5, 6, 7, 8, 15, 14, 13, 12]
-    proposals = feed(det, revisit, 20, positions=[100.0 + 2.0 * k for k in range(len(revisit))])
+    # forward revisit of places 5..8, two new places, then a reverse revisit of 15..12
+    revisit = [5, 6, 7, 8, 50, 51, 15, 14, 13, 12]
+    results = feed(det, revisit, 20, positions=[100.0 + 2.0 * k for k in range(len(revisit))])
+    proposals = results[:4] + results[6:]
     assert all(p is not None for p in proposals)
-    assert [p.match_id for p in proposals] == revisit
-    assert [p.query_id for p in proposals] == list(range(20, 28))
+    assert [p.match_id for p in proposals] == revisit[:4] + revisit[6:]
+    assert [p.query_id for p in proposals] == [20, 21, 22, 23, 26, 27, 28, 29]
     for p in proposals:
         assert p.score == pytest.approx(1.0) and p.stage1_score > 0 and not p.prior_map
+        assert p.sequence_terms == 3
+    # 1, 2, then 3 of the 3 keyframes match: the sequence score climbs past the threshold
+    seq = [p.sequence_score for p in proposals]
+    assert seq[2] == seq[3] == seq[6] == seq[7] == pytest.approx(1.0)
+    assert 0.3 < seq[0] < 0.5 and 0.6 < seq[1] < 0.8 and 0.3 < seq[4] < 0.5 and 0.6 < seq[5] < 0.8
     assert [p.accepted for p in proposals] == [False, False, True, True, False, False, True, True]
-    assert [p.direction for p in proposals] == [None, None, "forward", "forward", None, None, "reverse", "reverse"]
-    assert proposals[0].reason == "keyframe 19 recognised nothing"
-    assert proposals[1].reason == "keyframe 19 recognised nothing"
-    assert "keyframe 23 matched 8" in proposals[4].reason  # direction change breaks the run
-    assert len(det.database) == 28
+    assert [p.direction for p in proposals][1:4] == ["forward"] * 3
+    assert [p.direction for p in proposals][5:] == ["reverse"] * 3
+    assert proposals[0].reason.startswith(f"sequence score {seq[0]:.3f} < 0.900 (3/3 keyframes, ")
+    assert proposals[3].reason == "accepted: sequence score 1.000 >= 0.900 (3/3 keyframes, forward); single frame 1.000"
+    assert proposals[7].reason == "accepted: sequence score 1.000 >= 0.900 (3/3 keyframes, reverse); single frame 1.000"
+    # after the forward revisit, its sequence runs on for L-1 keyframes that no longer match
+    for tail in results[4:6]:
+        assert tail is None or (not tail.accepted and tail.score < 0.2)
+    assert len(det.database) == 30
 
 
-def test_reverse_revisit_rejected_when_reverse_is_off(codebooks: str) -> None:
-    det = detector(keyframes=5, allow_reverse=False, codebooks=codebooks)
+def test_a_sequence_that_has_ended_is_not_carried_onto_a_new_place(codebooks: str) -> None:
+    det = detector(keyframes=5, accept=0.6, codebooks=codebooks)
+    feed(det, list(range(20)), 0)
+    proposals = feed(det, [5, 6, 7, 50], 20)
+    assert [p.accepted for p in proposals[:3]] == [False, True, True]
+    tail = proposals[3]  # places 5..7 continue to 8, but keyframe 23 shows a new place
+    assert tail.match_place == 8 and tail.sequence_score == pytest.approx(2 / 3, abs=0.05) and tail.score < 0.2
+    assert not tail.accepted and tail.reason.startswith(f"single frame {tail.score:.3f} < 0.500: sequence score")
+
+
+def test_reverse_revisit_not_accepted_when_only_forward_sequences_are_matched(codebooks: str) -> None:
+    det = detector(keyframes=5, direction="forward", codebooks=codebooks)
     feed(det, list(range(20)), 0)
     proposals = feed(det, [12, 11, 10, 9], 20)
-    assert [p.match_id for p in proposals] == [12, 11, 10, 9]
-    assert not any(p.accepted for p in proposals)
+    assert proposals[0] is not None and proposals[0].match_id == 12
+    assert not any(p.accepted for p in proposals if p is not None)
+    assert all(p.direction == "forward" for p in proposals if p is not None)
+
+
+def test_the_top1_gate_is_an_extra_check_on_request(codebooks: str) -> None:
+    # a revisit of 5..12 with keyframe 23 unrecognisable (an occlusion): two of three keyframes
+    # matching is enough for a sequence score of 2/3, not for the top-1 gate
+    revisit = [5, 6, 7, 55, 9, 10, 11, 12]
+    plain = detector(keyframes=5, accept=0.6, codebooks=codebooks)
+    gated = detector(keyframes=5, accept=0.6, codebooks=codebooks, enabled=True)
+    for det in (plain, gated):
+        feed(det, list(range(20)), 0)
+    without, with_gate = feed(plain, revisit, 20), feed(gated, revisit, 20)
+    assert [p.accepted for p in without] == [False, True, True, False, True, True, True, True]
+    assert [p.accepted for p in with_gate] == [False, False, True, False, False, False, True, True]
+    assert with_gate[1].reason.startswith("top-1 gate rejects: keyframe 19 recognised nothing; accepted: sequence")
+    assert with_gate[4].reason.startswith("top-1 gate rejects: keyframe 23 recognised nothing")
+    assert "; top-1 gate: accepted: 2 predecessors consistent (forward)" in with_gate[6].reason
 
 
 # ------------------------------------------------------------------------------ prior map

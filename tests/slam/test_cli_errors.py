@@ -105,11 +105,12 @@ def test_vpr_eval_missing_ground_truth_and_weights(folders: dict[str, Path], wei
 
 @pytest.mark.parametrize(
     ("option", "value", "field"),
-    [("--device", "gpu", "device"), ("-n", "0", "num_candidates")],
-)
+    [("--device", "gpu", "device"), ("-n", "0", "num_candidates"), ("--sequence", "0", "sequence_lengths"),
+     ("--direction", "sideways", "direction")],
+)  # fmt: skip
 def test_vpr_eval_invalid_option_values(folders: dict[str, Path], option: str, value: str, field: str) -> None:
     result = invoke("vpr-eval", folders["ref"], folders["query"], option, value, "--out", folders["out"])
-    assert_user_error(result, field, repr(value) if option == "--device" else "greater than or equal to 1")
+    assert_user_error(result, field, repr(value) if option in ("--device", "--direction") else "greater than or equal to 1")
 
 
 def test_error_text_with_brackets_is_printed_verbatim(tmp_path: Path) -> None:

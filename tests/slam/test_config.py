@@ -39,8 +39,12 @@ def test_no_argument_loads_the_default_preset() -> None:
     assert not vpr.frame_correlation.enabled
     gate = cfg.detector.gate
     assert (gate.length, gate.tolerance, gate.allow_reverse) == (3, 2, True)
+    assert not gate.enabled  # loops are decided on sequence scores; the top-1 gate is optional
+    sequence = cfg.detector.sequence
+    assert (sequence.length, sequence.direction, sequence.sequence_candidates) == (3, "both", 10)
     # values the preset sets away from the models' own defaults: proof the file was applied
-    assert DetectorConfig().min_score != 0.5 and cfg.detector.min_score == 0.5
+    assert DetectorConfig().min_score != 0.3 and cfg.detector.min_score == 0.3
+    assert DetectorConfig().accept_score is None and cfg.detector.accept_threshold == 0.45
     assert LidarRegistrationConfig().min_inlier_ratio != 0.8
     assert cfg.backend.registration.lidar.min_inlier_ratio == 0.8
 
@@ -52,7 +56,7 @@ def test_ras2020_changes_cubes_and_inherits_the_rest_from_default() -> None:
     assert ras.vpr.frame_correlation.enabled
     assert ras.vpr.filtering.pca.whiten and ras.vpr.filtering.pca.dim == 125
     # not in ras2020.yaml: comes from default.yaml, not from the models' defaults
-    assert ras.detector == default.detector and ras.detector.min_score == 0.5
+    assert ras.detector == default.detector and ras.detector.min_score == 0.3
     assert ras.vpr.filtering.num_candidates == 50
     assert ras.backend == default.backend
 
@@ -62,7 +66,7 @@ def test_fast_preset_inherits_default() -> None:
     assert fast.vpr.filtering.num_candidates == 15
     assert fast.vpr.database.stage1_dtype == "float16"
     assert fast.vpr.filtering.cubes == load_config().vpr.filtering.cubes
-    assert fast.detector.min_score == 0.5
+    assert fast.detector.min_score == 0.3
 
 
 def test_yaml_file_over_a_preset_base(tmp_path: Path) -> None:
@@ -73,15 +77,15 @@ def test_yaml_file_over_a_preset_base(tmp_path: Path) -> None:
     assert cfg.detector.gate.tolerance == 2  # sibling keys of the override survive (deep merge)
     assert cfg.vpr.filtering.num_candidates == 20
     assert cfg.vpr.filtering.cubes.cube_size == 9  # from ras2020
-    assert cfg.detector.min_score == 0.5  # from default, below ras2020
+    assert cfg.detector.min_score == 0.3  # from default, below ras2020
 
 
 def test_yaml_file_over_a_preset_that_has_its_own_base(tmp_path: Path) -> None:
     # fast.yaml itself says `preset: default`; the chain must resolve, not leak a `preset` key
     path = tmp_path / "mine.yaml"
-    path.write_text("preset: fast\ndetector: {min_score: 0.3}\n")
+    path.write_text("preset: fast\ndetector: {min_score: 0.35}\n")
     cfg = load_config(path)
-    assert cfg.detector.min_score == 0.3
+    assert cfg.detector.min_score == 0.35
     assert cfg.vpr.filtering.num_candidates == 15  # fast
     assert cfg.backend.registration.lidar.min_inlier_ratio == 0.8  # default, under fast
 
@@ -153,7 +157,7 @@ def test_environment_overrides_a_preset(monkeypatch: pytest.MonkeyPatch) -> None
     assert cfg.detector.gate.allow_reverse is False
     # only those fields: their siblings keep the preset's values
     assert cfg.vpr.filtering.cubes.cube_size == 7
-    assert cfg.detector.gate.length == 3 and cfg.detector.min_score == 0.5
+    assert cfg.detector.gate.length == 3 and cfg.detector.min_score == 0.3
     # and it beats a YAML file's value too
     ras = load_config("ras2020")
     assert ras.vpr.filtering.num_candidates == 15 and ras.vpr.filtering.cubes.cube_size == 9

@@ -1,0 +1,199 @@
+"""Single frames vs sequence matching on the simulator's camera stream (the demo traverse).
+
+Prints ONE JSON object to stdout (progress goes to stderr).
+
+Usage:
+  python tools/bench_sequence_sim.py [--weights PATH] [--lengths 1,2,3,5] [--direction both]
+                                     [--save-codes FILE | --codes FILE]
+
+The demo traverse (`ssmvpr-slam demo --odometry logged`: drifting wheel odometry picks the
+keyframes, camera only) runs once through `SlamPipeline`; the detector's place database then
+holds every keyframe's codes. From them, each keyframe after the PCA warm-up is queried again
+offline exactly as the detector queries it (stage I over the places before it minus the
+exclusion window, stage II, sequence matching with `match_sequences`, which equals the
+streaming matcher), for each L. Scored like `metrics.json`'s stream PR-AUC: one best match per
+keyframe, correct within `evaluation.loops.correct_radius` of a ground-truth revisit. Also
+reported: the same with the reverse revisits left out (a forward camera sees the other side of
+the street there), the recall at precision 1 of forward and reverse revisits apart, and the
+loops the detector's decision accepts at the configured thresholds (`accept_score`,
+`min_single_score`), beside the decision before sequence matching (single frame >= 0.5 and
+the top-1 gate, L = 3, ±2).
+"""
+
+from __future__ import annotations
+
+import argparse
+import bisect
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+
+def log(msg: str) -> None:
+    print(f"[bench_sequence_sim] {msg}", file=sys.stderr, flush=True)
+
+
+def run_traverse(weights: str | None) -> dict[str, np.ndarray]:
+    """The demo traverse through the pipeline; the keyframes' codes and bookkeeping."""
+    import sklearn.decomposition  # noqa: F401  (its BLAS must be loaded to be limited)
+    from threadpoolctl import threadpool_limits
+
+    from frontend.odometry import make_odometry
+    from frontend.simulation.simulator import TraverseSimulator, default_demo_config
+    from loopclosure.backbone import load_backbone
+    from ssmvpr_slam.config import load_config
+    from ssmvpr_slam.pipeline import SlamPipeline
+
+    cfg = load_config()
+    if weights:
+        cfg.vpr.backbone.weights = weights
+    cfg.simulation = default_demo_config(lidar={"enabled": False})
+    cfg.frontend.odometry.kind = "logged"
+    cfg.pipeline.use_lidar_for_loops = False
+    t0 = time.perf_counter()
+    with threadpool_limits(limits=1, user_api="blas"):
+        pipeline = SlamPipeline(cfg, make_odometry(cfg.frontend.odometry, cfg.frontend.pose_files),
+                                load_backbone(cfg.vpr.backbone))  # fmt: skip
+        pipeline.run(TraverseSimulator(cfg.simulation).frames())
+    det = pipeline.detector
+    log(f"{len(pipeline.state.keyframes)} keyframes in {time.perf_counter() - t0:.0f} s")
+    return {
+        "stage1": np.asarray(det.database.stage1), "stage2": np.asarray(det.database.stage2),
+        "travelled": np.asarray(det._session_travelled), "gt": np.array([k.gt_pose for k in pipeline.state.keyframes]),
+        "warmup": np.array(cfg.detector.pca_warmup_keyframes),
+    }  # fmt: skip
+
+
+def queries(codes: dict[str, np.ndarray], exclusion_keyframes: int, exclusion_distance: float, n_cand: int):
+    """Per keyframe after the warm-up, as LoopDetector sees it: the limit (first excluded
+    place), the stage-I candidates and the stage-II scores against every earlier place."""
+    from threadpoolctl import threadpool_limits
+
+    from loopclosure.filtering import vote
+    from loopclosure.spatial import spatial_scores
+
+    s1, s2, travelled, first = codes["stage1"], codes["stage2"], list(codes["travelled"]), int(codes["warmup"])
+    n = len(s1)
+    scores = np.zeros((n - first, n), np.float32)
+    limits = np.zeros(n - first, np.int64)
+    cands = []
+    with threadpool_limits(limits=1, user_api="blas"):
+        for i, q in enumerate(range(first, n)):
+            first_recent = q - min(exclusion_keyframes, q)
+            first_near = bisect.bisect_right(travelled[:q], travelled[q] - exclusion_distance)
+            limits[i] = min(first_recent, first_near)
+            scores[i, :q] = spatial_scores(s2[q], s2[:q]).scores
+            cands.append(vote(s1[q], s1[:q], n_cand, n_cand, np.arange(limits[i], q)).places)
+    return scores, limits, cands
+
+
+def revisit_kinds(pos: np.ndarray, radius: float, gap: int) -> dict[int, str]:
+    from ssmvpr_slam.evaluation.loop_metrics import find_revisits
+
+    def heading(i: int) -> np.ndarray:
+        v = pos[min(i + 1, len(pos) - 1)] - pos[max(i - 1, 0)]
+        return v / max(float(np.linalg.norm(v)), 1e-9)
+
+    out = {}
+    for q in find_revisits(pos, radius, gap).tolist():
+        m = int(np.argmin(np.linalg.norm(pos[: q - gap + 1] - pos[q], axis=1)))
+        out[q] = "forward" if float(heading(q) @ heading(m)) > 0 else "reverse"
+    return out
+
+
+def main(argv: list[str] | None = None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--weights", default=None, help="VGG16 weights (default: resolve, as the demo does)")
+    ap.add_argument("--lengths", default="1,2,3,5", help="sequence lengths L")
+    ap.add_argument("--direction", default="both", choices=("forward", "reverse", "both"))
+    ap.add_argument("--save-codes", default=None, help="keep the traverse's codes in this .npz")
+    ap.add_argument("--codes", default=None, help="use codes saved by --save-codes instead of simulating")
+    args = ap.parse_args(argv)
+
+    from loopclosure.metrics import pr_auc, precision_recall_curve
+    from loopclosure.sequence_matcher import match_sequences
+    from ssmvpr_slam.config import load_config
+
+    cfg = load_config()
+    det, loops = cfg.detector, cfg.evaluation.loops
+    codes = dict(np.load(args.codes)) if args.codes else run_traverse(args.weights)
+    if args.save_codes:
+        np.savez(args.save_codes, **codes)
+    first = int(codes["warmup"])
+    pos = codes["gt"][:, :3, 3]
+    kinds = revisit_kinds(pos, loops.revisit_radius, loops.min_frame_gap)
+    scores, limits, cands = queries(codes, det.exclusion_keyframes, det.exclusion_distance, cfg.vpr.filtering.num_candidates)
+    qs = np.arange(first, len(pos))
+
+    def decided(accepted: list[tuple[int, int]]) -> dict:
+        """Precision and recall (all / forward / reverse revisits) of accepted (query, place) loops."""
+        ok = [float(np.linalg.norm(pos[q] - pos[p])) <= loops.correct_radius for q, p in accepted]
+        hit = {q for (q, _), o in zip(accepted, ok) if o and q in kinds}
+        out = {"accepted": len(accepted), "precision": float(np.mean(ok)) if ok else None,
+               "recall": len(hit) / len(kinds) if kinds else None}  # fmt: skip
+        for k in ("forward", "reverse"):
+            n = sum(v == k for v in kinds.values())
+            out[f"recall_{k}"] = sum(kinds[q] == k for q in hit) / n if n else None
+        return out
+
+    def evaluate(places: np.ndarray, values: np.ndarray) -> dict:
+        ok = np.array([p >= 0 and np.linalg.norm(pos[q] - pos[p]) <= loops.correct_radius for q, p in zip(qs, places)])
+        truth = np.array([q in kinds for q in qs])
+        forward = np.array([kinds.get(q) != "reverse" for q in qs])
+        wrong = (places >= 0) & ~ok
+        top_wrong = float(values[wrong].max()) if wrong.any() else None
+        accepted = (values > top_wrong) if top_wrong is not None else (places >= 0)
+        recall = {k: float(np.mean([accepted[i] and ok[i] for i, q in enumerate(qs) if kinds.get(q) == k]))
+                  for k in ("forward", "reverse") if any(v == k for v in kinds.values())}  # fmt: skip
+        return {
+            "stream_pr_auc": pr_auc(precision_recall_curve(values, ok & truth, truth)),
+            "stream_pr_auc_forward_revisits": pr_auc(precision_recall_curve(values[forward], (ok & truth)[forward], truth[forward])),
+            "top_wrong_score": top_wrong,
+            "recall_at_precision_1": recall,
+        }
+
+    out: dict = {
+        "tool": "bench_sequence_sim", "keyframes": len(pos), "queries": len(qs),
+        "revisits": {k: sum(v == k for v in kinds.values()) for k in ("forward", "reverse")},
+        "direction": args.direction, "results": {},
+    }  # fmt: skip
+    for length in [int(v) for v in args.lengths.split(",") if v.strip()]:
+        matches = match_sequences(scores, det.sequence.model_copy(update={"length": length, "direction": args.direction}),
+                                  cands, limits)  # fmt: skip
+        places = np.array([-1 if m.place is None else m.place for m in matches])
+        values = np.array([-np.inf if m.place is None else m.score for m in matches])
+        out["results"][str(length)] = evaluate(places, values)
+        out["results"][str(length)]["detector_decision"] = decided([
+            (int(q), m.place) for q, m in zip(qs, matches)
+            if m.place is not None and m.score >= det.accept_threshold and m.single_score >= det.min_single_score
+        ])  # fmt: skip
+        log(f"L={length}: {out['results'][str(length)]}")
+    # single frames as the recogniser alone ranks them (stage II over the stage-I candidates)
+    single = np.array([c[np.argmax(scores[i, c])] if len(c) else -1 for i, c in enumerate(cands)])
+    single_scores = np.array([scores[i, p] if p >= 0 else -np.inf for i, p in enumerate(single)])
+    out["single_frame"] = evaluate(single, single_scores)
+    from loopclosure.config import SequenceGateConfig
+    from loopclosure.sequence_gate import SequenceGate
+
+    gate, before = SequenceGate(SequenceGateConfig(length=3, tolerance=2, allow_reverse=True)), []
+    for q, p, v in zip(qs.tolist(), single.tolist(), single_scores.tolist()):
+        if v < 0.5:
+            gate.observe(q, None)
+            continue
+        if gate.decide(q, p).accepted:
+            before.append((q, p))
+        gate.observe(q, p)
+    out["single_frame"]["detector_decision_before"] = decided(before)
+    out["thresholds"] = {"accept_score": det.accept_threshold, "min_single_score": det.min_single_score}
+    print(json.dumps(out, indent=2))
+    return out
+
+
+if __name__ == "__main__":
+    main()
