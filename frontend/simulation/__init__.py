@@ -4,7 +4,7 @@ Exists because no real camera traverse with loops and ground truth is at hand: i
 place recogniser, kiss-icp and the pose graph with recognisable, revisited places.
 """
 
-from frontend.simulation.city import City, build_city
+from frontend.simulation.city import City
 from frontend.simulation.config import (
     AppearanceConfig,
     CameraConfig,
@@ -13,9 +13,12 @@ from frontend.simulation.config import (
     OdometryDriftConfig,
     RouteConfig,
     SimulationConfig,
+    TrafficConfig,
 )
+from frontend.simulation.layout import build_city
 from frontend.simulation.render import CameraRenderer, LidarRenderer
 from frontend.simulation.route import Route, build_route, read_poses_file
+from frontend.simulation.route_files import RouteFile, read_route_file
 from frontend.simulation.simulator import (
     TraverseSimulator,
     default_demo_config,
@@ -36,6 +39,9 @@ __all__ = [
     "Route",
     "RouteConfig",
     "SimulationConfig",
+    "TrafficConfig",
+    "RouteFile",
+    "read_route_file",
     "TraverseSimulator",
     "build_city",
     "build_route",

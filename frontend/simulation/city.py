@@ -1,25 +1,30 @@
-"""The simulated world: a Manhattan grid of streets lined by procedurally textured buildings.
+"""The simulated world: streets along the route, lined by procedurally textured objects.
 
-Geometry is 2.5D: every obstacle is a set of vertical wall segments standing on the ground
-plane z = 0 (building facades, alley back walls, lamp posts, parked cars). Each segment is
-oriented so that its outward normal lies on the right of p0 -> p1; a ray d hits the front
-side iff cross(d, p1 - p0) < 0, which gives back-face culling for free in the ray caster.
+Geometry is 2.5D: every obstacle is a set of vertical wall segments spanning world heights
+[z0, z1] (building facades on sloping ground, alley back walls, lamp posts, tree trunks and
+crowns, guard rails, parked cars). Each segment is oriented so that its outward normal lies
+on the right of p0 -> p1; a ray d hits the front side iff cross(d, p1 - p0) < 0, which gives
+back-face culling for free in the ray caster. Parked cars belong to kerb slots whose
+occupancy is re-drawn over time, so two visits of a street see different cars.
 
 Appearance is procedural and deterministic in (seed, surface id): ``City.wall_albedo`` maps
-(surface id, u along the wall in metres, v height in metres) to linear RGB, vectorised;
-``City.ground_albedo`` does the same for world (x, y) on the ground plane.
+(surface id, u along the wall in metres, v height above the object's base) to linear RGB,
+vectorised; ``City.ground_albedo`` does the same for world (x, y) on the ground, using the
+distance to the street centre line (``GroundMap``).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from frontend.simulation.config import CityConfig
+from frontend.simulation.ground import GroundMap
+from frontend.simulation.noise import hash01, hash_u32, value_noise
 
 # Surface kinds.
-FACADE, POLE, CAR, ALLEY = 0, 1, 2, 3
+FACADE, POLE, CAR, ALLEY, TRUNK, FOLIAGE, RAIL = 0, 1, 2, 3, 4, 5, 6
 
 # Independent hash channels for per-surface parameters (any distinct integers).
 (
@@ -47,7 +52,10 @@ FACADE, POLE, CAR, ALLEY = 0, 1, 2, 3
     _H_LETTER,
     _H_ASPHALT,
     _H_PATCH,
-) = range(101, 125)
+    _H_LEAF,
+    _H_SLOT,
+    _H_TERRAIN,
+) = range(101, 128)
 
 # Fixed look of the materials (relative proportions, not tunables of the traverse).
 _GLASS = np.array([0.10, 0.14, 0.20], np.float32)
@@ -66,13 +74,18 @@ _MARKING = np.array([0.90, 0.90, 0.86], np.float32)
 (
     M_WALL, M_COURSE, M_CORNICE, M_FRAME, M_GLASS, M_MULLION, M_PLINTH, M_SHOP, M_SIGN, M_LETTER,
     M_AWNING_A, M_AWNING_B, M_DOOR, M_DOOR_FRAME, M_POLE, M_LAMP, M_CAR, M_CAR_GLASS, M_TYRE, M_ALLEY,
-) = range(20)
-N_MATERIALS = 20
+    M_BARK, M_LEAF, M_RAIL,
+) = range(23)
+N_MATERIALS = 23
 _GRAINY = np.zeros(N_MATERIALS, bool)
 _GRAINY[[M_WALL, M_COURSE, M_CORNICE, M_PLINTH, M_ALLEY]] = True
-G_PLOT, G_ASPHALT, G_SIDEWALK, G_JOINT, G_KERB, G_MARKING = range(6)
+_BARK = np.array([0.28, 0.20, 0.14], np.float32)
+_LEAF = np.array([0.20, 0.38, 0.14], np.float32)
+_GRASS = np.array([0.30, 0.42, 0.20], np.float32)
+_RAIL = np.array([0.62, 0.64, 0.66], np.float32)
+G_PLOT, G_ASPHALT, G_SIDEWALK, G_JOINT, G_KERB, G_MARKING, G_GRASS = range(7)
 _GROUND_COLOURS = np.array(
-    [_PLOT, _ASPHALT, _SIDEWALK, _SIDEWALK * 0.8, _SIDEWALK * 1.25, _MARKING], np.float32
+    [_PLOT, _ASPHALT, _SIDEWALK, _SIDEWALK * 0.8, _SIDEWALK * 1.25, _MARKING, _GRASS], np.float32
 )
 
 # Proportions of the procedural textures (metres unless a fraction).
@@ -88,45 +101,6 @@ _TILE_M, _JOINT_M, _KERB_M = 1.2, 0.04, 0.25
 _DASH_M, _LINE_HALF_WIDTH_M = 6.0, 0.08
 
 
-_HASH_MULTIPLIERS = tuple(
-    np.uint32(m) for m in (0x27D4EB2F, 0x165667B1, 0xC2B2AE3D, 0x9E3779B1, 0x61C88647, 0x7FEB352D, 0x846CA68B)
-)
-
-
-def _mix32(x: np.ndarray) -> np.ndarray:
-    """Avalanche a uint32 array (xor-shift-multiply finaliser; wraps modulo 2**32)."""
-    with np.errstate(over="ignore"):
-        x = x ^ (x >> np.uint32(16))
-        x = x * np.uint32(0x7FEB352D)
-        x = x ^ (x >> np.uint32(15))
-        x = x * np.uint32(0x846CA68B)
-        return x ^ (x >> np.uint32(16))
-
-
-def hash_u32(*keys) -> np.ndarray:
-    """Deterministic uint32 hash of integer arrays (broadcast), order-sensitive.
-
-    Keys are combined with distinct odd multipliers (wrapping) and then avalanched twice;
-    floats are floored first.
-    """
-    if len(keys) > len(_HASH_MULTIPLIERS):
-        raise ValueError(f"hash_u32 takes at most {len(_HASH_MULTIPLIERS)} keys")
-    h = np.uint32(0x9E3779B9)
-    with np.errstate(over="ignore"):
-        for mult, k in zip(_HASH_MULTIPLIERS, keys):
-            k = np.asarray(k)
-            if k.dtype.kind == "f":
-                k = np.floor(k)
-            k = k.astype(np.int32).view(np.uint32)  # two's complement bits of small integers
-            h = (h + k * mult) * np.uint32(0x85EBCA77)
-    return _mix32(_mix32(np.asarray(h, dtype=np.uint32)))
-
-
-def hash01(*keys) -> np.ndarray:
-    """Uniform float32 in [0, 1) from ``hash_u32``."""
-    return (hash_u32(*keys) >> np.uint32(8)).astype(np.float32) * np.float32(1.0 / (1 << 24))
-
-
 def _lerp(lo_hi: tuple[float, float], t: np.ndarray) -> np.ndarray:
     return (lo_hi[0] + (lo_hi[1] - lo_hi[0]) * t).astype(np.float32)
 
@@ -139,26 +113,61 @@ class City:
     seed: int
     p0: np.ndarray  # (S, 2) float64
     p1: np.ndarray  # (S, 2)
-    height: np.ndarray  # (S,) top of each wall
+    z0: np.ndarray  # (S,) world height of the bottom of each wall
+    z1: np.ndarray  # (S,) world height of its top
     surface: np.ndarray  # (S,) int surface id
     u0: np.ndarray  # (S,) texture u at p0
     normal: np.ndarray  # (S, 2) outward unit normal
+    slot: np.ndarray  # (S,) kerb slot of a parked car, -1 for what never moves
     kind: np.ndarray  # (F,) surface kind
     params: dict[str, np.ndarray]  # per-surface texture parameters, each (F,) or (F, 3)
-    street_x: np.ndarray  # x of the streets running along y (route grid, index 0..)
-    street_y: np.ndarray  # y of the streets running along x
+    ground: GroundMap
+    district_names: tuple[str, ...] = ()
+    turnover_s: float = 45.0
+    parked_probability: float = 0.3
+    footprints: list[np.ndarray] = field(default_factory=list)  # closed outlines (K, 2) of buildings
 
     @property
     def n_segments(self) -> int:
         return len(self.p0)
 
-    def node(self, i: int, j: int) -> np.ndarray:
-        """World xy of the crossing of street_x[i] and street_y[j]."""
-        return np.array([self.street_x[i], self.street_y[j]], dtype=np.float64)
+    def slots_occupied(self, t: float) -> np.ndarray:
+        """Which kerb slots hold a car at time t: each slot is re-drawn every turnover period,
+        with its own phase, so a street driven again a minute later has other cars."""
+        n = int(self.slot.max()) + 1 if len(self.slot) else 0
+        if n == 0:
+            return np.zeros(0, bool)
+        ids = np.arange(n)
+        phase = hash01(self.seed, _H_SLOT, ids, -1) * self.turnover_s
+        epoch = np.floor((t + phase) / self.turnover_s)
+        return hash01(self.seed, _H_SLOT, ids, epoch) < self.parked_probability
+
+    def active_segments(self, t: float) -> np.ndarray:
+        """Boolean mask of the walls present at time t (parked cars come and go)."""
+        occupied = self.slots_occupied(t)
+        return (self.slot < 0) | occupied[np.maximum(self.slot, 0)] if len(occupied) else self.slot < 0
+
+    def clearance(self, xy: np.ndarray) -> np.ndarray:
+        """Distance from each point (N, 2) to the nearest wall, negative inside a building."""
+        xy = np.asarray(xy, float).reshape(-1, 2)
+        out = np.full(len(xy), np.inf)
+        e = self.p1 - self.p0
+        ee = np.maximum(np.einsum("ij,ij->i", e, e), 1e-12)
+        for a in range(0, len(xy), 256):
+            q = xy[a : a + 256]
+            w = q[:, None, :] - self.p0[None]
+            f = np.clip(np.einsum("qij,ij->qi", w, e) / ee, 0.0, 1.0)
+            d = np.linalg.norm(w - e[None] * f[..., None], axis=2)
+            out[a : a + 256] = d.min(axis=1)
+        for outline in self.footprints:
+            out[_inside(xy, outline)] *= -1.0
+        return out
 
     # -- texture -----------------------------------------------------------------------------
 
-    def wall_albedo(self, sid: np.ndarray, u: np.ndarray, v: np.ndarray):
+    def wall_albedo(
+        self, sid: np.ndarray, u: np.ndarray, v: np.ndarray, visit: int = 0, foliage_tint=(1.0, 1.0, 1.0)
+    ):
         """Texture of walls: (surface ids, u metres along the wall, v metres above ground).
 
         Returns (rgb float32 (N, 3) in [0, 1], window_key float32 (N,): a uniform [0, 1) value
@@ -220,12 +229,20 @@ class City:
         mat = np.where(kind == POLE, np.where(v > top - _LAMP_M, M_LAMP, M_POLE), mat)
         car_mat = np.where(frac < 0.3, M_TYRE, np.where((frac > 0.62) & (frac < 0.92), M_CAR_GLASS, M_CAR))
         mat = np.where(kind == CAR, car_mat, mat)
-        mat = np.where(kind == ALLEY, M_ALLEY, mat).astype(np.int64)
+        mat = np.where(kind == ALLEY, M_ALLEY, mat)
+        mat = np.where(kind == TRUNK, M_BARK, mat)
+        mat = np.where(kind == FOLIAGE, M_LEAF, mat)
+        mat = np.where(kind == RAIL, np.where((np.floor(v / 0.25) % 2) == 0, M_RAIL, M_POLE), mat).astype(np.int64)
 
         rgb = P["colours"][sid, mat]
         grain = hash01(self.seed, _H_GRAIN, sid, np.floor(u / _GRAIN_U_M), np.floor(v / _GRAIN_V_M))
         factor = np.where(_GRAINY[mat], 1.0 + _GRAIN_AMPLITUDE * (grain - 0.5), 1.0).astype(np.float32)
         rgb *= factor[:, None]
+        leaf = mat == M_LEAF
+        if leaf.any():
+            # Leaves move and change between visits: the blotches are re-drawn per visit.
+            blotch = hash01(self.seed, _H_LEAF, sid[leaf], np.floor(u[leaf] / 0.35), np.floor(v[leaf] / 0.35), visit)
+            rgb[leaf] *= (0.55 + 0.7 * blotch)[:, None] * np.asarray(foliage_tint, np.float32)
         glassy = (mat == M_GLASS) | (mat == M_SHOP)
         is_shop = mat == M_SHOP
         hw = hash_u32(self.seed, _H_GLASS, sid, np.where(is_shop, shop_col, col), np.where(is_shop, -1, storey))
@@ -238,73 +255,77 @@ class City:
         return np.clip(rgb, 0.0, 1.0), key
 
     def ground_albedo(self, x: np.ndarray, y: np.ndarray, detail: np.ndarray | None = None):
-        """Texture of the ground at world (x, y): asphalt, markings, kerbs, paved sidewalks.
-
-        ``detail`` in [0, 1] scales fine texture (1 near, 0 far) as a cheap anti-aliasing.
-        """
+        """Texture of the ground at world (x, y): asphalt with markings, kerbs, paved or grass
+        verges, plots. ``detail`` in [0, 1] scales fine texture (1 near, 0 far), a cheap
+        anti-aliasing."""
         cfg = self.config
         x = np.asarray(x, np.float32)
         y = np.asarray(y, np.float32)
-        p = np.float32(cfg.pitch_m)
-        lx = x - np.float32(self.street_x[0])
-        ly = y - np.float32(self.street_y[0])
-        dx = np.abs(lx - np.round(lx / p) * p)
-        dy = np.abs(ly - np.round(ly / p) * p)
+        dist, along, district = self.ground.lookup(x, y)
         rh = np.float32(cfg.road_half_width_m)
         half = np.float32(cfg.street_width_m / 2.0)
-        road_v = dx < rh  # road running along y
-        road_h = dy < rh
-        road = road_v | road_h
-        crossing = road_v & road_h
-        walk = ~road & ((dx < half) | (dy < half))
+        road = dist < rh
+        paved = district <= 1  # dense and suburban streets have sidewalks
+        walk = ~road & (dist < half) & paved
         d = np.ones(x.shape, np.float32) if detail is None else detail.astype(np.float32)
-
-        mat = np.where(road, G_ASPHALT, np.where(walk, G_SIDEWALK, G_PLOT)).astype(np.int8)
+        mat = np.where(road, G_ASPHALT, np.where(walk, G_SIDEWALK, np.where(district == 0, G_PLOT, G_GRASS)))
+        mat = mat.astype(np.int8)
         tile = np.float32(_TILE_M)
         tx, ty = np.floor(x / tile), np.floor(y / tile)
         jx = np.minimum(x / tile - tx, tx + 1 - x / tile) * tile
         jy = np.minimum(y / tile - ty, ty + 1 - y / tile) * tile
         mat[walk & (np.minimum(jx, jy) < _JOINT_M) & (d > 0.3)] = G_JOINT
-        kerb_d = np.minimum(np.where(dx < half, dx, np.inf), np.where(dy < half, dy, np.inf))
-        mat[walk & (kerb_d < rh + _KERB_M)] = G_KERB
-        # Markings: dashed centre lines, solid edge lines, zebra crossings before junctions.
+        mat[walk & (dist < rh + _KERB_M)] = G_KERB
+        # Markings: dashed centre line and solid edge lines along the street.
         dash = np.float32(_DASH_M)
         line = np.float32(_LINE_HALF_WIDTH_M)
-        centre_v = road_v & (dx < line) & ((np.abs(ly) % dash) < dash / 2)
-        centre_h = road_h & (dy < line) & ((np.abs(lx) % dash) < dash / 2)
-        edge_v = road_v & (np.abs(dx - (rh - 0.35)) < line)
-        edge_h = road_h & (np.abs(dy - (rh - 0.35)) < line)
-        zebra_v = road_v & (dy > rh + 0.6) & (dy < rh + 3.6) & ((dx % 1.0) < 0.5) & (dx < rh - 0.6)
-        zebra_h = road_h & (dx > rh + 0.6) & (dx < rh + 3.6) & ((dy % 1.0) < 0.5) & (dy < rh - 0.6)
-        mark = (centre_v | centre_h | edge_v | edge_h | zebra_v | zebra_h) & ~crossing
-        mat[mark] = G_MARKING
+        centre = road & (dist < line) & ((along % dash) < dash / 2)
+        edge = road & (np.abs(dist - (rh - 0.35)) < line)
+        mat[centre | edge] = G_MARKING
         mat = mat.astype(np.int64)
 
         fine = hash01(self.seed, _H_ASPHALT, np.floor(x / 0.1), np.floor(y / 0.1)) - 0.5
         tiles = hash01(self.seed, _H_PATCH, tx, ty) - 0.5
-        patch = self._value_noise(x / 4.0, y / 4.0, _H_PATCH) - 0.5
+        patch = value_noise(self.seed, _H_PATCH, x / 4.0, y / 4.0) - 0.5
         factor = np.where(
             mat == G_ASPHALT,
             1.0 + d * 0.12 * fine + 0.25 * patch,
             np.where(
                 (mat == G_SIDEWALK) | (mat == G_JOINT),
                 1.0 + d * 0.15 * tiles,
-                1.0 - 0.15 * d * (fine + 0.5),
+                1.0 - 0.15 * d * (fine + 0.5) + 0.3 * patch * (mat == G_GRASS),
             ),
         ).astype(np.float32)
         return _GROUND_COLOURS[mat] * factor[:, None]
 
-    def _value_noise(self, x: np.ndarray, y: np.ndarray, channel: int) -> np.ndarray:
-        """Smooth noise in [0, 1): bilinear blend of hashed lattice values."""
-        ix, iy = np.floor(x), np.floor(y)
-        fx, fy = x - ix, y - iy
-        fx = fx * fx * (3 - 2 * fx)
-        fy = fy * fy * (3 - 2 * fy)
-        v00 = hash01(self.seed, channel, ix, iy)
-        v10 = hash01(self.seed, channel, ix + 1, iy)
-        v01 = hash01(self.seed, channel, ix, iy + 1)
-        v11 = hash01(self.seed, channel, ix + 1, iy + 1)
-        return (v00 * (1 - fx) + v10 * fx) * (1 - fy) + (v01 * (1 - fx) + v11 * fx) * fy
+
+    def ground_z(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """World height of the ground at (x, y): the terrain of the nearest road plus the relief."""
+        return self.ground.height_at(x, y) + self.ground_relief(x, y)
+
+    def ground_relief(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Height of the ground above the road surface at world (x, y): a crowned road, raised
+        kerbs and verges, and undulating ground beyond the street. A perfectly flat world would
+        give a scan matcher a floor that looks the same wherever it stands."""
+        cfg = self.config
+        dist, _, district = self.ground.lookup(x, y)
+        rh = np.float32(cfg.road_half_width_m)
+        half = np.float32(cfg.street_width_m / 2.0)
+        z = np.where(dist < rh, -np.float32(cfg.road_camber) * dist, np.float32(cfg.kerb_height_m))
+        rough = value_noise(self.seed, _H_TERRAIN, np.asarray(x) / 5.0, np.asarray(y) / 5.0) - np.float32(0.5)
+        amplitude = np.where(district == 0, np.float32(0.1), np.float32(cfg.verge_relief_m))
+        ramp = np.clip((dist - half) / np.float32(3.0), 0.0, 1.0)
+        return (z + 2.0 * amplitude * rough * ramp).astype(np.float32)
+
+
+def _inside(xy: np.ndarray, outline: np.ndarray) -> np.ndarray:
+    """Even-odd test of points (N, 2) against a closed polygon (K, 2)."""
+    x, y = xy[:, 0:1], xy[:, 1:2]
+    a, b = outline, np.roll(outline, -1, axis=0)
+    crosses = (a[None, :, 1] > y) != (b[None, :, 1] > y)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xint = a[None, :, 0] + (y - a[None, :, 1]) * (b[None, :, 0] - a[None, :, 0]) / (b[None, :, 1] - a[None, :, 1])
+    return (crosses & (x < xint)).sum(axis=1) % 2 == 1
 
 
 def _box_segments(cx, cy, half_len, half_wid, angle):
@@ -321,171 +342,6 @@ def _box_segments(cx, cy, half_len, half_wid, angle):
     n = np.stack([e[:, 1], -e[:, 0]], axis=1)
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     return p0, p1, n
-
-
-class _Builder:
-    def __init__(self):
-        self.p0, self.p1, self.h, self.sid, self.u0 = [], [], [], [], []
-        self.kind: list[int] = []
-        self.storeys: list[int] = []
-
-    def surface(self, kind: int, storeys: int = 0) -> int:
-        self.kind.append(kind)
-        self.storeys.append(storeys)
-        return len(self.kind) - 1
-
-    def wall(self, a, b, normal, height, sid, u0=0.0):
-        """Add wall a-b whose outside faces ``normal``; endpoints are ordered to suit."""
-        a = np.asarray(a, float)
-        b = np.asarray(b, float)
-        e = b - a
-        if e[1] * normal[0] - e[0] * normal[1] < 0:  # outward normal must be right of a->b
-            a, b = b, a
-        if np.linalg.norm(b - a) < 1e-6:
-            return
-        self.p0.append(a)
-        self.p1.append(b)
-        self.h.append(height)
-        self.sid.append(sid)
-        self.u0.append(u0)
-
-
-def build_city(config: CityConfig, seed: int, cover_xy: np.ndarray | None = None) -> City:
-    """Lay out the city for ``seed``. ``cover_xy`` (N, 2) widens the street grid to hold a path."""
-    cfg = config
-    p = cfg.pitch_m
-    nx, ny = cfg.streets_x, cfg.streets_y
-    ix0 = iy0 = 0
-    if cover_xy is not None and len(cover_xy):
-        lo = np.floor(cover_xy.min(axis=0) / p).astype(int)
-        hi = np.ceil(cover_xy.max(axis=0) / p).astype(int)
-        ix0, iy0 = int(lo[0]), int(lo[1])
-        nx = max(nx, int(hi[0] - lo[0]) + 1)
-        ny = max(ny, int(hi[1] - lo[1]) + 1)
-    street_x = (ix0 + np.arange(nx)) * p
-    street_y = (iy0 + np.arange(ny)) * p
-    rng = np.random.default_rng([seed, 7301])
-    B = _Builder()
-    w2 = cfg.street_width_m / 2.0
-    D = cfg.building_depth_m
-    wmin, wmax = cfg.building_width_range_m
-
-    ring = cfg.outer_ring_blocks
-    for bi in range(-ring, nx - 1 + ring):
-        for bj in range(-ring, ny - 1 + ring):
-            bx0 = street_x[0] + bi * p + w2
-            by0 = street_y[0] + bj * p + w2
-            bx1, by1 = bx0 + cfg.block_size_m, by0 + cfg.block_size_m
-            L = cfg.block_size_m
-            # (plot corner, along unit, inward unit, span, index of the street it faces, axis)
-            sides = [
-                ((bx0, by0), (1, 0), (0, 1), (0.0, L), bj, "y"),
-                ((bx1, by1), (-1, 0), (0, -1), (0.0, L), bj + 1, "y"),
-                ((bx0, by1), (0, -1), (1, 0), (D, L - D), bi, "x"),
-                ((bx1, by0), (0, 1), (-1, 0), (D, L - D), bi + 1, "x"),
-            ]
-            for a, e, m, (s0, s1), street_index, axis in sides:
-                n_streets = nx if axis == "x" else ny
-                if not (0 <= street_index < n_streets) or s1 - s0 < wmin * 0.5:
-                    continue
-                a, e, m = np.array(a, float), np.array(e, float), np.array(m, float)
-                out = -m
-                x = s0
-                while x < s1 - 1e-6:
-                    w = rng.uniform(wmin, wmax)
-                    if s1 - (x + w) < wmin * 0.6:
-                        w = s1 - x
-                    sb = rng.uniform(*cfg.setback_range_m)
-                    storeys = int(rng.integers(cfg.storeys_range[0], cfg.storeys_range[1] + 1))
-                    sid = B.surface(FACADE, storeys)
-                    fa, fb = a + e * x + m * sb, a + e * (x + w) + m * sb
-                    height = -1.0  # filled in after the per-surface parameters are known
-                    B.wall(fa, fb, out, height, sid, 0.0)
-                    B.wall(fa, fa + m * D, -e, height, sid, w)
-                    B.wall(fb, fb + m * D, e, height, sid, w + D)
-                    x += w
-                    if rng.random() < cfg.gap_probability:
-                        g = rng.uniform(*cfg.gap_width_range_m)
-                        if x + g < s1 - wmin * 0.6:
-                            back = cfg.setback_range_m[1] + cfg.alley_depth_m
-                            aid = B.surface(ALLEY)
-                            B.wall(a + e * x + m * back, a + e * (x + g) + m * back, out, -2.0, aid)
-                            x += g
-
-    # Street furniture along the streets of the grid.
-    furniture_sids = []
-    rh = cfg.road_half_width_m
-    clear = w2 + cfg.intersection_clearance_m
-    car_l, car_w, car_h = cfg.car_size_m
-    for axis, lines, cross in (("x", street_x, street_y), ("y", street_y, street_x)):
-        lo = cross[0] - ring * p
-        hi = cross[-1] + ring * p
-        for c in lines:
-            for side in (-1.0, 1.0):
-                # Lamp posts behind the kerb.
-                t = lo + rng.uniform(0, cfg.pole_spacing_m)
-                while t < hi:
-                    tt = t + rng.uniform(-cfg.pole_jitter_m, cfg.pole_jitter_m) * 0.5
-                    if np.min(np.abs(cross - tt)) > w2 + 1.0:
-                        off = side * (rh + cfg.pole_kerb_offset_m)
-                        cx, cy = (c + off, tt) if axis == "x" else (tt, c + off)
-                        sid = B.surface(POLE)
-                        furniture_sids.append((sid, cfg.pole_height_m))
-                        hs = cfg.pole_size_m / 2
-                        for q0, q1, n in zip(*_box_segments(cx, cy, hs, hs, 0.0)):
-                            B.wall(q0, q1, n, cfg.pole_height_m, sid)
-                    t += cfg.pole_spacing_m
-                # Parked cars along the kerb, clear of crossings.
-                t = lo
-                while t + cfg.car_slot_length_m < hi:
-                    mid = t + cfg.car_slot_length_m / 2
-                    away = np.min(np.abs(cross - mid)) > clear + car_l / 2
-                    if away and rng.random() < cfg.parked_car_probability:
-                        off = side * (rh - cfg.car_kerb_gap_m - car_w / 2)
-                        jitter = rng.uniform(-0.5, 0.5)
-                        cx, cy = (c + off, mid + jitter) if axis == "x" else (mid + jitter, c + off)
-                        ang = np.pi / 2 if axis == "x" else 0.0
-                        sid = B.surface(CAR)
-                        furniture_sids.append((sid, car_h))
-                        for q0, q1, n in zip(*_box_segments(cx, cy, car_l / 2, car_w / 2, ang)):
-                            B.wall(q0, q1, n, car_h, sid)
-                    t += cfg.car_slot_length_m
-
-    kind = np.array(B.kind, dtype=np.int8)
-    F = len(kind)
-    params = _surface_params(cfg, seed, F)
-    storeys = np.asarray(B.storeys, np.float32)
-    top = params["ground_h"] + storeys * params["storey_h"] + cfg.parapet_m
-    for sid, h in furniture_sids:
-        top[sid] = h
-    params["top"] = top.astype(np.float32)
-    height = np.array(B.h, float)
-    sids = np.array(B.sid, dtype=np.int64)
-    # Walls of buildings take their building's height; alley walls two storeys.
-    bld = height == -1.0
-    height[bld] = top[sids[bld]]
-    alley = height == -2.0
-    height[alley] = cfg.ground_floor_height_range_m[1] + cfg.storey_height_range_m[1]
-    params["top"][sids[alley]] = height[alley]
-    p0 = np.array(B.p0, float)
-    p1 = np.array(B.p1, float)
-    e = p1 - p0
-    normal = np.stack([e[:, 1], -e[:, 0]], axis=1)
-    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
-    return City(
-        config=cfg,
-        seed=seed,
-        p0=p0,
-        p1=p1,
-        height=height,
-        surface=sids,
-        u0=np.array(B.u0, float),
-        normal=normal,
-        kind=kind,
-        params=params,
-        street_x=street_x,
-        street_y=street_y,
-    )
 
 
 def _surface_params(cfg: CityConfig, seed: int, F: int) -> dict[str, np.ndarray]:
@@ -529,6 +385,9 @@ def _surface_params(cfg: CityConfig, seed: int, F: int) -> dict[str, np.ndarray]
     colours[:, M_CAR_GLASS] = _GLASS * 1.5
     colours[:, M_TYRE] = _TYRE
     colours[:, M_ALLEY] = _ALLEY
+    colours[:, M_BARK] = _BARK * (0.8 + 0.4 * h(_H_GRAIN))[:, None]
+    colours[:, M_LEAF] = _LEAF * (0.75 + 0.5 * h(_H_JITTER_G))[:, None]
+    colours[:, M_RAIL] = _RAIL
     return {
         "colours": colours,
         "base": base,

@@ -30,14 +30,40 @@ def _ordered_pair(value: tuple[float, float], name: str) -> tuple[float, float]:
 
 
 class CityConfig(_Model):
-    """A Manhattan grid of streets; buildings line both sides of every street."""
+    """Streets laid along the route's centre line; districts of different character line them.
 
-    streets_x: int = Field(3, ge=2, description="streets running along y (constant x), at least")
-    streets_y: int = Field(3, ge=2, description="streets running along x (constant y), at least")
-    outer_ring_blocks: int = Field(1, ge=1, description="rings of blocks beyond the outer streets")
-    block_size_m: float = Field(30.0, gt=5.0, description="block edge, kerb to kerb of the plot")
+    ``block_size_m`` and ``street_width_m`` also set the grid the preset routes drive on.
+    District kinds: ``dense`` (tall facades, shops, parked cars), ``suburban`` (houses set
+    back behind hedges and front-garden trees), ``open`` (fields and parkland: trees and
+    poles only) and ``highway`` (guard rails and poles). Which one a place belongs to is a
+    smooth function of position (``district_scale_m``), so every visit sees the same district.
+    """
+
+    block_size_m: float = Field(60.0, gt=5.0, description="block edge of the preset route grid")
     street_width_m: float = Field(16.0, gt=4.0, description="plot line to plot line")
     sidewalk_width_m: float = Field(2.5, ge=0.0)
+    district_mix: dict[Literal["dense", "suburban", "open", "highway"], float] = Field(
+        default={"dense": 0.45, "suburban": 0.3, "open": 0.15, "highway": 0.1},
+        description="share of the route's length in each district kind",
+    )
+    district_scale_m: float = Field(120.0, gt=1.0, description="size of a district along the route")
+    side_street_probability: float = Field(0.12, ge=0.0, le=1.0, description="a side street after a building")
+    side_street_width_range_m: tuple[float, float] = (9.0, 13.0)
+    house_width_range_m: tuple[float, float] = (8.0, 12.0)
+    house_setback_range_m: tuple[float, float] = (3.0, 7.0)
+    house_storeys_range: tuple[int, int] = (1, 2)
+    house_gap_probability: float = Field(0.6, ge=0.0, le=1.0)
+    hedge_probability: float = Field(0.5, ge=0.0, le=1.0, description="suburban plot has a front hedge")
+    tree_spacing_range_m: tuple[float, float] = (8.0, 30.0)
+    tree_crown_size_range_m: tuple[float, float] = (3.0, 6.0)
+    tree_height_range_m: tuple[float, float] = (5.0, 10.0)
+    guard_rail_height_m: float = Field(0.75, gt=0.0)
+    road_camber: float = Field(0.02, ge=0.0, lt=0.2, description="fall of the road from its crown, per metre")
+    kerb_height_m: float = Field(0.12, ge=0.0, description="sidewalks and verges above the road edge")
+    verge_relief_m: float = Field(0.4, ge=0.0, description="peak undulation of the ground beyond the street")
+    facade_relief_probability: float = Field(0.7, ge=0.0, le=1.0, description="facade has piers and recessed bays")
+    facade_relief_depth_range_m: tuple[float, float] = (0.2, 0.6)
+    facade_bay_width_range_m: tuple[float, float] = (3.0, 6.0)
     building_width_range_m: tuple[float, float] = (8.0, 16.0)
     building_depth_m: float = Field(10.0, gt=1.0, description="length of the side walls")
     setback_range_m: tuple[float, float] = Field((0.0, 2.5), description="facade behind plot line")
@@ -106,6 +132,14 @@ class CityConfig(_Model):
         "sign_length_range_m",
         "sign_offset_range_m",
         "door_offset_range_m",
+        "side_street_width_range_m",
+        "house_width_range_m",
+        "house_setback_range_m",
+        "tree_spacing_range_m",
+        "tree_crown_size_range_m",
+        "tree_height_range_m",
+        "facade_relief_depth_range_m",
+        "facade_bay_width_range_m",
     )
     @classmethod
     def _check_pair(cls, v, info):
@@ -113,12 +147,19 @@ class CityConfig(_Model):
             raise ValueError(f"{info.field_name} must be positive, got {v}")
         return _ordered_pair(v, info.field_name)
 
-    @field_validator("storeys_range")
+    @field_validator("district_mix")
+    @classmethod
+    def _check_mix(cls, v):
+        if not v or any(w < 0 for w in v.values()) or sum(v.values()) <= 0:
+            raise ValueError(f"district_mix needs non-negative shares with a positive sum, got {v}")
+        return v
+
+    @field_validator("storeys_range", "house_storeys_range")
     @classmethod
     def _check_storeys(cls, v):
         if v[0] < 1:
-            raise ValueError(f"storeys_range must start at 1 or more, got {v}")
-        return _ordered_pair(v, "storeys_range")
+            raise ValueError(f"storeys ranges must start at 1 or more, got {v}")
+        return _ordered_pair(v, "storeys range")
 
     @model_validator(mode="after")
     def _check_street(self):
@@ -141,6 +182,12 @@ class RouteConfig(_Model):
 
     preset: str = Field("block_grid", description="block_grid | figure_eight | path to poses file")
     poses_format: Literal["auto", "tum", "kitti"] = "auto"
+    poses_frame: Literal["auto", "camera", "body"] = Field(
+        "auto", description="camera: KITTI ground truth (x right, y down, z forward); body: x forward, z up"
+    )
+    file_height_scale: float = Field(1.0, ge=0.0, description="scales a poses file's height profile")
+    terrain_amplitude_m: float = Field(2.5, ge=0.0, description="hills of preset routes (peak)")
+    terrain_wavelength_m: float = Field(150.0, gt=1.0)
     speed_mps: float = Field(11.0, gt=0.0, description="cruise speed on straights")
     speed_variation: float = Field(0.08, ge=0.0, lt=0.9, description="relative amplitude")
     speed_variation_period_s: float = Field(25.0, gt=0.0)
@@ -155,6 +202,9 @@ class RouteConfig(_Model):
     wander_wavelength_m: float = Field(70.0, gt=0.0)
     path_smoothing_m: float = Field(3.0, ge=0.0, description="gaussian sigma easing turns in and out")
     path_resolution_m: float = Field(0.05, gt=0.0, description="sampling of the dense path")
+    file_path_smoothing_m: float = Field(
+        2.0, ge=0.0, description="gaussian sigma smoothing a poses file's path (recorded poses jitter)"
+    )
     file_heading_smoothing_m: float = Field(2.0, ge=0.0, description="poses-file routes only")
 
     @field_validator("preset")
@@ -190,9 +240,9 @@ class LidarConfig(_Model):
     """Spinning multi-beam LiDAR; its frame is the body frame the poses describe."""
 
     enabled: bool = True
-    beams: int = Field(32, ge=1)
+    beams: int = Field(64, ge=1, description="rings: fewer and sparser ground rings make ICP sticky")
     azimuths: int = Field(1024, ge=8)
-    vfov_deg: tuple[float, float] = (-25.0, 15.0)
+    vfov_deg: tuple[float, float] = Field((-16.6, 16.6), description="uniform beams (an Ouster OS1-64's field)")
     height_m: float = Field(1.8, gt=0.0, description="above the ground (the pose's z)")
     max_range_m: float = Field(80.0, gt=0.0)
     min_range_m: float = Field(0.5, ge=0.0)
@@ -201,6 +251,18 @@ class LidarConfig(_Model):
     scan_period_s: float | None = Field(None, gt=0.0, description="default: 1 / frame_rate_hz")
     motion_distortion: bool = Field(True, description="each azimuth measured from the pose at its time")
     layers: int = Field(4, ge=1, description="nearest walls per azimuth considered")
+    # Errors of a real sensor: fixed per unit (seeded), so every visit shares them.
+    beam_elevation_error_deg: float = Field(
+        0.08, ge=0.0, description="sigma of each beam's elevation calibration error"
+    )
+    range_bias_sigma_m: float = Field(0.02, ge=0.0, description="sigma of each beam's constant range offset")
+    range_scale_error: float = Field(0.0, gt=-0.1, lt=0.1, description="relative range error of the unit")
+    # Vegetation is porous: a beam may pass a crown or return from anywhere inside it.
+    foliage_return_probability: float = Field(0.5, ge=0.0, le=1.0)
+    foliage_depth_m: float = Field(1.2, ge=0.0, description="returns spread this deep into a crown")
+    # Glass: a beam meeting a window mostly passes it and returns from the room behind.
+    glass_pass_probability: float = Field(0.6, ge=0.0, le=1.0)
+    glass_dropout_probability: float = Field(0.25, ge=0.0, le=1.0)
 
     @field_validator("vfov_deg")
     @classmethod
@@ -220,6 +282,27 @@ class OdometryDriftConfig(_Model):
     translation_noise_m_per_sqrt_m: float = Field(0.01, ge=0.0)
 
 
+class TrafficConfig(_Model):
+    """What moves between visits: oncoming vehicles, and parked cars that come and go."""
+
+    oncoming_vehicles_per_km: float = Field(6.0, ge=0.0, description="vehicles on the oncoming lane")
+    speed_range_mps: tuple[float, float] = (7.0, 14.0)
+    oncoming_lane_offset_m: float | None = Field(
+        None, description="left of the centre line; default: mirror of the driven lane (preset) or 3.2 m (file)"
+    )
+    vehicle_size_m: tuple[float, float, float] = (4.5, 1.8, 1.5)
+    parked_car_turnover_s: float = Field(
+        45.0, gt=0.0, description="each kerb slot is re-drawn this often (own phase), so visits differ"
+    )
+
+    @field_validator("speed_range_mps")
+    @classmethod
+    def _check_speed(cls, v):
+        if v[0] <= 0:
+            raise ValueError(f"speed_range_mps must be positive, got {v}")
+        return _ordered_pair(v, "speed_range_mps")
+
+
 class AppearanceConfig(_Model):
     """How one pass looks: illumination, colour cast, sensor noise, sky, lit windows."""
 
@@ -236,6 +319,7 @@ class AppearanceConfig(_Model):
     lit_window_fraction: float = Field(0.0, ge=0.0, le=1.0)
     lit_window_colour: RGB = (1.0, 0.82, 0.45)
     lit_window_strength: float = Field(0.0, ge=0.0)
+    foliage_tint: RGB = Field((1.0, 1.0, 1.0), description="season of the leaves")
 
 
 def _default_appearances() -> dict[str, AppearanceConfig]:
@@ -253,6 +337,7 @@ def _default_appearances() -> dict[str, AppearanceConfig]:
             fog_distance_m=160.0,
             lit_window_fraction=0.2,
             lit_window_strength=0.35,
+            foliage_tint=(1.15, 0.85, 0.6),
         ),
         "night": AppearanceConfig(
             gain=0.22,
@@ -281,6 +366,7 @@ class SimulationConfig(_Model):
     camera: CameraConfig = CameraConfig()
     lidar: LidarConfig = LidarConfig()
     odometry: OdometryDriftConfig = OdometryDriftConfig()
+    traffic: TrafficConfig = TrafficConfig()
     appearances: dict[str, AppearanceConfig] = Field(default_factory=_default_appearances)
     appearance_schedule: list[str] = Field(
         default=["day"], min_length=1, description="appearance per pass (loop); the last one repeats"

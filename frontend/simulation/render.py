@@ -1,51 +1,83 @@
 """Sensors of the simulator: a pinhole camera and a spinning LiDAR, both ray casters.
 
-The world is 2.5D (vertical walls on a ground plane), so one horizontal ray per image column
-(or per LiDAR azimuth) finds every wall the column can see; the nearest ``layers`` front-facing
-hits are kept and each pixel row (or beam) takes the first one its elevation actually meets
-below the wall's top, falling back to the ground plane or the sky. Everything is vectorised
-numpy; float32 is used for the large ray x segment matrices.
+The world is 2.5D (vertical walls spanning [z0, z1] over a ground that follows the road's
+height), so one horizontal ray per image column (or per LiDAR azimuth) finds every wall the
+column can see; the nearest ``layers`` front-facing hits are kept and each pixel row (or
+beam) takes the first one its elevation actually meets, falling back to the ground or the
+sky. The vehicle pitches with the road; rows and beams tilt with it, and the ground is the
+road's local plane (its grade along the heading). Everything is vectorised numpy; float32 is
+used for the large ray x segment matrices.
+
+Rendering works on a ``Scene``: the walls present at one instant (parked cars come and go,
+traffic moves), taken from the city and the traffic model.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
-from frontend.simulation.city import City
+from frontend.simulation.city import FACADE, FOLIAGE, City
 from frontend.simulation.config import AppearanceConfig, CameraConfig, LidarConfig
 
 _NEAR = 1e-3  # rays ignore walls closer than this (metres along the ray)
 _GROUND_SUN = 0.8  # share of the sun term a horizontal surface receives
 _SKY_EXPONENT = 0.7  # shape of the sky gradient from horizon to the top row
+_STREAM_CALIBRATION = 9001
+_GROUND_STEPS = 6
 
 
-def _cull(city: City, ox: float, oy: float, radius: float) -> np.ndarray:
+@dataclass
+class Scene:
+    """The walls present at one instant (a subset of the city plus moving vehicles)."""
+
+    p0: np.ndarray
+    p1: np.ndarray
+    z0: np.ndarray
+    z1: np.ndarray
+    surface: np.ndarray
+    u0: np.ndarray
+    normal: np.ndarray
+
+    @classmethod
+    def of(cls, city: City, mask: np.ndarray | None = None, extra: "Scene | None" = None) -> "Scene":
+        fields = ("p0", "p1", "z0", "z1", "surface", "u0", "normal")
+        parts = {f: getattr(city, f) if mask is None else getattr(city, f)[mask] for f in fields}
+        if extra is not None and len(extra.p0):
+            parts = {f: np.concatenate([parts[f], getattr(extra, f)]) for f in fields}
+        return cls(**parts)
+
+    def __len__(self) -> int:
+        return len(self.p0)
+
+
+def _cull(scene: Scene, ox: float, oy: float, radius: float) -> np.ndarray:
     """Indices of walls within ``radius`` of (ox, oy) whose front faces the point."""
     o = np.array([ox, oy])
-    e = city.p1 - city.p0
-    w = o - city.p0
-    ee = np.einsum("ij,ij->i", e, e)
+    e = scene.p1 - scene.p0
+    w = o - scene.p0
+    ee = np.maximum(np.einsum("ij,ij->i", e, e), 1e-12)
     f = np.clip(np.einsum("ij,ij->i", w, e) / ee, 0.0, 1.0)
     d = np.linalg.norm(w - e * f[:, None], axis=1)
-    facing = np.einsum("ij,ij->i", w, city.normal) > -radius * 1e-3
+    facing = np.einsum("ij,ij->i", w, scene.normal) > -radius * 1e-3
     return np.nonzero((d < radius) & facing)[0]
 
 
-def cast_rays(city: City, segs: np.ndarray, ox, oy, dx, dy, layers: int):
+def cast_rays(scene: Scene, segs: np.ndarray, ox, oy, dx, dy, layers: int):
     """Nearest ``layers`` front-facing wall hits of horizontal rays o + t d.
 
     ox, oy: scalars or (R,) origins; dx, dy: (R,) directions (any length; t is in units of |d|).
-    Returns t (R, K) sorted ascending (inf = no hit), segment index (R, K) into city arrays, and
+    Returns t (R, K) sorted ascending (inf = no hit), segment index (R, K) into the scene, and
     the hit's fractional position along the segment (R, K).
     """
     R = len(dx)
     if len(segs) == 0:
         inf = np.full((R, 1), np.inf, np.float32)
         return inf, np.zeros((R, 1), np.int64), np.zeros((R, 1), np.float32)
-    p0 = city.p0[segs].astype(np.float32)
-    e = (city.p1[segs] - city.p0[segs]).astype(np.float32)
+    p0 = scene.p0[segs].astype(np.float32)
+    e = (scene.p1[segs] - scene.p0[segs]).astype(np.float32)
     ox = np.asarray(ox, np.float32).reshape(-1, 1)
     oy = np.asarray(oy, np.float32).reshape(-1, 1)
     dx = np.asarray(dx, np.float32)[:, None]
@@ -74,7 +106,7 @@ def cast_rays(city: City, segs: np.ndarray, ox, oy, dx, dy, layers: int):
 
 
 class CameraRenderer:
-    """Renders RGB uint8 images of ``city`` from planar poses (x, y, yaw)."""
+    """Renders RGB uint8 images of ``city`` from poses on the road (x, y, road height, yaw, pitch)."""
 
     def __init__(self, city: City, config: CameraConfig):
         self.city = city
@@ -92,33 +124,49 @@ class CameraRenderer:
         n = W * H * 3
         self._noise_bank = np.random.default_rng([city.seed, 5171]).standard_normal(2 * n, dtype=np.float32)
 
-    def render(self, x: float, y: float, yaw: float, app: AppearanceConfig, rng: np.random.Generator):
-        """RGB uint8 (height, width, 3) image from camera position (x, y) looking along yaw."""
+    def render(
+        self,
+        x: float,
+        y: float,
+        yaw: float,
+        app: AppearanceConfig,
+        rng: np.random.Generator,
+        *,
+        road_z: float = 0.0,
+        pitch: float = 0.0,
+        grade: float = 0.0,
+        scene: Scene | None = None,
+        visit: int = 0,
+    ):
+        """RGB uint8 (height, width, 3) image from the camera above road point (x, y, road_z),
+        looking along yaw, pitched nose-up by ``pitch`` on a road rising ``grade`` per metre."""
         cfg, city = self.cfg, self.city
+        scene = scene or Scene.of(city)
         H, W = cfg.height, cfg.width
         h_cam = np.float32(cfg.height_m)
+        z_cam = np.float32(road_z) + h_cam
         c, s = math.cos(yaw), math.sin(yaw)
         dx = (c - s * self.lateral).astype(np.float32)
         dy = (s + c * self.lateral).astype(np.float32)
-        segs = _cull(city, x, y, self.view_radius)
-        tk, sk, uk = cast_rays(city, segs, x, y, dx, dy, cfg.layers)
+        slope = np.tan(np.arctan(self.slope) + np.float32(pitch)).astype(np.float32)  # world dz per forward unit
+        segs = _cull(scene, x, y, self.view_radius)
+        tk, sk, uk = cast_rays(scene, segs, x, y, dx, dy, cfg.layers)
 
         # Per pixel, the nearest layer whose wall spans the pixel's height (-1: none).
-        slope = self.slope[:, None]
         layer = np.full((H, W), -1, np.int8)
-        hk = city.height[sk].astype(np.float32)
+        z0k = scene.z0[sk].astype(np.float32)
+        z1k = scene.z1[sk].astype(np.float32)
         tk_far = np.where(tk < cfg.max_depth_m, tk, np.float32(np.inf))
         for k in range(tk.shape[1] - 1, -1, -1):
             t = tk_far[:, k]
-            z = h_cam + t[None, :] * slope
-            layer[(z >= 0) & (z <= hk[:, k][None, :])] = k  # inf * slope never passes both tests
+            z = z_cam + t[None, :] * slope[:, None]
+            layer[(z >= z0k[:, k][None, :]) & (z <= z1k[:, k][None, :])] = k  # inf never passes both
 
         gain_tint = np.float32(app.gain) * np.asarray(app.tint, np.float32)
         hor = np.asarray(app.sky_horizon, np.float32)
         top = np.asarray(app.sky_top, np.float32)
         img = np.empty((H * W, 3), np.float32)
         flat_layer = layer.ravel()
-
         lit_colour = np.float32(app.lit_window_strength) * np.asarray(app.lit_window_colour, np.float32)
 
         def finish(idx, albedo, shade, dist, emissive=None):
@@ -136,21 +184,24 @@ class CameraRenderer:
             k = flat_layer[idx].astype(np.int64)
             t = tk[cols, k]
             seg = sk[cols, k]
-            length = np.linalg.norm(city.p1[seg] - city.p0[seg], axis=1)
-            u = (city.u0[seg] + uk[cols, k] * length).astype(np.float32)
-            v = h_cam + t * self.slope[rows]
-            albedo, key = city.wall_albedo(city.surface[seg], u, v)
-            shade = app.ambient + app.sun_strength * np.clip(city.normal[seg] @ sun, 0.0, None)
+            length = np.linalg.norm(scene.p1[seg] - scene.p0[seg], axis=1)
+            u = (scene.u0[seg] + uk[cols, k] * length).astype(np.float32)
+            v = (z_cam + t * slope[rows] - scene.z0[seg]).astype(np.float32)
+            sid = scene.surface[seg]
+            albedo, key = city.wall_albedo(sid, u, v, visit, app.foliage_tint)
+            shade = app.ambient + app.sun_strength * np.clip(scene.normal[seg] @ sun, 0.0, None)
             shade = shade.astype(np.float32)
             lit = (key < app.lit_window_fraction).astype(np.float32)
             finish(idx, albedo, shade[:, None], t * self.ray_norm[cols], lit)
 
-        below = self.slope < 0
+        # Ground: the road's local plane, rising `grade` per metre along the heading.
+        drop = np.float32(grade) - slope  # > 0: the row's ray meets the ground ahead
+        below = drop > 1e-6
         ground_mask = (flat_layer < 0) & np.repeat(below, W)
         idx = np.flatnonzero(ground_mask)
         if len(idx):
             rows, cols = np.divmod(idx, W)
-            t = h_cam / -self.slope[rows]
+            t = h_cam / drop[rows]
             gx = x + t * dx[cols]
             gy = y + t * dy[cols]
             albedo = city.ground_albedo(gx, gy, np.exp(-t / np.float32(cfg.texture_fade_distance_m)))
@@ -160,7 +211,7 @@ class CameraRenderer:
         idx = np.flatnonzero((flat_layer < 0) & ~ground_mask)
         if len(idx):
             rows = idx // W
-            el = np.clip(self.slope[rows] / max(float(self.slope[0]), 1e-6), 0.0, 1.0) ** _SKY_EXPONENT
+            el = np.clip(slope[rows] / max(float(slope[0]), 1e-6), 0.0, 1.0) ** _SKY_EXPONENT
             img[idx] = hor * (1.0 - el[:, None]) + top * el[:, None]
 
         if app.gamma != 1.0:
@@ -182,6 +233,11 @@ class LidarRenderer:
     counter-clockwise from straight behind. Points are returned in the sensor frame of the
     instant each was measured (a real, motion-distorted scan); the frame's pose is the pose
     at the end of the sweep, matching kiss-icp's deskew-to-end convention.
+
+    The unit is imperfect as real ones are: each beam's true elevation differs from its
+    nominal one and each beam has a range offset (fixed per unit, from the seed), the points
+    are reported along the nominal directions, and foliage returns from random depths or
+    lets the beam through.
     """
 
     def __init__(self, city: City, config: LidarConfig, scan_period_s: float):
@@ -190,13 +246,14 @@ class LidarRenderer:
         self.period = scan_period_s
         lo, hi = np.radians(config.vfov_deg)
         self.elev = np.linspace(lo, hi, config.beams)
-        self.tan_el = np.tan(self.elev).astype(np.float32)
-        self.cos_el = np.cos(self.elev)
+        calib = np.random.default_rng([city.seed, _STREAM_CALIBRATION])
+        self.elev_true = self.elev + np.radians(config.beam_elevation_error_deg) * calib.standard_normal(config.beams)
+        self.range_bias = config.range_bias_sigma_m * calib.standard_normal(config.beams)
         n = config.azimuths
         self.frac = (np.arange(n) + 0.5) / n
         self.az = -math.pi + 2.0 * math.pi * self.frac
         self.col_times = self.frac * scan_period_s
-        # Unit ray directions in the sensor frame, (beams, azimuths, 3).
+        # Unit ray directions in the sensor frame as the unit reports them, (beams, azimuths, 3).
         ce, se = np.cos(self.elev)[:, None], np.sin(self.elev)[:, None]
         self.dirs = np.stack(
             [
@@ -207,36 +264,69 @@ class LidarRenderer:
             axis=-1,
         )
 
-    def scan(self, xs, ys, yaws, rng: np.random.Generator):
-        """One sweep; xs, ys, yaws: scalar or (azimuths,) pose of the sensor at each column.
+    def scan(
+        self,
+        xs,
+        ys,
+        yaws,
+        rng: np.random.Generator,
+        *,
+        road_z: float = 0.0,
+        pitch: float = 0.0,
+        grade: float = 0.0,
+        scene: Scene | None = None,
+    ):
+        """One sweep; xs, ys, yaws: scalar or (azimuths,) pose of the sensor at each column,
+        above road height ``road_z`` with the vehicle pitched by ``pitch`` on a road of grade
+        ``grade``.
 
         Returns (points (N, 3) float64 sensor frame, times (N,) float64 seconds from the sweep
         start).
         """
         cfg, city = self.cfg, self.city
+        scene = scene or Scene.of(city)
         n = cfg.azimuths
         xs = np.broadcast_to(np.asarray(xs, float), (n,))
         ys = np.broadcast_to(np.asarray(ys, float), (n,))
         yaws = np.broadcast_to(np.asarray(yaws, float), (n,))
         travel = math.hypot(xs[-1] - xs[0], ys[-1] - ys[0])
-        segs = _cull(city, xs[-1], ys[-1], cfg.max_range_m + travel)
+        segs = _cull(scene, xs[-1], ys[-1], cfg.max_range_m + travel)
         ang = yaws + self.az
-        tk, sk, _ = cast_rays(city, segs, xs, ys, np.cos(ang), np.sin(ang), cfg.layers)
+        tk, sk, uk = cast_rays(scene, segs, xs, ys, np.cos(ang), np.sin(ang), cfg.layers)
         h = np.float32(cfg.height_m)
+        z_s = np.float32(road_z) + h
         B = cfg.beams
+        # World elevation of each beam at each azimuth: the true elevation tilted by the pitch.
+        cos_az = np.cos(self.az)
+        tan_w = np.tan(self.elev_true[:, None] + pitch * cos_az[None, :]).astype(np.float32)
         t_hit = np.full((B, n), np.inf, np.float32)
-        hk = city.height[sk].astype(np.float32)
-        tan_el = self.tan_el[:, None]
+        k_hit = np.full((B, n), -1, np.int64)
+        foliage_hit = np.zeros((B, n), bool)
+        z0k = scene.z0[sk].astype(np.float32)
+        z1k = scene.z1[sk].astype(np.float32)
+        leafy = city.kind[scene.surface[sk]] == FOLIAGE
+        p_leaf = cfg.foliage_return_probability
         for k in range(tk.shape[1] - 1, -1, -1):
             t = tk[:, k][None, :]
-            z = h + t * tan_el
-            ok = np.isfinite(t) & (z >= 0) & (z <= hk[:, k][None, :])
+            z = z_s + t * tan_w
+            ok = np.isfinite(t) & (z >= z0k[:, k][None, :]) & (z <= z1k[:, k][None, :])
+            if leafy[:, k].any():
+                passes = leafy[:, k][None, :] & (rng.random((B, n)) >= p_leaf)
+                ok &= ~passes
             t_hit = np.where(ok, t, t_hit)
-        down = self.tan_el < 0
-        t_ground = np.where(down, h / np.where(down, -self.tan_el, 1.0), np.inf)[:, None]
-        t_hit = np.where(np.isinf(t_hit), t_ground, t_hit)
-        rng_m = t_hit.astype(np.float64) / self.cos_el[:, None]
-        ok = (rng_m >= cfg.min_range_m) & (rng_m <= cfg.max_range_m)
+            k_hit = np.where(ok, k, k_hit)
+            foliage_hit = np.where(ok, np.broadcast_to(leafy[:, k][None, :], (B, n)), foliage_hit)
+        t_hit = self._through_glass(scene, tk, sk, uk, k_hit, t_hit, z_s, tan_w, rng)
+        if cfg.foliage_depth_m > 0 and foliage_hit.any():
+            t_hit = t_hit + foliage_hit * rng.uniform(0.0, cfg.foliage_depth_m, (B, n)).astype(np.float32)
+        # Ground: the road's local plane along each azimuth.
+        drop = np.float32(grade) * cos_az[None, :].astype(np.float32) - tan_w
+        t_ground = np.where(drop > 1e-6, h / np.where(drop > 1e-6, drop, 1.0), np.inf).astype(np.float32)
+        t_ground = self._ground_relief(xs, ys, ang, t_ground, drop, float(z_s), tan_w)
+        t_hit = np.where(np.isinf(t_hit), t_ground, np.minimum(t_hit, t_ground))  # NaN (lost) stays NaN
+        rng_m = t_hit.astype(np.float64) * np.sqrt(1.0 + tan_w.astype(np.float64) ** 2)
+        rng_m = rng_m * (1.0 + cfg.range_scale_error) + self.range_bias[:, None]
+        ok = np.isfinite(rng_m) & (rng_m >= cfg.min_range_m) & (rng_m <= cfg.max_range_m)
         if cfg.dropout_probability > 0:
             ok &= rng.random(ok.shape) >= cfg.dropout_probability
         # Column-major order: points come out in firing-time order.
@@ -247,3 +337,50 @@ class LidarRenderer:
         pts = self.dirs.transpose(1, 0, 2)[okT] * r[:, None]
         times = np.broadcast_to(self.col_times[:, None], okT.shape)[okT]
         return pts, times.astype(np.float64)
+
+    def _through_glass(self, scene: Scene, tk, sk, uk, k_hit, t_hit, z_s, tan_w, rng: np.random.Generator):
+        """Beams that meet a window or shop front mostly pass the glass and return from the room
+        behind it (or not at all): facades read as walls with holes, as real scans show them."""
+        cfg = self.cfg
+        if cfg.glass_pass_probability <= 0 and cfg.glass_dropout_probability <= 0:
+            return t_hit
+        b, c = np.nonzero(k_hit >= 0)
+        if not len(b):
+            return t_hit
+        k = k_hit[b, c]
+        seg = sk[c, k]
+        facade = self.city.kind[scene.surface[seg]] == FACADE
+        b, c, k, seg = b[facade], c[facade], k[facade], seg[facade]
+        t = tk[c, k]
+        length = np.linalg.norm(scene.p1[seg] - scene.p0[seg], axis=1)
+        u = (scene.u0[seg] + uk[c, k] * length).astype(np.float32)
+        v = (z_s + t * tan_w[b, c] - scene.z0[seg]).astype(np.float32)
+        _, key = self.city.wall_albedo(scene.surface[seg], u, v)
+        glass = key < 1.0
+        b, c, t, key = b[glass], c[glass], t[glass], key[glass]
+        draw = rng.random(len(b))
+        out = t_hit.copy()
+        through = draw < cfg.glass_pass_probability
+        # The room behind a window stays where it is: its depth is a property of the window.
+        out[b[through], c[through]] = t[through] + np.float32(1.5) + np.float32(4.5) * key[through]
+        lost = (draw >= cfg.glass_pass_probability) & (draw < cfg.glass_pass_probability + cfg.glass_dropout_probability)
+        out[b[lost], c[lost]] = np.nan
+        return out
+
+    def _ground_relief(self, xs, ys, ang, t_ground, drop, z_s, tan_w):
+        """Move ground hits from the road's local plane onto the world's terrain and relief
+        (kerbs, camber, undulating verges), by Newton steps along each beam. The ground is then
+        the same wherever it is seen from, as a real one is."""
+        hit = np.isfinite(t_ground)
+        if not hit.any():
+            return t_ground
+        b, c = np.nonzero(hit)
+        t = t_ground[b, c].astype(np.float64)
+        slope, d = tan_w[b, c].astype(np.float64), drop[b, c].astype(np.float64)
+        ca, sa = np.cos(ang[c]), np.sin(ang[c])
+        for _ in range(_GROUND_STEPS):
+            gz = self.city.ground_z(xs[c] + t * ca, ys[c] + t * sa)
+            t = np.maximum(t + (z_s + t * slope - gz) / d, 0.1)
+        out = t_ground.copy()
+        out[b, c] = t.astype(np.float32)
+        return out

@@ -1,27 +1,30 @@
-"""Routes through the simulated streets: preset loops with revisits, or a poses file.
+"""Routes: preset loops with revisits, or a poses file in its own convention.
 
-A route is a dense planar path parameterised by arc length s: ``Route.pose_at(s)`` gives
-(x, y, yaw) with yaw along the direction of travel. Preset routes are polylines through street
-crossings with circular fillets at the corners, then shifted into the driving lane with a slow
-lateral weave (so later passes do not repeat earlier poses exactly). ``Route.arc_length_at(t)``
-maps time to s: the vehicle starts from rest, cruises at a slowly varying speed and slows
-down for corners (lateral acceleration limit) with bounded acceleration and braking.
+A route is a dense path parameterised by horizontal arc length s: ``Route.pose_at(s)`` gives
+(x, y, yaw) with yaw along the direction of travel, ``Route.height_at(s)`` the road height and
+``Route.grade_at(s)`` its slope (the vehicle pitches with it). Preset routes are polylines
+through the crossings of a street grid with circular fillets at the corners, shifted into the
+driving lane with a slow lateral weave (so later passes do not repeat earlier poses exactly),
+over gently rolling terrain (a function of position, so every visit sees the same hills). File
+routes keep the file's path and height profile. ``Route.centre`` is the street centre line
+the city is laid along. ``Route.arc_length_at(t)`` maps time to s: the vehicle starts from
+rest, cruises at a slowly varying speed and slows down for corners with bounded acceleration.
 """
 
 from __future__ import annotations
 
 import math
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from frontend.errors import FrontendInputError
-from frontend.simulation.city import City
 from frontend.simulation.config import RouteConfig
+from frontend.simulation.noise import value_noise
+from frontend.simulation.route_files import PosesFrame, RouteFile, read_route_file
 
-# Passes of the preset routes as crossings (i, j) = (street_x index, street_y index).
+# Passes of the preset routes as crossings (i, j) of the street grid.
 # block_grid: loop A anticlockwise around two blocks (driven `laps` times), then loop B
 # clockwise around the right-hand block: a new street, then three of A's in the opposite
 # direction.
@@ -33,22 +36,32 @@ _EIGHT = [(1, 1), (0, 1), (0, 0), (1, 0), (1, 1), (1, 2), (2, 2), (2, 1), (1, 1)
 # Two-harmonic smooth noise (weights sum to 1, so |noise| <= 1); second period ratio.
 _HARMONIC_WEIGHTS = (0.6, 0.4)
 _HARMONIC_RATIO = 0.37
+_TERRAIN_CHANNEL = 881
 
 
 @dataclass
 class Route:
-    """Dense path: arc length ``s`` (uniform), positions ``xy``, unwrapped ``yaw`` and the time
-    ``t`` at which the vehicle passes each sample (speed profile)."""
+    """Dense path: arc length ``s`` (uniform), positions ``xy``, road height ``z``, unwrapped
+    ``yaw``, the time ``t`` at which the vehicle passes each sample (speed profile), and the
+    street centre line ``centre`` (M, 3) the city is built along."""
 
     s: np.ndarray
     xy: np.ndarray
     yaw: np.ndarray
     t: np.ndarray
     pass_starts: np.ndarray  # arc length at which each pass (loop) begins
+    z: np.ndarray
+    centre: np.ndarray
 
     @property
     def length(self) -> float:
         return float(self.s[-1])
+
+    @property
+    def length_3d(self) -> float:
+        """Length along the road including its slopes (what a poses file's steps add up to)."""
+        d = np.diff(np.column_stack([self.xy, self.z]), axis=0)
+        return float(np.linalg.norm(d, axis=1).sum())
 
     @property
     def duration(self) -> float:
@@ -66,6 +79,18 @@ class Route:
         yaw = np.interp(s, self.s, self.yaw)
         return x, y, yaw
 
+    def height_at(self, s) -> np.ndarray:
+        return np.interp(np.asarray(s, float), self.s, self.z)
+
+    def grade_at(self, s) -> np.ndarray:
+        """dz/ds of the road (rise over run) at s."""
+        return np.interp(np.asarray(s, float), self.s, self._grade)
+
+    def __post_init__(self) -> None:
+        ds = float(self.s[1] - self.s[0]) if len(self.s) > 1 else 1.0
+        # Grade over a wheelbase-like window: a vehicle does not pitch with every bump.
+        self._grade = _box_smooth(np.gradient(self.z, ds), max(1, int(round(2.0 / ds))))
+
     def pass_index(self, s) -> np.ndarray:
         return np.searchsorted(self.pass_starts, np.asarray(s, float), side="right") - 1
 
@@ -74,50 +99,15 @@ class Route:
         return np.interp(np.asarray(t, float), self.t, self.s)
 
 
-def read_poses_file(path: str | Path, fmt: str = "auto") -> tuple[np.ndarray | None, np.ndarray]:
-    """Read a TUM (``t x y z qx qy qz qw``) or KITTI (12 values of a 3x4) poses file.
+def _box_smooth(v: np.ndarray, half: int) -> np.ndarray:
+    k = np.ones(2 * half + 1) / (2 * half + 1)
+    return np.convolve(np.pad(v, half, mode="edge"), k, mode="valid")
 
-    Returns (timestamps or None, positions (N, 3)). Raises FrontendInputError naming the file
-    and line on anything unreadable.
-    """
-    path = Path(path)
-    try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise FrontendInputError(f"poses file {path}: cannot read: {exc}") from exc
-    rows: list[list[float]] = []
-    for lineno, line in enumerate(text.splitlines(), 1):
-        line = line.strip()
-        if not line or line.startswith("#"):
-            continue
-        try:
-            vals = [float(v) for v in line.replace(",", " ").split()]
-        except ValueError as exc:
-            raise FrontendInputError(f"poses file {path}: line {lineno}: not numbers: {line[:60]!r}") from exc
-        if rows and len(vals) != len(rows[0]):
-            raise FrontendInputError(
-                f"poses file {path}: line {lineno}: {len(vals)} values, earlier lines have {len(rows[0])}"
-            )
-        rows.append(vals)
-    if not rows:
-        raise FrontendInputError(f"poses file {path}: no poses")
-    arr = np.asarray(rows, float)
-    if not np.all(np.isfinite(arr)):
-        raise FrontendInputError(f"poses file {path}: contains non-finite values")
-    ncol = arr.shape[1]
-    if fmt == "auto":
-        fmt = {8: "tum", 12: "kitti"}.get(ncol, "")
-        if not fmt:
-            raise FrontendInputError(
-                f"poses file {path}: {ncol} values per line; expected 8 (TUM) or 12 (KITTI)"
-            )
-    if fmt == "tum":
-        if ncol != 8:
-            raise FrontendInputError(f"poses file {path}: TUM needs 8 values per line, found {ncol}")
-        return arr[:, 0], arr[:, 1:4]
-    if ncol != 12:
-        raise FrontendInputError(f"poses file {path}: KITTI needs 12 values per line, found {ncol}")
-    return None, arr[:, [3, 7, 11]]
+
+def read_poses_file(path: str | Path, fmt: str = "auto", frame: PosesFrame = "auto") -> tuple[np.ndarray | None, np.ndarray]:
+    """(timestamps or None, z-up positions (N, 3)) of a TUM or KITTI poses file; see route_files."""
+    route = read_route_file(path, fmt, frame)
+    return route.timestamps, route.positions
 
 
 def _fillet_polyline(pts: np.ndarray, radius: float, step: float):
@@ -179,7 +169,12 @@ def _smooth_noise(x: np.ndarray, period: float, phases: np.ndarray) -> np.ndarra
     return out
 
 
-def preset_waypoints(cfg: RouteConfig, city: City) -> list[np.ndarray]:
+def grid_node(cfg_pitch: float, i: int, j: int) -> np.ndarray:
+    """World xy of crossing (i, j) of the preset street grid."""
+    return np.array([i * cfg_pitch, j * cfg_pitch], dtype=np.float64)
+
+
+def preset_waypoints(cfg: RouteConfig, pitch_m: float) -> list[np.ndarray]:
     """Crossings of each pass of a preset route, as world xy arrays."""
     if cfg.preset == "block_grid":
         passes = [_LOOP_A] * cfg.laps + [_LOOP_B]
@@ -187,55 +182,67 @@ def preset_waypoints(cfg: RouteConfig, city: City) -> list[np.ndarray]:
         passes = [_EIGHT] * cfg.laps
     else:
         raise FrontendInputError(f"route.preset {cfg.preset!r} is not a preset")
-    need_i = max(i for p in passes for i, _ in p)
-    need_j = max(j for p in passes for _, j in p)
-    if need_i >= len(city.street_x) or need_j >= len(city.street_y):
-        raise FrontendInputError(
-            f"route.preset {cfg.preset!r} needs city.streets_x >= {need_i + 1} and "
-            f"city.streets_y >= {need_j + 1}"
-        )
-    return [np.array([city.node(i, j) for i, j in p]) for p in passes]
+    return [np.array([grid_node(pitch_m, i, j) for i, j in p]) for p in passes]
+
+
+def terrain_height(cfg: RouteConfig, seed: int, xy: np.ndarray) -> np.ndarray:
+    """Rolling terrain of preset routes: smooth noise of position (every visit sees the same hill)."""
+    if cfg.terrain_amplitude_m == 0:
+        return np.zeros(len(xy))
+    w = cfg.terrain_wavelength_m
+    n = value_noise(seed, _TERRAIN_CHANNEL, xy[:, 0] / w, xy[:, 1] / w).astype(np.float64)
+    n0 = value_noise(seed, _TERRAIN_CHANNEL, np.zeros(1), np.zeros(1)).astype(np.float64)
+    return cfg.terrain_amplitude_m * 2.0 * (n - n0)
 
 
 def build_route(
     cfg: RouteConfig,
-    city: City,
     seed: int,
-    poses_xy: np.ndarray | None = None,
+    pitch_m: float,
+    route_file: RouteFile | None = None,
 ) -> Route:
-    """Build the dense route. ``poses_xy`` (N, 2) gives the path of a poses-file route.
+    """Build the dense route. ``pitch_m`` is the street-grid pitch of preset routes.
 
-    A poses file contributes its positions' x, y only (poses are taken as z-up body poses, as
-    kiss-icp and this project write them); its orientations and timestamps are ignored: the
-    heading follows the path and the vehicle drives it with the configured speed profile.
-    Lane offset, weaving and corner easing apply to preset routes only.
+    A poses file contributes its path and height profile; its orientations and timestamps are
+    not used: the heading follows the path and the vehicle drives it with the configured speed
+    profile. Lane offset, weaving and corner easing apply to preset routes only (a file's path
+    is where a vehicle drove, already in its lane).
     """
     rng = np.random.default_rng([seed, 4409])
     wander_phases = rng.uniform(0, 2 * math.pi, 2)
     speed_phases = rng.uniform(0, 2 * math.pi, 2)
     step = cfg.path_resolution_m
     if cfg.is_file:
-        if poses_xy is None:
-            _, xyz = read_poses_file(cfg.preset, cfg.poses_format)
-            poses_xy = xyz[:, :2]
-        keep = np.concatenate([[True], np.linalg.norm(np.diff(poses_xy, axis=0), axis=1) > 1e-6])
-        pts = poses_xy[keep]
+        if route_file is None:
+            route_file = read_route_file(cfg.preset, cfg.poses_format, cfg.poses_frame)
+        pos = route_file.positions
+        keep = np.concatenate([[True], np.linalg.norm(np.diff(pos[:, :2], axis=0), axis=1) > 1e-6])
+        pts = pos[keep]
         if len(pts) < 2:
             raise FrontendInputError(f"poses file {cfg.preset}: the path does not move")
-        s_raw = _arclength(pts)
+        s_raw = _arclength(pts[:, :2])
         s = np.arange(0.0, s_raw[-1], step)
         xy = np.stack([np.interp(s, s_raw, pts[:, 0]), np.interp(s, s_raw, pts[:, 1])], axis=1)
+        z = np.interp(s, s_raw, pts[:, 2]) * cfg.file_height_scale
+        if cfg.file_path_smoothing_m > 0:
+            # Recorded poses jitter by centimetres from one to the next; a vehicle's yaw rate
+            # does not. Smooth the path (not only its heading) so position and heading agree.
+            xyz = _gaussian_smooth(np.column_stack([xy, z]), cfg.file_path_smoothing_m / step)
+            s_sm = _arclength(xyz[:, :2])
+            s = np.arange(0.0, s_sm[-1], step)
+            xy = np.stack([np.interp(s, s_sm, xyz[:, 0]), np.interp(s, s_sm, xyz[:, 1])], axis=1)
+            z = np.interp(s, s_sm, xyz[:, 2])
         yaw = _heading(xy, step, cfg.file_heading_smoothing_m)
-        _warn_off_road(city, xy, cfg.preset)
         t = speed_profile(s, yaw, cfg, speed_phases)
-        return Route(s=s, xy=xy, yaw=yaw, t=t, pass_starts=np.array([0.0]))
+        centre = np.column_stack([xy, z])
+        return Route(s=s, xy=xy, yaw=yaw, t=t, pass_starts=np.array([0.0]), z=z, centre=centre)
 
     if abs(cfg.lane_offset_m) + cfg.lateral_wander_m >= cfg.turn_radius_m:
         raise FrontendInputError(
             "route.turn_radius_m must exceed |route.lane_offset_m| + route.lateral_wander_m "
             f"({cfg.turn_radius_m} <= {abs(cfg.lane_offset_m) + cfg.lateral_wander_m})"
         )
-    passes = preset_waypoints(cfg, city)
+    passes = preset_waypoints(cfg, pitch_m)
     pts = [passes[0]]
     first_index = [0]
     for p in passes[1:]:
@@ -267,7 +274,9 @@ def build_route(
     pass_starts = s_l[marks[first_index]]
     pass_starts[0] = 0.0
     t = speed_profile(s, yaw, cfg, speed_phases)
-    return Route(s=s, xy=xy, yaw=yaw, t=t, pass_starts=pass_starts)
+    z = terrain_height(cfg, seed, xy)
+    centre_xyz = np.column_stack([centre, terrain_height(cfg, seed, centre)])
+    return Route(s=s, xy=xy, yaw=yaw, t=t, pass_starts=pass_starts, z=z, centre=centre_xyz)
 
 
 def speed_profile(s: np.ndarray, yaw: np.ndarray, cfg: RouteConfig, phases: np.ndarray) -> np.ndarray:
@@ -299,7 +308,7 @@ def _gaussian_smooth(xy: np.ndarray, sigma_samples: float) -> np.ndarray:
     k = np.exp(-0.5 * (np.arange(-half, half + 1) / sigma_samples) ** 2)
     k /= k.sum()
     padded = np.pad(xy, ((half, half), (0, 0)), mode="reflect", reflect_type="odd")
-    return np.stack([np.convolve(padded[:, i], k, mode="valid") for i in range(2)], axis=1)
+    return np.stack([np.convolve(padded[:, i], k, mode="valid") for i in range(xy.shape[1])], axis=1)
 
 
 def _heading(xy: np.ndarray, step: float, smoothing_m: float) -> np.ndarray:
@@ -312,17 +321,3 @@ def _heading(xy: np.ndarray, step: float, smoothing_m: float) -> np.ndarray:
             axis=1,
         )
     return np.unwrap(np.arctan2(d[:, 1], d[:, 0]))
-
-
-def _warn_off_road(city: City, xy: np.ndarray, name: str) -> None:
-    cfg = city.config
-    p = cfg.pitch_m
-    dx = np.abs((xy[:, 0] - city.street_x[0]) - np.round((xy[:, 0] - city.street_x[0]) / p) * p)
-    dy = np.abs((xy[:, 1] - city.street_y[0]) - np.round((xy[:, 1] - city.street_y[0]) / p) * p)
-    on_road = (dx < cfg.street_width_m / 2) | (dy < cfg.street_width_m / 2)
-    if on_road.mean() < 0.95:
-        warnings.warn(
-            f"poses file {name}: {100 * (1 - on_road.mean()):.0f}% of the path is off the simulated "
-            f"streets (grid pitch {p} m through the origin); frames there see the inside of buildings",
-            stacklevel=3,
-        )

@@ -1,8 +1,9 @@
 """Deterministic simulated traverses: ``simulate_traverse(config)`` streams ``Frame`` objects.
 
 Each frame carries a rendered camera image, a motion-distorted LiDAR sweep with per-point times,
-the ground-truth pose (LiDAR/body frame, x forward, y left, z up, at the end of the sweep) and a
-drifting "wheel odometry" pose. Everything is a pure function of the config (and its seed):
+the ground-truth pose (LiDAR/body frame, x forward, y left, z up, at the end of the sweep; the
+vehicle pitches with the road) and a drifting "wheel odometry" pose. Parked cars, traffic and
+foliage change with time, so two visits of a place differ for both sensors. Everything is a pure function of the config (and its seed):
 frame k can be regenerated alone with ``TraverseSimulator.frame(k)``.
 """
 
@@ -15,20 +16,29 @@ import numpy as np
 
 from frontend.errors import FrontendInputError
 from frontend.frame import Frame
-from frontend.simulation.city import City, build_city
+from frontend.simulation.city import ALLEY, FACADE, City
 from frontend.simulation.config import SimulationConfig
-from frontend.simulation.render import CameraRenderer, LidarRenderer
-from frontend.simulation.route import Route, build_route, read_poses_file
+from frontend.simulation.layout import build_city
+from frontend.simulation.render import CameraRenderer, LidarRenderer, Scene
+from frontend.simulation.route import Route, build_route
+from frontend.simulation.route_files import read_route_file
+from frontend.simulation.traffic import Traffic
 
 # Independent random streams derived from the seed.
 _STREAM_IMAGE, _STREAM_LIDAR, _STREAM_ODOM = 11, 12, 13
+_FOLIAGE_EPOCH_S = 60.0  # leaves look different from one minute to the next
+_FILE_ONCOMING_LANE_M = 3.2
 
 
-def pose_matrix(x: float, y: float, z: float, yaw: float) -> np.ndarray:
-    """4x4 sensor-to-world transform of a planar pose."""
+def pose_matrix(x: float, y: float, z: float, yaw: float, pitch: float = 0.0) -> np.ndarray:
+    """4x4 sensor-to-world transform: heading ``yaw``, nose up by ``pitch`` (rad)."""
     c, s = math.cos(yaw), math.sin(yaw)
+    cp, sp = math.cos(pitch), math.sin(pitch)
     T = np.eye(4)
-    T[:2, :2] = [[c, -s], [s, c]]
+    # Rz(yaw) @ Ry(-pitch): a positive pitch turns the x axis upwards.
+    T[:3, :3] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]]) @ np.array(
+        [[cp, 0.0, -sp], [0.0, 1.0, 0.0], [sp, 0.0, cp]]
+    )
     T[:3, 3] = [x, y, z]
     return T
 
@@ -43,12 +53,17 @@ class TraverseSimulator:
             )
         self.config = config
         cfg = config
-        poses_xy = None
-        if cfg.route.is_file:
-            _, xyz = read_poses_file(cfg.route.preset, cfg.route.poses_format)
-            poses_xy = xyz[:, :2]
-        self.city: City = build_city(cfg.city, cfg.seed, cover_xy=poses_xy)
-        self.route: Route = build_route(cfg.route, self.city, cfg.seed, poses_xy)
+        self.route_file = (
+            read_route_file(cfg.route.preset, cfg.route.poses_format, cfg.route.poses_frame)
+            if cfg.route.is_file
+            else None
+        )
+        self.route: Route = build_route(cfg.route, cfg.seed, cfg.city.pitch_m, self.route_file)
+        self.city: City = build_city(cfg.city, cfg.seed, self.route.centre, cfg.traffic)
+        lane = cfg.traffic.oncoming_lane_offset_m
+        if lane is None:
+            lane = _FILE_ONCOMING_LANE_M if self.route_file is not None else -cfg.route.lane_offset_m
+        self.traffic = Traffic(self.city, self.route.centre, cfg.traffic, lane, cfg.seed)
         # Frame k ends its LiDAR sweep at route time scan_period + k / frame_rate (the first
         # sweep starts when the vehicle sets off); frames run until the route ends.
         dt = 1.0 / cfg.frame_rate_hz
@@ -63,6 +78,9 @@ class TraverseSimulator:
         self.arc = self.route.arc_length_at(self.route_times)
         x, y, yaw = self.route.pose_at(self.arc)
         self.xy_yaw = np.stack([x, y, yaw], axis=1)
+        self.road_z = self.route.height_at(self.arc)
+        self.grade = self.route.grade_at(self.arc)
+        self.pitch = np.arctan(self.grade)
         self.passes = self.route.pass_index(self.arc)
         self.camera = CameraRenderer(self.city, cfg.camera) if cfg.camera.enabled else None
         self.lidar = LidarRenderer(self.city, cfg.lidar, cfg.scan_period_s) if cfg.lidar.enabled else None
@@ -75,15 +93,17 @@ class TraverseSimulator:
 
     def gt_pose(self, k: int) -> np.ndarray:
         x, y, yaw = self.xy_yaw[k]
-        return pose_matrix(x, y, self.config.lidar.height_m, yaw)
+        return pose_matrix(x, y, self.road_z[k] + self.config.lidar.height_m, yaw, self.pitch[k])
 
     def gt_positions(self) -> np.ndarray:
         """(N, 2) ground-truth xy of every frame."""
         return self.xy_yaw[:, :2].copy()
 
     def logged_pose(self, k: int) -> np.ndarray:
+        """Wheel odometry: drifting in x, y and heading; height and pitch as a barometer and an
+        inclinometer would give them."""
         x, y, yaw = self._logged[k]
-        return pose_matrix(x, y, self.config.lidar.height_m, yaw)
+        return pose_matrix(x, y, self.road_z[k] + self.config.lidar.height_m, yaw, self.pitch[k])
 
     def _integrate_odometry(self) -> np.ndarray:
         """Dead-reckoned planar poses from the true increments with the configured errors."""
@@ -117,15 +137,25 @@ class TraverseSimulator:
         sched = self.config.appearance_schedule
         return sched[min(int(self.passes[k]), len(sched) - 1)]
 
-    def render_image(self, k: int) -> np.ndarray | None:
+    def scene(self, k: int) -> Scene:
+        """What stands in the street at frame k: the city's walls with the parked cars of that
+        moment, plus the oncoming traffic."""
+        t = float(self.route_times[k])
+        return Scene.of(self.city, self.city.active_segments(t), self.traffic.scene_part(t, self.xy_yaw[k, :2]))
+
+    def render_image(self, k: int, scene: Scene | None = None) -> np.ndarray | None:
         if self.camera is None:
             return None
         x, y, yaw = self.xy_yaw[k]
         app = self.config.appearances[self.appearance_name(k)]
         rng = np.random.default_rng([self.config.seed, _STREAM_IMAGE, k])
-        return self.camera.render(x, y, yaw, app, rng)
+        return self.camera.render(
+            x, y, yaw, app, rng,
+            road_z=float(self.road_z[k]), pitch=float(self.pitch[k]), grade=float(self.grade[k]),
+            scene=scene or self.scene(k), visit=int(self.route_times[k] // _FOLIAGE_EPOCH_S),
+        )
 
-    def render_scan(self, k: int) -> tuple[np.ndarray, np.ndarray] | tuple[None, None]:
+    def render_scan(self, k: int, scene: Scene | None = None) -> tuple[np.ndarray, np.ndarray] | tuple[None, None]:
         if self.lidar is None:
             return None, None
         rng = np.random.default_rng([self.config.seed, _STREAM_LIDAR, k])
@@ -134,16 +164,28 @@ class TraverseSimulator:
             xs, ys, yaws = self.route.pose_at(self.route.arc_length_at(t))
         else:
             xs, ys, yaws = self.xy_yaw[k]
-        return self.lidar.scan(xs, ys, yaws, rng)
+        return self.lidar.scan(
+            xs, ys, yaws, rng,
+            road_z=float(self.road_z[k]), pitch=float(self.pitch[k]), grade=float(self.grade[k]),
+            scene=scene or self.scene(k),
+        )
+
+    def building_clearance(self) -> np.ndarray:
+        """Per frame, the distance from the sensors to the nearest building wall (negative
+        inside a building): the check that no frame looks into a building."""
+        walls = np.isin(self.city.kind[self.city.surface], (FACADE, ALLEY))
+        sub = City(**{**self.city.__dict__, "p0": self.city.p0[walls], "p1": self.city.p1[walls]})
+        return sub.clearance(self.xy_yaw[:, :2])
 
     def frame(self, k: int) -> Frame:
         if not 0 <= k < len(self):
             raise IndexError(f"frame {k} outside 0..{len(self) - 1}")
-        points, times = self.render_scan(k)
+        scene = self.scene(k)
+        points, times = self.render_scan(k, scene)
         return Frame(
             index=k,
             timestamp=float(self.config.start_time_s + self.times[k]),
-            image=self.render_image(k),
+            image=self.render_image(k, scene),
             points=points,
             point_times=times,
             logged_pose=self.logged_pose(k),
@@ -165,6 +207,8 @@ class TraverseSimulator:
             "frames": len(self),
             "duration_s": float(self.times[-1]),
             "length_m": float(self.arc[-1] - self.arc[0]),
+            "route_length_3d_m": self.route.length_3d,
+            "height_range_m": float(np.ptp(self.road_z)),
             "passes": int(self.passes.max()) + 1,
             "revisit_frames": int((rev >= 0).sum()),
             "revisit_frames_same_direction": int((rev_same >= 0).sum()),

@@ -16,10 +16,12 @@ from frontend.simulation import (
     build_city,
     default_demo_config,
     ground_truth_revisits,
+    pose_matrix,
     simulate_traverse,
 )
 from frontend.simulation.config import CityConfig
 from frontend.simulation.render import cast_rays
+from frontend.simulation.route import grid_node
 
 
 @pytest.fixture(scope="module")
@@ -74,7 +76,8 @@ def test_different_seed_changes_textures_and_layout():
 
 
 def test_texture_lookup_is_vectorised_and_pure():
-    city = build_city(CityConfig(), seed=3)
+    centre = np.column_stack([np.linspace(0, 300, 601), np.zeros(601), np.zeros(601)])
+    city = build_city(CityConfig(district_mix={"dense": 1.0}), seed=3, centre=centre)
     rng = np.random.default_rng(0)
     sid = rng.integers(0, len(city.kind), 5000)
     u = rng.uniform(0, 15, 5000).astype(np.float32)
@@ -95,7 +98,7 @@ def test_texture_lookup_is_vectorised_and_pure():
 
 def test_demo_route_has_revisits_both_ways(sim):
     st = sim.stats()
-    assert 300 <= st["frames"] <= 520
+    assert 550 <= st["frames"] <= 800
     assert st["passes"] == 3
     xy = sim.gt_positions()
     yaw = sim.xy_yaw[:, 2]
@@ -115,7 +118,7 @@ def test_demo_route_has_revisits_both_ways(sim):
     assert reverse.any(axis=1).sum() > 20
 
 
-def test_trajectory_is_smooth_and_planar(sim):
+def test_trajectory_is_smooth_and_follows_the_road(sim):
     xy = sim.gt_positions()
     steps = np.linalg.norm(np.diff(xy, axis=0), axis=1)
     dt = 1.0 / sim.config.frame_rate_hz
@@ -123,10 +126,14 @@ def test_trajectory_is_smooth_and_planar(sim):
     dyaw = np.abs(np.diff(sim.xy_yaw[:, 2]))
     assert dyaw.max() < math.radians(15)
     f = sim.frame(100)
-    assert f.gt_pose[2, 3] == pytest.approx(sim.config.lidar.height_m)
+    assert f.gt_pose[2, 3] == pytest.approx(sim.road_z[100] + sim.config.lidar.height_m)
     R = f.gt_pose[:3, :3]
     np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
-    assert R[2, 2] == pytest.approx(1.0)
+    # The vehicle pitches with the rolling terrain (nose up uphill), but never rolls.
+    assert R[2, 2] == pytest.approx(math.cos(sim.pitch[100]))
+    assert R[2, 1] == pytest.approx(0.0, abs=1e-12)
+    assert np.sign(R[2, 0]) == np.sign(sim.grade[100]) or abs(sim.grade[100]) < 1e-6
+    assert np.ptp(sim.road_z) > 0.3 and np.abs(sim.pitch).max() < math.radians(6)
 
 
 def test_route_keeps_clear_of_walls_cars_and_poles(sim):
@@ -136,14 +143,14 @@ def test_route_keeps_clear_of_walls_cars_and_poles(sim):
     w = xy[:, None] - city.p0[None]
     f = np.clip((w * e[None]).sum(-1) / (e * e).sum(-1), 0, 1)
     d = np.linalg.norm(w - f[..., None] * e[None], axis=-1)
-    assert d.min() > 1.3
+    assert d.min() > 1.0  # parked cars at the kerb are the nearest
 
 
 def test_figure_eight_crosses_itself():
     cfg = SimulationConfig(route={"preset": "figure_eight", "laps": 2}, camera={"enabled": False})
     s = TraverseSimulator(cfg)
     xy = s.gt_positions()
-    centre = s.city.node(1, 1)
+    centre = grid_node(s.config.city.pitch_m, 1, 1)
     near = np.nonzero(np.linalg.norm(xy - centre, axis=1) < 3.0)[0]
     # Passed through the centre crossing heading in two different directions, on both laps.
     headings = {int(np.round(((s.xy_yaw[k, 2] % (2 * math.pi)) / (math.pi / 2)))) % 4 for k in near}
@@ -254,9 +261,32 @@ def _point_to_walls(city, pts_xy: np.ndarray) -> np.ndarray:
     return np.linalg.norm(w - f[..., None] * e[None], axis=-1)
 
 
-def test_lidar_points_lie_on_walls_and_ground(sim):
+def _ideal_lidar_sim(**overrides) -> TraverseSimulator:
+    """The demo with a perfect LiDAR (no calibration error, opaque foliage) and no traffic."""
+    lidar = {"beam_elevation_error_deg": 0.0, "range_bias_sigma_m": 0.0, "foliage_return_probability": 1.0,
+             "foliage_depth_m": 0.0, "glass_pass_probability": 0.0, "glass_dropout_probability": 0.0,
+             **overrides.pop("lidar", {})}
+    city = {"verge_relief_m": 0.0, "kerb_height_m": 0.0, "road_camber": 0.0}
+    return TraverseSimulator(default_demo_config(camera={"enabled": False}, lidar=lidar, city=city,
+                                                 traffic={"oncoming_vehicles_per_km": 0.0}, **overrides))
+
+
+def _world_points(sim: TraverseSimulator, k: int, pts: np.ndarray, times: np.ndarray) -> np.ndarray:
+    """Each point in the world with the pose at its own measurement time (pitch of the frame)."""
+    t_abs = sim.route_times[k] - sim.config.scan_period_s + times
+    x, y, yaw = sim.route.pose_at(sim.route.arc_length_at(t_abs))
+    z = sim.road_z[k] + sim.config.lidar.height_m
+    out = np.empty_like(pts)
+    for i, (xi, yi, yi_aw) in enumerate(zip(x, y, yaw)):
+        out[i] = pose_matrix(xi, yi, z, yi_aw, float(sim.pitch[k]))[:3] @ np.append(pts[i], 1.0)
+    return out
+
+
+def test_lidar_points_lie_on_walls_and_ground():
+    sim = _ideal_lidar_sim(max_frames=160)
     cfg = sim.config.lidar
-    f = sim.frame(150)
+    k = 150
+    f = sim.frame(k)
     pts, times = f.points, f.point_times
     assert pts.dtype == np.float64 and pts.ndim == 2 and pts.shape[1] == 3
     assert len(pts) > 0.5 * cfg.beams * cfg.azimuths
@@ -267,44 +297,55 @@ def test_lidar_points_lie_on_walls_and_ground(sim):
     period = sim.config.scan_period_s
     assert times.min() >= 0 and times.max() < period and np.all(np.diff(times) >= 0)
     assert times.max() - times.min() > 0.9 * period  # deskew-ready: spread over the sweep
-    # Put each point in the world with the pose at its own measurement time.
-    t_abs = sim.route_times[150] - period + times
-    x, y, yaw = sim.route.pose_at(sim.route.arc_length_at(t_abs))
-    c, s = np.cos(yaw), np.sin(yaw)
-    wx = x + c * pts[:, 0] - s * pts[:, 1]
-    wy = y + s * pts[:, 0] + c * pts[:, 1]
-    wz = cfg.height_m + pts[:, 2]
-    ground = np.abs(wz) < tol
+    sub = np.arange(0, len(pts), 5)
+    w = _world_points(sim, k, pts[sub], times[sub])
+    # Ground points lie on the terrain (the height of the nearest road).
+    plane = sim.city.ground_z(w[:, 0], w[:, 1])
+    ground = np.abs(w[:, 2] - plane) < tol
     assert 0.2 < ground.mean() < 0.8
-    # Ground points sit at z = -sensor height in the sensor frame.
-    assert np.abs(pts[ground, 2] + cfg.height_m).max() < tol
+    scene = sim.scene(k)
     wall = ~ground
-    sample = np.nonzero(wall)[0][::7]
-    d = _point_to_walls(sim.city, np.stack([wx[sample], wy[sample]], axis=1)).min(axis=1)
+    d = _point_to_walls(scene, w[wall][::3, :2]).min(axis=1)
     assert np.percentile(d, 99) < tol
-    assert np.all(wz[wall] > -tol)
+    assert np.all(w[wall, 2] > plane[wall] - 0.5)
 
 
 def test_lidar_without_motion_distortion_matches_gt_pose():
-    s = TraverseSimulator(
-        default_demo_config(max_frames=80, camera={"enabled": False}, lidar={"motion_distortion": False})
-    )
+    s = _ideal_lidar_sim(max_frames=80, lidar={"motion_distortion": False})
     f = s.frame(70)
     w = f.points @ f.gt_pose[:3, :3].T + f.gt_pose[:3, 3]
-    on_ground = np.abs(w[:, 2]) < 0.15
-    d = _point_to_walls(s.city, w[~on_ground][::9, :2]).min(axis=1)
+    on_ground = np.abs(w[:, 2] - s.city.ground_z(w[:, 0], w[:, 1])) < 0.3
+    d = _point_to_walls(s.scene(70), w[~on_ground][::9, :2]).min(axis=1)
     assert np.percentile(d, 99) < 0.15
+
+
+def test_lidar_beam_elevation_errors_bend_the_ground():
+    """A real unit: per-beam elevation errors put a flat road's returns off the plane."""
+
+    def ground_offset(elevation_error_deg: float) -> float:
+        sim = TraverseSimulator(default_demo_config(
+            camera={"enabled": False}, max_frames=60, route={"terrain_amplitude_m": 0.0},
+            city={"verge_relief_m": 0.0, "kerb_height_m": 0.0, "road_camber": 0.0},
+            traffic={"oncoming_vehicles_per_km": 0.0},
+            lidar={"beam_elevation_error_deg": elevation_error_deg, "range_bias_sigma_m": 0.0, "motion_distortion": False},
+        ))
+        f = sim.frame(50)
+        w = f.points @ f.gt_pose[:3, :3].T + f.gt_pose[:3, 3]
+        near = (np.linalg.norm(f.points[:, :2], axis=1) < 20) & (np.abs(w[:, 2]) < 0.3)
+        return float(np.mean(np.abs(w[near, 2])))
+
+    assert ground_offset(0.3) > 2.5 * ground_offset(0.0)
 
 
 def test_lidar_sees_structure_across_the_street_direction(sim):
     """Walls facing along the street (setback steps, side walls, poles, cars) keep ICP well posed."""
     k = 60
     x, y, yaw = sim.xy_yaw[k]
-    city = sim.city
+    scene = sim.scene(k)
     ang = yaw + np.linspace(-math.pi, math.pi, 720, endpoint=False)
-    t, seg, _ = cast_rays(city, np.arange(city.n_segments), x, y, np.cos(ang), np.sin(ang), 1)
+    t, seg, _ = cast_rays(scene, np.arange(len(scene)), x, y, np.cos(ang), np.sin(ang), 1)
     hit = np.isfinite(t[:, 0]) & (t[:, 0] < 40)
-    n = city.normal[seg[hit, 0]]
+    n = scene.normal[seg[hit, 0]]
     along = np.abs(n @ np.array([math.cos(yaw), math.sin(yaw)]))
     assert (along > 0.7).sum() > 40
 

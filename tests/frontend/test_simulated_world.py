@@ -1,0 +1,146 @@
+"""The simulated world behaves like the real one: route files in their own conventions, a city
+laid along any route, and a LiDAR whose returns differ between visits."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from frontend.errors import FrontendInputError
+from frontend.simulation import SimulationConfig, TraverseSimulator, default_demo_config, read_route_file
+from frontend.simulation.city import CAR, FOLIAGE
+from frontend.simulation.route_files import CAMERA_TO_BODY
+
+KITTI06 = Path(__file__).resolve().parents[3] / "shared" / "data" / "routes" / "kitti06" / "06.txt"
+
+
+def _loop(n: int = 400) -> np.ndarray:
+    """A closed rounded-rectangle drive with a hill, in a z-up body world (x forward)."""
+    t = np.linspace(0, 2 * math.pi, n, endpoint=False)
+    x = 120 * np.sign(np.cos(t)) * np.abs(np.cos(t)) ** 0.3
+    y = 60 * np.sign(np.sin(t)) * np.abs(np.sin(t)) ** 0.3
+    z = 3.0 * np.sin(t)
+    return np.column_stack([x, y, z])
+
+
+def _body_rotations(pos: np.ndarray) -> np.ndarray:
+    d = np.gradient(pos, axis=0)
+    yaw = np.arctan2(d[:, 1], d[:, 0])
+    c, s = np.cos(yaw), np.sin(yaw)
+    R = np.zeros((len(pos), 3, 3))
+    R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1], R[:, 2, 2] = c, -s, s, c, 1.0
+    return R
+
+
+def _write_tum(path: Path, pos: np.ndarray, R: np.ndarray) -> None:
+    from scipy.spatial.transform import Rotation
+
+    q = Rotation.from_matrix(R).as_quat()  # x y z w
+    path.write_text("".join(f"{i * 0.1:.3f} " + " ".join(f"{v:.6f}" for v in (*p, *qq)) + "\n" for i, (p, qq) in enumerate(zip(pos, q))))
+
+
+def _write_kitti(path: Path, pos: np.ndarray, R: np.ndarray) -> None:
+    rows = [np.hstack([r, p[:, None]]).ravel() for r, p in zip(R, pos)]
+    path.write_text("".join(" ".join(f"{v:.6e}" for v in row) + "\n" for row in rows))
+
+
+def test_kitti_camera_file_and_tum_body_file_give_the_same_route(tmp_path):
+    body = _loop()
+    R_body = _body_rotations(body)
+    # The same drive seen as KITTI camera-0 poses: p_cam = C^T p_body, R_cam = C^T R_body C.
+    C = CAMERA_TO_BODY
+    cam_pos = body @ C  # (C^T p)^T = p^T C
+    cam_R = np.einsum("ij,njk,kl->nil", C.T, R_body, C)
+    _write_tum(tmp_path / "body.tum", body, R_body)
+    _write_kitti(tmp_path / "cam.txt", cam_pos, cam_R)
+    a = read_route_file(tmp_path / "body.tum")
+    b = read_route_file(tmp_path / "cam.txt")
+    assert (a.frame, a.file_format) == ("body", "tum")
+    assert (b.frame, b.file_format) == ("camera", "kitti")
+    np.testing.assert_allclose(a.positions, b.positions, atol=1e-4)
+    sims = [
+        TraverseSimulator(SimulationConfig(route={"preset": str(tmp_path / name)}, camera={"enabled": False}, lidar={"enabled": False}))
+        for name in ("body.tum", "cam.txt")
+    ]
+    np.testing.assert_allclose(sims[0].route.xy, sims[1].route.xy, atol=1e-3)
+    np.testing.assert_allclose(sims[0].route.z, sims[1].route.z, atol=1e-3)
+    # The road keeps the file's height profile (3 m hill) and the vehicle pitches with it.
+    assert np.ptp(sims[0].road_z) == pytest.approx(6.0, abs=0.2)
+    assert np.abs(sims[0].pitch).max() > math.radians(0.5)
+    # The forced convention overrides detection (and a wrong one gives a different route).
+    forced = read_route_file(tmp_path / "cam.txt", frame="body")
+    assert forced.frame == "body" and not np.allclose(forced.positions, a.positions, atol=1.0)
+
+
+def test_kitti06_route_is_read_as_camera_poses_with_its_length_and_no_frame_in_a_building():
+    sim = TraverseSimulator(SimulationConfig(route={"preset": str(KITTI06)}, camera={"enabled": False}, lidar={"enabled": False}))
+    assert sim.route_file is not None and sim.route_file.frame == "camera"
+    assert sim.route.length_3d == pytest.approx(sim.route_file.length, rel=0.02)
+    # KITTI 06 is about 450 m long and 20 m wide: the ground plane really is x-y now.
+    extent = np.ptp(sim.route.xy, axis=0)
+    assert extent.max() > 400 and extent.min() > 15
+    assert 5.0 < np.ptp(sim.road_z) < 15.0
+    clearance = sim.building_clearance()
+    assert clearance.min() > 3.0, f"frame {int(clearance.argmin())} is {clearance.min():.2f} m from a building"
+    # Both sides of the street are built up somewhere along it, and districts differ.
+    kinds = set(sim.city.kind.tolist())
+    assert {CAR, FOLIAGE} <= kinds
+    assert len(set(sim.city.ground.district.ravel().tolist())) >= 3
+
+
+@pytest.mark.parametrize("preset", ["block_grid", "figure_eight"])
+def test_no_frame_inside_a_building_on_preset_routes(preset):
+    sim = TraverseSimulator(
+        SimulationConfig(route={"preset": preset}, camera={"enabled": False}, lidar={"enabled": False})
+    )
+    assert sim.building_clearance().min() > 3.0
+    assert len(sim.city.footprints) > 10
+
+
+@pytest.mark.parametrize(
+    ("content", "needle"),
+    [
+        ("", "no poses"),
+        ("1 0 0 0 0 1 0 0 0 0 1 0\n" * 30, "does not move"),
+        ("1 0 0 0 0 1 0 0 0 0 1 nan\n" * 3, "non-finite"),
+        ("".join(f"1 0 0 0 0 1 0 0 0 0 1 {0.1 * i}\n" for i in range(50)), "needs at least"),
+        # Travel along the local y axis: neither a camera (z) nor a body (x) convention.
+        ("".join(f"1 0 0 0 0 1 0 {2.0 * i} 0 0 1 0\n" for i in range(50)), "fits neither"),
+        ("1 2 3\n4 5 6\n", "expected 8 (TUM) or 12 (KITTI)"),
+    ],
+)
+def test_bad_route_files_give_one_line_errors_naming_the_file(tmp_path, content, needle):
+    path = tmp_path / "route.txt"
+    path.write_text(content)
+    with pytest.raises(FrontendInputError) as err:
+        TraverseSimulator(SimulationConfig(route={"preset": str(path)}))
+    message = str(err.value)
+    assert str(path) in message and needle in message and "\n" not in message
+
+
+def test_parked_cars_and_traffic_differ_between_visits():
+    sim = TraverseSimulator(default_demo_config(camera={"enabled": False}))
+    city = sim.city
+    turnover = sim.config.traffic.parked_car_turnover_s
+    a, b = city.slots_occupied(0.0), city.slots_occupied(2 * turnover)
+    assert len(a) > 20
+    assert 0.1 < a.mean() < 0.6 and (a != b).mean() > 0.2
+    assert len(sim.traffic) > 0
+    parts = [len(sim.traffic.scene_part(t, np.array([1e6, 1e6])).p0) for t in (0.0, 30.0)]
+    assert parts[0] > 0 and parts[1] > 0
+
+
+def test_foliage_is_porous_to_the_lidar():
+    sim = TraverseSimulator(SimulationConfig(route={"preset": str(KITTI06)}, camera={"enabled": False}, max_frames=400))
+    # Frames near a tree: the crown returns scatter from one draw of the noise to the next.
+    tree_xy = (sim.city.p0[sim.city.kind[sim.city.surface] == FOLIAGE]).reshape(-1, 2)
+    d = np.linalg.norm(sim.xy_yaw[:, None, :2] - tree_xy[None], axis=2).min(axis=1)
+    k = int(np.argmin(d))
+    assert d[k] < 25.0
+    scene = sim.scene(k)
+    x, y, yaw = sim.xy_yaw[k]
+    scans = [sim.lidar.scan(x, y, yaw, np.random.default_rng(seed), road_z=float(sim.road_z[k]), scene=scene)[0] for seed in (1, 2)]
+    assert abs(len(scans[0]) - len(scans[1])) > 0 or not np.allclose(scans[0], scans[1])
