@@ -4,6 +4,7 @@ laid along any route, and a LiDAR whose returns differ between visits."""
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +15,8 @@ from frontend.simulation import SimulationConfig, TraverseSimulator, default_dem
 from frontend.simulation.city import CAR, FOLIAGE
 from frontend.simulation.route_files import CAMERA_TO_BODY
 
-KITTI06 = Path(__file__).resolve().parents[3] / "shared" / "data" / "routes" / "kitti06" / "06.txt"
+SHARED = Path(os.environ.get("SSMVPR_SHARED", Path(__file__).resolve().parents[3] / "shared"))
+KITTI06 = SHARED / "data" / "routes" / "kitti06" / "06.txt"
 
 
 def _loop(n: int = 400) -> np.ndarray:
