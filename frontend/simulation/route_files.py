@@ -19,6 +19,7 @@ from typing import Literal
 import numpy as np
 
 from frontend.errors import FrontendInputError
+from frontend.poses_io import read_poses
 
 PosesFrame = Literal["auto", "camera", "body"]
 
@@ -41,47 +42,6 @@ class RouteFile:
     @property
     def length(self) -> float:
         return float(np.linalg.norm(np.diff(self.positions, axis=0), axis=1).sum())
-
-
-def _rows(path: Path) -> np.ndarray:
-    try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise FrontendInputError(f"poses file {path}: cannot read: {exc}") from exc
-    rows: list[list[float]] = []
-    for lineno, line in enumerate(text.splitlines(), 1):
-        line = line.strip()
-        if not line or line.startswith("#"):
-            continue
-        try:
-            vals = [float(v) for v in line.replace(",", " ").split()]
-        except ValueError as exc:
-            raise FrontendInputError(f"poses file {path}: line {lineno}: not numbers: {line[:60]!r}") from exc
-        if rows and len(vals) != len(rows[0]):
-            raise FrontendInputError(
-                f"poses file {path}: line {lineno}: {len(vals)} values, earlier lines have {len(rows[0])}"
-            )
-        if not all(np.isfinite(vals)):
-            raise FrontendInputError(f"poses file {path}: line {lineno}: non-finite value")
-        rows.append(vals)
-    if not rows:
-        raise FrontendInputError(f"poses file {path}: no poses")
-    return np.asarray(rows, float)
-
-
-def _quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """(N, 4) quaternions x y z w -> (N, 3, 3); zero quaternions become identity."""
-    n = np.linalg.norm(q, axis=1, keepdims=True)
-    q = np.where(n > 1e-12, q / np.maximum(n, 1e-12), np.array([0.0, 0.0, 0.0, 1.0]))
-    x, y, z, w = q.T
-    return np.stack(
-        [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)], -1),
-            np.stack([2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)], -1),
-            np.stack([2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], -1),
-        ],
-        axis=1,
-    )
 
 
 def detect_frame(rotations: np.ndarray, positions: np.ndarray) -> Literal["camera", "body"] | None:
@@ -107,23 +67,13 @@ def read_route_file(path: str | Path, fmt: str = "auto", frame: PosesFrame = "au
     travel. Raises FrontendInputError naming the file on anything unreadable or degenerate.
     """
     path = Path(path)
-    arr = _rows(path)
-    ncol = arr.shape[1]
-    if fmt == "auto":
-        fmt = {8: "tum", 12: "kitti"}.get(ncol, "")
-        if not fmt:
-            raise FrontendInputError(f"poses file {path}: {ncol} values per line; expected 8 (TUM) or 12 (KITTI)")
-    if fmt == "tum":
-        if ncol != 8:
-            raise FrontendInputError(f"poses file {path}: TUM needs 8 values per line, found {ncol}")
-        stamps, pos, rot = arr[:, 0], arr[:, 1:4], _quat_to_matrix(arr[:, 4:8])
-    elif fmt == "kitti":
-        if ncol != 12:
-            raise FrontendInputError(f"poses file {path}: KITTI needs 12 values per line, found {ncol}")
-        m = arr.reshape(-1, 3, 4)
-        stamps, pos, rot = None, m[:, :, 3], m[:, :, :3]
-    else:
+    if fmt not in ("auto", "tum", "kitti"):
         raise FrontendInputError(f"poses file {path}: unknown format {fmt!r} (tum | kitti | auto)")
+    read = read_poses(path, None if fmt == "auto" else fmt)  # type: ignore[arg-type]
+    if not len(read.poses):
+        raise FrontendInputError(f"poses file {path}: no poses")
+    stamps, pos, rot = read.timestamps, read.poses[:, :3, 3], read.poses[:, :3, :3]
+    fmt = read.format
     if len(pos) < 2 or np.ptp(pos, axis=0).max() < 1e-6:
         raise FrontendInputError(f"poses file {path}: every pose is the same; the path does not move")
     detected = detect_frame(rot, pos)

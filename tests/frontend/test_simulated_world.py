@@ -105,9 +105,9 @@ def test_no_frame_inside_a_building_on_preset_routes(preset):
 @pytest.mark.parametrize(
     ("content", "needle"),
     [
-        ("", "no poses"),
+        ("", "no data lines"),
         ("1 0 0 0 0 1 0 0 0 0 1 0\n" * 30, "does not move"),
-        ("1 0 0 0 0 1 0 0 0 0 1 nan\n" * 3, "non-finite"),
+        ("1 0 0 0 0 1 0 0 0 0 1 nan\n" * 3, "NaN or inf"),
         ("".join(f"1 0 0 0 0 1 0 0 0 0 1 {0.1 * i}\n" for i in range(50)), "needs at least"),
         # Travel along the local y axis: neither a camera (z) nor a body (x) convention.
         ("".join(f"1 0 0 0 0 1 0 {2.0 * i} 0 0 1 0\n" for i in range(50)), "fits neither"),

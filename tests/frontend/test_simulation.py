@@ -389,8 +389,8 @@ def test_unknown_preset_is_rejected_naming_it():
 
 def test_unreadable_poses_file_names_the_file(tmp_path):
     bad = tmp_path / "poses.txt"
-    bad.write_text("0 1 2 3 4 5 6 7\n0 1 two 3 4 5 6 7\n")
-    with pytest.raises(FrontendInputError, match=r"poses\.txt.*line 2"):
+    bad.write_text("0 1 2 3 0 0 0 1\n0 1 two 3 0 0 0 1\n")
+    with pytest.raises(FrontendInputError, match=r"poses\.txt:2: non-numeric"):
         TraverseSimulator(SimulationConfig(route={"preset": str(bad)}))
     odd = tmp_path / "five.txt"
     odd.write_text("1 2 3 4 5\n")
