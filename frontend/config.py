@@ -120,7 +120,9 @@ class KissIcpConfig(_Model):
     """kiss-icp's ``KISSConfig`` fields, flattened, plus our input guards."""
 
     max_range: float = Field(100.0, gt=0.0)
-    min_range: float = Field(0.0, ge=0.0)
+    min_range: float = Field(
+        0.5, ge=0.0, description="nearer returns are the vehicle itself or a driver's placeholder"
+    )
     deskew: bool = Field(True, description="used only when a scan has real per-point times")
     voxel_size: float | None = Field(None, gt=0.0, description="None: max_range / 100")
     max_points_per_voxel: int = Field(20, ge=1)

@@ -2,7 +2,8 @@
 
 kiss-icp aborts the whole process (SOPHUS_ENSURE) when deskewing with all-equal per-point
 times, and NaN points poison its voxel map. So every scan is cleaned here first: non-finite
-points dropped, range-filtered, and too-small scans skipped with a constant-velocity
+points and the all-zero placeholders drivers publish for missing returns dropped,
+range-filtered, and too-small scans skipped with a constant-velocity
 prediction; per-point times are handed over only when they are real (finite, one per
 point, not all equal), otherwise kiss-icp gets none and does not deskew that scan.
 """
@@ -102,7 +103,8 @@ class KissIcpOdometry:
         if points.ndim != 2 or points.shape[1] != 3:
             raise FrontendInputError(f"{where}: points have shape {points.shape}, expected (N, 3)")
         points = points.astype(np.float64, copy=False)
-        keep = np.all(np.isfinite(points), axis=1)
+        # (0, 0, 0) is how drivers publish a missing return, whatever min_range says
+        keep = np.all(np.isfinite(points), axis=1) & np.any(points != 0.0, axis=1)
         ranges = np.linalg.norm(np.where(keep[:, None], points, 0.0), axis=1)
         keep &= (ranges >= self.config.min_range) & (ranges <= self.config.max_range)
         if keep.sum() < self.config.min_points:

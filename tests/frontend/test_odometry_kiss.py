@@ -90,6 +90,22 @@ def test_empty_nan_and_missing_scans_predict_without_crashing() -> None:
     assert skipped["too_few_valid_points"] == 2  # all-NaN and 5-point scans
 
 
+@pytest.mark.parametrize("min_range", [0.0, 0.5])
+def test_zero_placeholder_points_are_dropped_even_with_min_range_zero(min_range: float) -> None:
+    """Drivers publish (0, 0, 0) for a missing return; kept, they pin the map to the sensor."""
+    rng = np.random.default_rng(3)
+    config = CONFIG.model_copy(update={"min_range": min_range})
+    odometry = KissIcpOdometry(config)
+    for k in range(8):
+        scan = _scan(k, rng)
+        padded = np.vstack([scan, np.zeros((2 * len(scan), 3))])  # two thirds of the points missing
+        estimate = odometry.update(Frame(k, 0.1 * k, points=padded))
+    truth = np.linalg.inv(_sensor_pose(0)) @ _sensor_pose(7)
+    assert np.linalg.norm(estimate[:3, 3] - truth[:3, 3]) < 0.1
+    assert odometry.update(Frame(8, 0.8, points=np.zeros((5000, 3)))) is not None
+    assert odometry.stats.skipped == {"too_few_valid_points": 1}
+
+
 def test_hold_instead_of_predict() -> None:
     rng = np.random.default_rng(2)
     odometry = KissIcpOdometry(CONFIG.model_copy(update={"predict_on_skip": False}))
