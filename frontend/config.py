@@ -74,7 +74,10 @@ class McapSourceConfig(_Model):
         True, description="truncated/corrupt log: raise (True) or warn once and stop (False)"
     )
     skip_undecodable_images: bool = Field(
-        True, description="count and skip a compressed image cv2 cannot decode"
+        True, description="bad image: count it, keep the frame's other sensors (False: stop)"
+    )
+    max_time_gap_s: float = Field(
+        5.0, gt=0.0, description="a stream's time leaping further forward is warned about"
     )
 
 
@@ -87,6 +90,9 @@ class KittiSourceConfig(_Model):
     gt_frame: Literal["auto", "lidar", "camera"] = Field(
         "auto", description="body frame of gt_pose; auto = lidar when velodyne/ exists"
     )
+    max_time_gap_s: float = Field(
+        5.0, gt=0.0, description="a time leaping further forward is warned about"
+    )
 
 
 class FolderSourceConfig(_Model):
@@ -98,6 +104,9 @@ class FolderSourceConfig(_Model):
     pose_role: Literal["gt", "logged", "both"] = "gt"
     association_tolerance_s: float = Field(
         0.02, ge=0.0, description="image time vs TUM pose time, when both are timestamps"
+    )
+    max_time_gap_s: float = Field(
+        5.0, gt=0.0, description="a time leaping further forward is warned about"
     )
     frame_period_s: float = Field(
         0.1, gt=0.0, description="timestamp step when no times are known"

@@ -29,6 +29,13 @@ class SourceStats:
             self.warned.add(reason)
             log.warning("%s (further '%s' skips are only counted)", detail, reason)
 
+    def warn(self, reason: str, detail: str) -> None:
+        """Count something kept but doubtful (a note); log the first of each reason."""
+        self.notes[reason] += 1
+        if reason not in self.warned:
+            self.warned.add(reason)
+            log.warning("%s (further '%s' cases are only counted)", detail, reason)
+
     def summary(self) -> str:
         """One line for logs and reports."""
         skips = ", ".join(f"{k}={v}" for k, v in sorted(self.skipped.items())) or "none"

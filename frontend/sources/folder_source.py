@@ -22,6 +22,7 @@ from frontend.errors import FrontendInputError
 from frontend.frame import Frame
 from frontend.poses_io import PoseFile, read_poses
 from frontend.sources.base import Source
+from frontend.sources.clock import StreamClock
 from frontend.sources.images import list_images, read_rgb
 
 IMAGE_DIR_NAMES = ("images", "image", "rgb", "image_2", "image_0")
@@ -152,19 +153,22 @@ class FolderSource(Source):
     def __iter__(self) -> Iterator[Frame]:
         self.reset_stats()
         roles = POSE_ROLES[self.config.pose_role]
-        last = float("-inf")
+        clock = StreamClock(self.stats, self.config.max_time_gap_s)
         for index, (path, time) in enumerate(zip(self.images, self.times)):
-            if time <= last:
-                self.stats.skip("non_monotonic", f"{path}: time {time} not after {last}; skipped")
+            if not clock.accept("frame", float(time), str(path)):
                 continue
-            last = time
             pose = self.poses[index] if self.poses is not None else None
             if self.poses is not None and pose is None:
                 self.stats.notes["unmatched_pose"] += 1
+            try:
+                image = read_rgb(path)
+            except FrontendInputError as error:  # the image is all a folder frame has
+                self.stats.skip("undecodable_image", f"{error}; frame skipped")
+                continue
             frame = Frame(
                 index=self.stats.frames_yielded,
                 timestamp=float(time),
-                image=read_rgb(path),
+                image=image,
                 logged_pose=pose.copy() if pose is not None and "logged_pose" in roles else None,
                 gt_pose=pose.copy() if pose is not None and "gt_pose" in roles else None,
             )

@@ -16,7 +16,7 @@ logged-pose odometry. Scans carry no per-point times (KITTI scans are already de
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +26,7 @@ from frontend.errors import FrontendInputError
 from frontend.frame import Frame
 from frontend.poses_io import KITTI_COLUMNS, pose_from_kitti_row, read_kitti
 from frontend.sources.base import Source
+from frontend.sources.clock import StreamClock
 from frontend.sources.images import list_images, read_rgb
 
 log = logging.getLogger("frontend.sources.kitti")
@@ -153,6 +154,16 @@ class KittiSource(Source):
             poses = np.linalg.inv(tr) @ poses @ tr
         return poses
 
+    def _read(self, reader: Callable[[Path], np.ndarray], files: list[Path], index: int, reason: str):  # noqa: ANN202
+        """One sensor file of a frame, or None (counted, first warned): the frame keeps the rest."""
+        if not files:
+            return None
+        try:
+            return reader(files[index])
+        except (FrontendInputError, OSError, ValueError) as error:
+            self.stats.skip(reason, f"{error}; file skipped")
+            return None
+
     # ---------------------------------------------------------------- Source API
 
     @property
@@ -180,19 +191,19 @@ class KittiSource(Source):
 
     def __iter__(self) -> Iterator[Frame]:
         self.reset_stats()
-        last = float("-inf")
+        clock = StreamClock(self.stats, self.config.max_time_gap_s)
         for index, timestamp in enumerate(self.times):
-            if timestamp <= last:
-                self.stats.skip(
-                    "non_monotonic", f"{self.path}/times.txt line {index + 1}: time not increasing"
-                )
+            if not clock.accept("frame", float(timestamp), f"{self.path}/times.txt line {index + 1}"):
                 continue
-            last = timestamp
+            image = self._read(read_rgb, self.images, index, "undecodable_image")
+            points = self._read(read_velodyne, self.scans, index, "bad_lidar")
+            if (self.images or self.scans) and image is None and points is None:
+                continue  # nothing of this frame could be read
             frame = Frame(
                 index=self.stats.frames_yielded,
                 timestamp=float(timestamp),
-                image=read_rgb(self.images[index]) if self.images else None,
-                points=read_velodyne(self.scans[index]) if self.scans else None,
+                image=image,
+                points=points,
                 gt_pose=self.gt_poses[index].copy() if self.gt_poses is not None else None,
             )
             self.stats.frames_yielded += 1

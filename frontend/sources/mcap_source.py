@@ -3,7 +3,9 @@
 Topics are found by message type (or named in the config); the camera stream drives the
 frames (the LiDAR when there is no camera) and the other streams are matched by nearest
 timestamp (:mod:`frontend.sources.association`). An indexed log is read in log-time order
-through its chunk index; a log without a usable summary (still being written, or cut off)
+through its chunk index, unless its message index shows a topic whose log time goes back in
+file order (a clock jump): then in file order, so the jump is seen and not interleaved
+(:mod:`frontend.sources.clock`); a log without a usable summary (still being written, or cut off)
 is read linearly in file order, and a cut is reported after every frame before it.
 """
 
@@ -17,7 +19,9 @@ from typing import IO, Any
 
 from mcap.exceptions import McapError
 from mcap.reader import NonSeekingReader, SeekingReader
-from mcap.records import Channel, Message, Schema
+from mcap.data_stream import ReadDataStream
+from mcap.records import Channel, Message, MessageIndex, Schema
+from mcap.summary import Summary
 from mcap.stream_reader import StreamReader
 from mcap_ros2.decoder import DecoderFactory
 
@@ -28,6 +32,7 @@ from frontend.poses_io import pose_problem
 from frontend.sources import ros_convert
 from frontend.sources.association import Associated, StreamAssociator
 from frontend.sources.base import Source
+from frontend.sources.clock import StreamClock
 from frontend.sources.ros_msgdefs import (
     COMPRESSED_IMAGE,
     IMAGE,
@@ -214,7 +219,7 @@ class McapSource(Source):
             self.stats,
         )
         by_topic = {t.name: t for t in self._roles.values()}
-        last_time: dict[str, float] = {}
+        clock = StreamClock(self.stats, cfg.max_time_gap_s)
         factory = DecoderFactory()
         failure: str | None = None
         with self._open() as stream:
@@ -233,17 +238,11 @@ class McapSource(Source):
                 if decoded is None:
                     continue
                 time = self._time(decoded, message)
-                if time <= last_time.get(topic.name, float("-inf")):
-                    self.stats.skip(
-                        f"non_monotonic_{topic.role}",
-                        f"{self.path}: {topic.name} time {time:.9f} is not after "
-                        f"{last_time[topic.name]:.9f}; message skipped",
-                    )
+                if not clock.accept(topic.role, time, f"{self.path}: {topic.name}"):
                     continue
-                last_time[topic.name] = time
-                payload = self._convert(topic, decoded)
-                if payload is None:
-                    continue
+                payload = self._convert(topic, decoded, time)
+                if payload is None and (topic.role != self.driver or not aux):
+                    continue  # a bad driving message still makes a frame for the other sensors
                 if topic.role == self.driver:
                     ready = associator.add_driver(time, payload)
                 else:
@@ -265,7 +264,18 @@ class McapSource(Source):
         self, stream: IO[bytes], topics: list[str]
     ) -> Iterator[tuple[Schema | None, Channel, Message]]:
         if self._indexed:
-            return SeekingReader(stream).iter_messages(topics=topics, log_time_order=True)
+            reader = SeekingReader(stream)
+            back = _goes_back_in_file_order(stream, reader.get_summary(), set(topics))
+            if back is None:
+                return reader.iter_messages(topics=topics, log_time_order=True)
+            # Sorting by log time would interleave the parts before and after the jump.
+            self.stats.warn(
+                "clock_went_back",
+                f"{self.path}: {back[0]} log time goes back {back[1]:.3f} s in file order; "
+                "reading in file order, messages before the time passes again are skipped",
+            )
+            stream.seek(0)
+            return reader.iter_messages(topics=topics, log_time_order=False)
         # File order: sorting an unindexed log by time would load all of it into memory.
         return NonSeekingReader(stream).iter_messages(topics=topics, log_time_order=False)
 
@@ -297,21 +307,29 @@ class McapSource(Source):
                 return stamp
         return message.log_time / ros_convert.NANOSECONDS
 
-    def _convert(self, topic: _Topic, decoded: Any) -> Any:
-        """Message -> numpy payload for the Frame; None (counted) when unusable."""
-        where = f"{self.path}: {topic.name}"
-        if topic.type == IMAGE:
-            return ros_convert.decode_image(decoded, where)
-        if topic.type == COMPRESSED_IMAGE:
-            image = ros_convert.decode_compressed_image(decoded, where)
-            if image is None:
-                if not self.config.skip_undecodable_images:
+    def _convert(self, topic: _Topic, decoded: Any, time: float) -> Any:
+        """Message -> numpy payload for the Frame; None (counted, first one warned) when unusable.
+
+        One bad message never stops a stream: it is skipped, naming topic, time and reason.
+        """
+        where = f"{self.path}: {topic.name} at t={time:.6f}"
+        try:
+            if topic.type == IMAGE:
+                return ros_convert.decode_image(decoded, where)
+            if topic.type == COMPRESSED_IMAGE:
+                image = ros_convert.decode_compressed_image(decoded, where)
+                if image is None:
                     raise FrontendInputError(f"{where}: compressed image cannot be decoded")
-                self.stats.skip("undecodable_image", f"{where}: undecodable compressed image")
-            return image
-        if topic.type == POINT_CLOUD2:
-            return ros_convert.decode_point_cloud(decoded, where)
-        pose = ros_convert.decode_pose(decoded, where)
+                return image
+            if topic.type == POINT_CLOUD2:
+                return ros_convert.decode_point_cloud(decoded, where)
+            pose = ros_convert.decode_pose(decoded, where)
+        except FrontendInputError as error:
+            if topic.role == "camera" and not self.config.skip_undecodable_images:
+                raise
+            reason = "undecodable_image" if topic.role == "camera" else f"bad_{topic.role}"
+            self.stats.skip(reason, f"{error}; message skipped")
+            return None
         problem = pose_problem(pose, self._rotation_tolerance)
         if problem is not None:
             self.stats.skip(f"invalid_{topic.role}", f"{where}: {problem}; message skipped")
@@ -322,7 +340,7 @@ class McapSource(Source):
         for item in ready:
             parts = dict(item.matches)
             parts[self.driver] = item.payload
-            points, times = parts.get("lidar", (None, None))
+            points, times = parts.get("lidar") or (None, None)
             frame = Frame(
                 index=self.stats.frames_yielded,
                 timestamp=item.time,
@@ -334,3 +352,32 @@ class McapSource(Source):
             )
             self.stats.frames_yielded += 1
             yield frame
+
+
+def _goes_back_in_file_order(
+    stream: IO[bytes], summary: Summary | None, topics: set[str]
+) -> tuple[str, float] | None:
+    """(topic, seconds) of the largest backward step of a topic's log time in file order.
+
+    Read from the chunks' message index records (times and offsets, no decompression), so
+    even a multi-gigabyte log is checked in a moment. None when every topic only goes forward.
+    """
+    if summary is None:
+        return None
+    worst: tuple[str, float] | None = None
+    last: dict[int, int] = {}
+    for chunk in sorted(summary.chunk_indexes, key=lambda c: c.chunk_start_offset):
+        for channel_id, offset in sorted(chunk.message_index_offsets.items()):
+            channel = summary.channels.get(channel_id)
+            if channel is None or channel.topic not in topics:
+                continue
+            stream.seek(offset + 1 + 8)  # opcode and record length precede the record
+            index = MessageIndex.read(ReadDataStream(stream))
+            for log_time, _ in sorted(index.records, key=lambda r: r[1]):  # by offset: file order
+                previous = last.get(channel_id)
+                if previous is not None and log_time < previous:
+                    step = (previous - log_time) / ros_convert.NANOSECONDS
+                    if worst is None or step > worst[1]:
+                        worst = (channel.topic, step)
+                last[channel_id] = max(log_time, previous or log_time)
+    return worst

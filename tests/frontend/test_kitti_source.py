@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import importlib.util
+import logging
+import re
 from pathlib import Path
 
 import cv2
@@ -71,6 +73,21 @@ def test_kitti_sequence_frames(tmp_path: Path) -> None:
     assert source.stats.frames_yielded == N
 
 
+def test_a_corrupt_file_drops_only_its_own_sensor(tmp_path: Path) -> None:
+    """Streaming policy: a bad image keeps the frame's scan (and the other way round)."""
+    seq, truth = _make_sequence(tmp_path)
+    images = sorted((seq / "image_2").iterdir())
+    images[1].write_bytes(b"not a png")
+    scans = sorted((seq / "velodyne").iterdir())
+    scans[2].write_bytes(b"\x00" * 10)  # not a whole number of points
+    source = open_source(seq)
+    frames = list(source)
+    assert len(frames) == N
+    assert frames[1].image is None and np.array_equal(frames[1].points, truth["points"][1])
+    assert frames[2].points is None and np.array_equal(frames[2].image, truth["rgb"][2])
+    assert source.stats.skipped == {"undecodable_image": 1, "bad_lidar": 1}
+
+
 def test_kitti_grey_camera_and_camera_frame_gt(tmp_path: Path) -> None:
     seq, truth = _make_sequence(tmp_path)
     config = KittiSourceConfig(camera="image_0", gt_frame="camera", load_points=False)
@@ -88,11 +105,12 @@ def test_kitti_without_calib_uses_identity(tmp_path: Path) -> None:
     np.testing.assert_allclose(list(source)[2].gt_pose, truth["poses"][2], atol=1e-6)
 
 
-def test_kitti_errors_name_the_input(tmp_path: Path) -> None:
+def test_kitti_errors_name_the_input(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     seq, _ = _make_sequence(tmp_path)
     (seq / "velodyne" / "000001.bin").write_bytes(b"\0" * 6)
-    with pytest.raises(FrontendInputError, match=r"000001\.bin: 6 bytes is not a whole number"):
-        list(KittiSource(seq))
+    with caplog.at_level(logging.WARNING):
+        list(KittiSource(seq))  # streaming: a counted, named skip
+    assert any(re.search(r"000001\.bin: 6 bytes is not a whole number", r.getMessage()) for r in caplog.records)
     (seq / "velodyne" / "000009.bin").write_bytes(b"\0" * 16)
     with pytest.raises(FrontendInputError, match=r"velodyne: 5 files but times.txt has 4 lines"):
         KittiSource(seq)

@@ -32,9 +32,9 @@ def _frame(i: float, t: float, rng: np.random.Generator) -> Frame:
 class _RawLog:
     """Hand-written log: messages in any order, with any stamps."""
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, chunk_size: int = 1024 * 1024) -> None:
         self._stream = open(path, "wb")
-        self._writer = Writer(self._stream)
+        self._writer = Writer(self._stream, chunk_size=chunk_size)
         self._schemas: dict[str, object] = {}
 
     def put(self, topic: str, datatype: str, message: dict, log_time: float) -> None:
@@ -84,15 +84,57 @@ def test_no_sensor_topic_and_not_mcap(tmp_path: Path) -> None:
         McapSource(tmp_path / "missing.mcap")
 
 
-def test_unknown_image_encoding_names_encoding_and_topic(tmp_path: Path) -> None:
+def test_unknown_image_encoding_is_a_counted_skip_naming_encoding_topic_and_time(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
     path = tmp_path / "enc.mcap"
     log = _RawLog(path)
     message = _rgb(1.0)
     message["encoding"] = "16UC1"
     log.put("/depth/image", ros_msgdefs.IMAGE, message, 1.0)
+    log.put("/depth/image", ros_msgdefs.IMAGE, _rgb(2.0), 2.0)
     log.close()
-    with pytest.raises(FrontendInputError, match=r"/depth/image: image encoding '16UC1' is not supported"):
-        list(McapSource(path))
+    source = McapSource(path)
+    with caplog.at_level(logging.WARNING):
+        assert [f.timestamp for f in source] == [2.0]
+    assert source.stats.skipped["undecodable_image"] == 1
+    text = caplog.records[0].getMessage()
+    assert "/depth/image at t=1.000000" in text and "encoding '16UC1' is not supported" in text
+    with pytest.raises(FrontendInputError, match=r"encoding '16UC1' is not supported"):
+        list(McapSource(path, McapSourceConfig(skip_undecodable_images=False)))
+
+
+@pytest.mark.parametrize("damage", ["wrong_step", "bad_encoding", "corrupt_jpeg"])
+def test_a_bad_image_keeps_the_scan_of_its_frame(tmp_path: Path, damage: str) -> None:
+    """Camera drives the frames; one image is broken: its frame still carries the LiDAR scan
+    (odometry needs every scan it can get) and the image is counted as skipped."""
+    path = tmp_path / f"{damage}.mcap"
+    log = _RawLog(path)
+    rng = np.random.default_rng(4)
+    compressed = damage == "corrupt_jpeg"
+    for i in range(4):
+        t = 1.0 + 0.1 * i
+        pixels = np.full((8, 8, 3), 9, np.uint8)
+        if compressed:
+            image = ros_convert.compressed_image_message(pixels, t, "cam", "jpeg", [])
+            if i == 2:
+                image["data"] = b"\xff\xd8garbage"
+            log.put("/cam/compressed", ros_msgdefs.COMPRESSED_IMAGE, image, t)
+        else:
+            image = ros_convert.image_message(pixels, t, "cam")
+            if i == 2 and damage == "wrong_step":
+                image["step"] = 4  # fewer bytes per row than 8 rgb8 pixels need
+            if i == 2 and damage == "bad_encoding":
+                image["encoding"] = "bayer_rggb8"
+            log.put("/cam", ros_msgdefs.IMAGE, image, t)
+        cloud = ros_convert.point_cloud_message(rng.normal(size=(50, 3)), None, t, "lidar")
+        log.put("/lidar", ros_msgdefs.POINT_CLOUD2, cloud, t)
+    log.close()
+    source = McapSource(path)
+    frames = list(source)
+    assert [f.image is None for f in frames] == [False, False, True, False]
+    assert all(f.points is not None and len(f.points) == 50 for f in frames)
+    assert source.stats.skipped["undecodable_image"] == 1
 
 
 def test_undecodable_compressed_image_is_counted(tmp_path: Path) -> None:
@@ -164,6 +206,41 @@ def test_non_monotonic_timestamps_are_counted_and_skipped(tmp_path: Path) -> Non
     assert [f.index for f in got] == [0, 1, 2, 3]
     assert source.stats.skipped["non_monotonic_camera"] == 3
     assert "non_monotonic_camera=3" in source.stats.summary()
+
+
+@pytest.mark.parametrize("chunk_size", [1024, 1024 * 1024])  # jump across chunks / inside one
+def test_backward_clock_jump_in_an_indexed_log_is_never_interleaved(tmp_path: Path, chunk_size: int) -> None:
+    """The recorder's clock is set back 2 s after 3 s of driving: sorting the indexed log by
+    log time would interleave the two parts (x going back and forth); the jump is seen instead."""
+    times = [10.0 + 0.1 * i for i in range(30)] + [11.0 + 0.1 * i for i in range(40)]
+    path = tmp_path / "jump.mcap"
+    log = _RawLog(path, chunk_size)  # a recorder writes what arrives, stamped by its clock
+    for i, t in enumerate(times):
+        pose = np.eye(4)
+        pose[0, 3] = i
+        log.put("/cam", ros_msgdefs.IMAGE, _rgb(t), t)
+        log.put("/gt", ros_msgdefs.POSE_STAMPED, ros_convert.pose_stamped_message(pose, t, "map"), t)
+    log.close()
+    source = McapSource(path)
+    got = list(source)
+    stamps = [f.timestamp for f in got]
+    xs = [f.gt_pose[0, 3] for f in got]
+    assert np.all(np.diff(stamps) > 0) and np.all(np.diff(xs) > 0)  # one pass along the route
+    assert xs[:30] == list(range(30)) and xs[30] == 50  # the part before the jump, then after it
+    assert source.stats.notes["clock_went_back"] == 1
+    assert source.stats.skipped["non_monotonic_camera"] == 20
+
+
+def test_forward_clock_leap_is_kept_and_warned(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    rng = np.random.default_rng(3)
+    frames = [_frame(i, t, rng) for i, t in enumerate([1.0, 1.1, 1.2, 61.2, 61.3])]
+    path = tmp_path / "leap.mcap"
+    write_frames(frames, path)
+    source = McapSource(path)
+    with caplog.at_level(logging.WARNING):
+        assert len(list(source)) == 5
+    assert source.stats.notes["clock_jump_camera"] == 1
+    assert any("leaps 60.000 s forward" in r.getMessage() for r in caplog.records)
 
 
 def test_association_by_nearest_stamp_within_tolerance(tmp_path: Path) -> None:

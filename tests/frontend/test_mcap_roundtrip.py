@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import logging
+import re
+
 from pathlib import Path
 
 import numpy as np
@@ -196,12 +199,20 @@ def test_point_cloud_layouts(tmp_path: Path, time_name: str, time_type, scale: f
     np.testing.assert_allclose(frame.point_times, raw_times.astype(np.float64) * scale, atol=1e-7)
 
 
-def test_point_cloud_missing_xyz_is_named(tmp_path: Path) -> None:
+def _skip_warnings(path: Path, caplog: pytest.LogCaptureFixture) -> tuple[list, McapSource, list[str]]:
+    source = McapSource(path)
+    with caplog.at_level(logging.WARNING):
+        frames = list(source)
+    return frames, source, [r.getMessage() for r in caplog.records]
+
+
+def test_point_cloud_missing_xyz_is_a_named_skip(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     message = _cloud([("x", 0, np.float32), ("y", 4, np.float32)], np.zeros((3, 2)), 8, 1.0)
     path = tmp_path / "bad_cloud.mcap"
     _write_raw(path, "/points", ros_msgdefs.POINT_CLOUD2, [(1.0, message)])
-    with pytest.raises(FrontendInputError, match=r"/points.*lacks field"):
-        list(McapSource(path))
+    frames, source, warnings = _skip_warnings(path, caplog)
+    assert frames == [] and source.stats.skipped["bad_lidar"] == 1
+    assert any(re.search(r"/points at t=1\.000000.*lacks field", w) for w in warnings)
 
 
 def test_schemas_are_standard_ros2(tmp_path: Path) -> None:
@@ -262,7 +273,7 @@ def test_topics_overridable(tmp_path: Path) -> None:
     assert all(f.points is None and f.logged_pose is not None for f in source)
 
 
-def test_organised_cloud_with_row_padding(tmp_path: Path) -> None:
+def test_organised_cloud_with_row_padding(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     xyz = np.arange(2 * 3 * 3, dtype=np.float64).reshape(6, 3)
     fields = [("x", 0, np.float32), ("y", 4, np.float32), ("z", 8, np.float32)]
     message = _cloud(fields, xyz, point_step=16, t=2.0)
@@ -276,5 +287,7 @@ def test_organised_cloud_with_row_padding(tmp_path: Path) -> None:
     assert frame.point_times is None
     short = dict(message, data=padded.tobytes()[:-20])
     _write_raw(path, "/os/points", ros_msgdefs.POINT_CLOUD2, [(2.0, short)])
-    with pytest.raises(FrontendInputError, match=r"/os/points: PointCloud2 3x2 .* only"):
-        list(McapSource(path))
+    caplog.clear()
+    frames, source, warnings = _skip_warnings(path, caplog)
+    assert frames == [] and source.stats.skipped["bad_lidar"] == 1
+    assert any(re.search(r"/os/points at t=2\.000000: PointCloud2 3x2 .* only", w) for w in warnings)
