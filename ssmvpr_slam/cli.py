@@ -39,9 +39,11 @@ OutOpt = Annotated[Optional[Path], typer.Option("--out", help="Results base fold
 def _user_errors() -> tuple[type[BaseException], ...]:
     from frontend.errors import FrontendInputError
     from loopclosure.errors import LoopClosureInputError, WeightsNotFoundError
+    from ssmvpr_slam.backend.g2o_io import PoseGraphFileError
     from ssmvpr_slam.config import ConfigError
 
-    return (FrontendInputError, LoopClosureInputError, WeightsNotFoundError, ConfigError, FileNotFoundError)
+    return (FrontendInputError, LoopClosureInputError, WeightsNotFoundError, ConfigError, FileNotFoundError,
+            PoseGraphFileError)  # fmt: skip
 
 
 def _print_error(message: str) -> None:
@@ -267,6 +269,62 @@ def show_config(config: ConfigOpt = None) -> None:
 
     console.print(dump_config(_config(config)), highlight=False, markup=False)
     console.print(f"# presets: {', '.join(available_presets())}", highlight=False, markup=False)
+
+
+@app.command("optimize")
+@friendly_errors
+def optimize(
+    graph: Annotated[Path, typer.Argument(help="Pose graph: g2o (SE2 / SE3:QUAT) or TORO 2D.")],
+    gt: Annotated[Optional[Path], typer.Option(help="Ground truth: g2o, TUM (.tum) or a per-vertex pose file.")] = None,
+    gt_edges: Annotated[Optional[Path], typer.Option("--gt-edges", help="The true edges (i j ... per line): loops not listed are false.")] = None,
+    times: Annotated[Optional[Path], typer.Option(help="Vertex timestamps ('t' or 'id t' per line): also write TUM.")] = None,
+    kernel: Annotated[str, typer.Option(help="Loop kernel: cauchy | huber | dcs | gm | tukey | none.")] = "dcs",
+    gnc: Annotated[bool, typer.Option("--gnc/--no-gnc", help="GNC (TLS) pass after the kernel solve.")] = False,
+    batch: Annotated[bool, typer.Option("--batch", help="One batch solve instead of iSAM2 in vertex order.")] = False,
+    out: Annotated[Path, typer.Option("--out", help="Output folder.")] = Path("optimized"),
+) -> None:
+    """Optimise a g2o / TORO pose graph robustly; write optimised.g2o, TUM and metrics.json."""
+    import numpy as np
+
+    from ssmvpr_slam.backend import g2o_io
+    from ssmvpr_slam.backend.graph_optimizer import (
+        KERNEL_NAMES, OptimizerSettings, loop_classification_scores, optimize_graph, trajectory_ate,
+    )  # fmt: skip
+    from ssmvpr_slam.evaluation.trajectory_io import write_tum
+    from ssmvpr_slam.results import write_json
+
+    if kernel not in KERNEL_NAMES:
+        raise g2o_io.PoseGraphFileError(f"--kernel: expected one of {', '.join(KERNEL_NAMES)}, got {kernel!r}")
+    data = g2o_io.read_pose_graph(graph)
+    stamps = g2o_io.read_times(times, data) if times is not None else None
+    gt_poses = g2o_io.read_ground_truth(gt, data, stamps) if gt is not None else None
+    true_pairs = g2o_io.read_edge_pairs(gt_edges) if gt_edges is not None else None
+    result = optimize_graph(data, OptimizerSettings(kernel=kernel, gnc=gnc, batch=batch))
+    g2o_io.write_g2o(out / "optimised.g2o", data, result.poses)
+    if stamps is not None:
+        write_tum(out / "optimised.tum", stamps, result.poses)
+    loops = [data.edges[k] for k in result.loop_indices]
+    metrics: dict[str, Any] = {
+        "graph": str(graph), "dimension": data.dim, "vertices": len(data.ids), "edges": len(data.edges),
+        "odometry_edges": len(data.edges) - len(loops), "loop_candidates": len(loops),
+        "initialised_from_odometry": result.initialised_from_odometry,
+        "solver": "batch" if batch else "isam2", "kernel": kernel, "gnc": gnc, "seconds": result.seconds,
+        "loops_inlier": int(result.loop_inlier.sum()), "loops_outlier": result.n_outliers,
+        "classification": result.classification,
+        "outlier_loops": [[e.i, e.j] for e, ok in zip(loops, result.loop_inlier) if not ok],
+    }  # fmt: skip
+    if gt_poses is not None:
+        metrics["ate"] = trajectory_ate(gt_poses, result.poses, data.dim).to_dict()
+        metrics["ate_initial"] = trajectory_ate(gt_poses, data.poses if data.has_initial_estimate()
+                                                else g2o_io.chain_odometry(data), data.dim).to_dict()  # fmt: skip
+    if true_pairs is not None:
+        truth = np.array([(min(e.i, e.j), max(e.i, e.j)) not in true_pairs for e in loops], dtype=bool)
+        metrics["loop_classification"] = loop_classification_scores(~result.loop_inlier, truth)
+    write_json(out / "metrics.json", metrics)
+    summary = f"{len(data.ids)} vertices, {len(loops)} loop candidates, {result.n_outliers} rejected"
+    if "ate" in metrics:
+        summary += f", ATE {metrics['ate']['rmse']:.3f} m"
+    console.print(f"{summary}; wrote [bold]{out}[/bold] ({result.seconds:.1f} s)")
 
 
 def main() -> None:  # pragma: no cover - console script entry

@@ -11,6 +11,7 @@ import numpy as np
 
 from loopclosure.atomic import atomic_write_text
 from loopclosure.metrics import pr_auc, precision_recall_curve
+from ssmvpr_slam.backend.g2o_io import from_pose_graph, write_g2o
 from ssmvpr_slam.config import SlamConfig, dump_config
 from ssmvpr_slam.evaluation.loop_metrics import evaluate_loops, find_revisits
 from ssmvpr_slam.evaluation.metrics import ate, drift_per_100m, kitti_relative_error, rpe
@@ -193,7 +194,7 @@ def _recall_by_direction(
 
 
 def write_run_results(folder: Path, pipeline: SlamPipeline, config: SlamConfig, extra: dict[str, Any]) -> dict[str, Any]:
-    """Trajectories (TUM + KITTI), loop_closures.csv, database, config, metrics.json, plots."""
+    """Trajectories (TUM + KITTI), pose_graph.g2o, loop_closures.csv, database, config, metrics.json, plots."""
     stamps, odom, optimised = pipeline.trajectories()
     final = set(pipeline.graph.loop_handles)  # a final GNC pass may have dropped loops
     for record in pipeline.state.loops:
@@ -205,6 +206,7 @@ def write_run_results(folder: Path, pipeline: SlamPipeline, config: SlamConfig, 
         write_kitti(folder / "odometry.kitti", odom)
         write_tum(folder / "optimised.tum", stamps, optimised)
         write_kitti(folder / "optimised.kitti", optimised)
+        write_g2o(folder / "pose_graph.g2o", from_pose_graph(pipeline.graph, optimised))
         if all(k.gt_pose is not None for k in kfs):
             gt = np.array([k.gt_pose for k in kfs])
             write_tum(folder / "ground_truth.tum", stamps, gt)

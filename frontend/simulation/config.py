@@ -255,6 +255,9 @@ class LidarConfig(_Model):
     beam_elevation_error_deg: float = Field(
         0.08, ge=0.0, description="sigma of each beam's elevation calibration error"
     )
+    beam_elevation_bias_deg: float = Field(
+        0.0, gt=-5.0, lt=5.0, description="error shared by all beams (KITTI's HDL-64 scans need about 0.22)"
+    )
     range_bias_sigma_m: float = Field(0.02, ge=0.0, description="sigma of each beam's constant range offset")
     range_scale_error: float = Field(0.0, gt=-0.1, lt=0.1, description="relative range error of the unit")
     # Vegetation is porous: a beam may pass a crown or return from anywhere inside it.

@@ -247,7 +247,11 @@ class LidarRenderer:
         lo, hi = np.radians(config.vfov_deg)
         self.elev = np.linspace(lo, hi, config.beams)
         calib = np.random.default_rng([city.seed, _STREAM_CALIBRATION])
-        self.elev_true = self.elev + np.radians(config.beam_elevation_error_deg) * calib.standard_normal(config.beams)
+        self.elev_true = (
+            self.elev
+            + np.radians(config.beam_elevation_bias_deg)
+            + np.radians(config.beam_elevation_error_deg) * calib.standard_normal(config.beams)
+        )
         self.range_bias = config.range_bias_sigma_m * calib.standard_normal(config.beams)
         n = config.azimuths
         self.frac = (np.arange(n) + 0.5) / n

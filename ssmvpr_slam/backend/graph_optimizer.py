@@ -1,0 +1,361 @@
+"""Optimise a pose graph read from a file (g2o / TORO): iSAM2 in vertex order or one batch
+solve, robust loop factors, optional GNC, loop inlier/outlier classification, ATE.
+
+No file I/O here: `optimize_graph` takes a :class:`~ssmvpr_slam.backend.g2o_io.PoseGraphData`
+and returns a frozen :class:`OptimizationResult`; the command line writes the outputs.
+
+* Edges between consecutive vertex ids are odometry (Gaussian); every other edge is a loop
+  candidate wrapped in the robust kernel (built by ``noise.make_kernel``, the one place that
+  defines kernels, with the back end's default scales).
+* Initial values: the stored vertex poses, or, when they are all zero (or absent), odometry
+  chained from the first vertex. In iSAM2 mode each new vertex starts at the current estimate
+  of its predecessor composed with the odometry, as a stream would.
+* GNC (``gnc=True``): after the kernel solve, GTSAM's ``GncLMOptimizer`` (truncated least
+  squares) runs over the whole graph from the kernel solution, odometry and prior as known
+  inliers (``backend.gnc.run_gnc``, the same pass `PoseGraph.batch_gnc` uses).
+* Classification of loops: with GNC, a loop is an outlier when its final GNC weight is < 0.5;
+  without GNC, when its whitened (Mahalanobis) residual squared after optimisation exceeds the
+  chi2 quantile `outlier_quantile` (0.99) with 3 degrees of freedom for 2-D graphs, 6 for 3-D.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+from typing import Literal
+
+import gtsam
+import numpy as np
+from scipy.stats import chi2 as chi2_dist
+
+from ssmvpr_slam.backend import noise
+from ssmvpr_slam.backend.config import GncConfig, ISAM2Config, RobustKernelConfig
+from ssmvpr_slam.backend.g2o_io import PoseGraphData, chain_odometry
+from ssmvpr_slam.evaluation.metrics import AteResult, ate
+
+KERNEL_NAMES: dict[str, str] = {
+    "cauchy": "cauchy",
+    "huber": "huber",
+    "dcs": "dcs",
+    "gm": "geman_mcclure",
+    "tukey": "tukey",
+    "none": "none",
+}
+"""Command-line kernel name -> `RobustKernelConfig.kind`."""
+
+DEFAULT_KERNEL = "dcs"
+DEFAULT_GNC = False
+"""The configuration `tools/bench_backend.py` measured best (docs/backend_benchmarks.md): DCS
+(scale 10) without GNC; GNC (TLS) failed on ringCity with 10 % random false loops."""
+
+_PRIOR_SIGMA = 1e-6
+
+
+@dataclass(frozen=True)
+class OptimizerSettings:
+    """How `optimize_graph` solves."""
+
+    kernel: str = DEFAULT_KERNEL
+    """cauchy | huber | dcs | gm | tukey | none"""
+    kernel_scale: float | None = None
+    """None = the back end's default scale for the kernel (``DEFAULT_KERNEL_SCALES``)."""
+    gnc: bool = DEFAULT_GNC
+    batch: bool = False
+    """One Levenberg-Marquardt solve instead of iSAM2 in vertex order."""
+    gnc_config: GncConfig = field(default_factory=lambda: GncConfig(enabled=True, init="current"))
+    outlier_quantile: float = 0.99
+    isam2: ISAM2Config = field(default_factory=ISAM2Config)
+    final_isam2_updates: int = 5
+    """Extra iSAM2 iterations after the last vertex (relinearisation settles)."""
+    lm_max_iterations: int = 100
+    gnc_inner_iterations: int = 10
+    """Levenberg-Marquardt iterations per GNC step (GTSAM's default 100 made GNC 5x slower
+    on ring for the same classification)."""
+
+    def __post_init__(self) -> None:
+        if self.kernel not in KERNEL_NAMES:
+            raise ValueError(f"kernel: expected one of {', '.join(KERNEL_NAMES)}, got {self.kernel!r}")
+        if not 0.0 < self.outlier_quantile < 1.0:
+            raise ValueError(f"outlier_quantile: must be in (0, 1), got {self.outlier_quantile}")
+
+    @property
+    def mode(self) -> Literal["isam2", "batch"]:
+        return "batch" if self.batch else "isam2"
+
+
+@dataclass(frozen=True)
+class OptimizationResult:
+    """Poses in ``ids`` order and the classification of the loop candidates."""
+
+    ids: tuple[int, ...]
+    poses: np.ndarray
+    loop_indices: np.ndarray
+    """Index into the graph's edges of each loop candidate."""
+    loop_inlier: np.ndarray
+    loop_weight: np.ndarray
+    """GNC weight (with GNC) or the kernel's weight at the final residual."""
+    loop_chi2: np.ndarray
+    """Squared whitened residual of each loop (its Gaussian part) at the final estimate."""
+    initialised_from_odometry: bool
+    seconds: float
+    settings: OptimizerSettings
+    classification: str
+    before_gnc: OptimizationResult | None = None
+    """With GNC: the kernel solution GNC started from."""
+
+    @property
+    def n_loops(self) -> int:
+        return int(len(self.loop_indices))
+
+    @property
+    def n_outliers(self) -> int:
+        return int(np.sum(~self.loop_inlier))
+
+
+def _key(index: int) -> int:
+    return gtsam.symbol("x", index)
+
+
+def make_loop_kernel(settings: OptimizerSettings) -> gtsam.noiseModel.mEstimator.Base | None:
+    return noise.make_kernel(RobustKernelConfig(kind=KERNEL_NAMES[settings.kernel], scale=settings.kernel_scale))
+
+
+def initial_poses(graph: PoseGraphData) -> tuple[np.ndarray, bool]:
+    """(initial poses, whether they were chained from odometry)."""
+    if graph.has_initial_estimate():
+        return graph.poses.copy(), False
+    return chain_odometry(graph), True
+
+
+class _Factors:
+    """GTSAM factors of the graph, built once."""
+
+    def __init__(self, graph: PoseGraphData, initial: np.ndarray, kernel) -> None:  # noqa: ANN001
+        self.graph = graph
+        self.index = {v: k for k, v in enumerate(graph.ids)}
+        self.prior = gtsam.PriorFactorPose3(_key(0), gtsam.Pose3(initial[0]),
+                                            noise.gaussian(np.full(6, _PRIOR_SIGMA)))  # fmt: skip
+        self.odometry: list[tuple[int, gtsam.NonlinearFactor]] = []  # (later vertex index, factor)
+        self.loops: list[tuple[int, gtsam.NonlinearFactor, gtsam.NonlinearFactor]] = []  # robust, gaussian
+        self.loop_indices: list[int] = []
+        self.loop_noise: list[gtsam.noiseModel.Base] = []
+        for n, e in enumerate(graph.edges):
+            i, j = self.index[e.i], self.index[e.j]
+            gaussian = noise.gaussian_from_information(e.information)
+            plain = gtsam.BetweenFactorPose3(_key(i), _key(j), gtsam.Pose3(e.measured), gaussian)
+            if e.is_odometry:
+                self.odometry.append((max(i, j), plain))
+            else:
+                robust = gtsam.BetweenFactorPose3(_key(i), _key(j), gtsam.Pose3(e.measured),
+                                                  noise.robustify(gaussian, kernel))  # fmt: skip
+                self.loops.append((max(i, j), robust, plain))
+                self.loop_indices.append(n)
+                self.loop_noise.append(gaussian)
+
+    def robust_graph(self) -> gtsam.NonlinearFactorGraph:
+        g = gtsam.NonlinearFactorGraph()
+        g.add(self.prior)
+        for _, f in self.odometry:
+            g.add(f)
+        for _, f, _ in self.loops:
+            g.add(f)
+        return g
+
+
+def _values(poses: np.ndarray) -> gtsam.Values:
+    values = gtsam.Values()
+    for k, pose in enumerate(poses):
+        values.insert(_key(k), gtsam.Pose3(pose))
+    return values
+
+
+def _poses(values: gtsam.Values, n: int) -> np.ndarray:
+    return np.array([values.atPose3(_key(k)).matrix() for k in range(n)])
+
+
+def _solve_batch(factors: _Factors, initial: np.ndarray, settings: OptimizerSettings) -> np.ndarray:
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(settings.lm_max_iterations)
+    values = gtsam.LevenbergMarquardtOptimizer(factors.robust_graph(), _values(initial), params).optimize()
+    return _poses(values, len(initial))
+
+
+def _solve_isam2(factors: _Factors, initial: np.ndarray, settings: OptimizerSettings) -> np.ndarray:
+    """Vertices in id order; each step adds the vertex and every edge it completes."""
+    n = len(initial)
+    params = gtsam.ISAM2Params()
+    params.setRelinearizeThreshold(settings.isam2.relinearize_threshold)
+    params.relinearizeSkip = settings.isam2.relinearize_skip
+    isam = gtsam.ISAM2(params)
+    by_vertex: list[list[gtsam.NonlinearFactor]] = [[] for _ in range(n)]
+    odo_rel: dict[int, np.ndarray] = {}
+    for later, f in factors.odometry:
+        by_vertex[later].append(f)
+    for e in factors.graph.edges:
+        if e.is_odometry:
+            i, j = factors.index[e.i], factors.index[e.j]
+            if j == i + 1:
+                odo_rel.setdefault(j, e.measured)
+            elif i == j + 1:
+                odo_rel.setdefault(i, np.linalg.inv(e.measured))
+    for later, f, _ in factors.loops:
+        by_vertex[later].append(f)
+    by_vertex[0].insert(0, factors.prior)
+    estimate = gtsam.Values()
+    previous = initial[0]
+    for k in range(n):
+        graph = gtsam.NonlinearFactorGraph()
+        for f in by_vertex[k]:
+            graph.add(f)
+        values = gtsam.Values()
+        # a stream places a new vertex by odometry from where its predecessor is now
+        guess = previous @ odo_rel[k] if k in odo_rel else initial[k]
+        values.insert(_key(k), gtsam.Pose3(guess))
+        isam.update(graph, values)
+        estimate = isam.calculateEstimate()
+        previous = estimate.atPose3(_key(k)).matrix()
+    for _ in range(settings.final_isam2_updates):
+        isam.update()
+    estimate = isam.calculateEstimate()
+    return _poses(estimate, n)
+
+
+def _loop_chi2(factors: _Factors, poses: np.ndarray) -> np.ndarray:
+    out = np.empty(len(factors.loops))
+    for k, (_, _, plain) in enumerate(factors.loops):
+        keys = plain.keys()
+        i, j = gtsam.Symbol(keys[0]).index(), gtsam.Symbol(keys[1]).index()
+        pred = gtsam.Pose3(poses[i]).between(gtsam.Pose3(poses[j]))
+        err = plain.measured().localCoordinates(pred)
+        white = np.asarray(factors.loop_noise[k].whiten(err))
+        out[k] = float(white @ white)
+    return out
+
+
+def optimize_graph(graph: PoseGraphData, settings: OptimizerSettings | None = None) -> OptimizationResult:
+    """Optimise `graph` (see the module docstring); does not modify it."""
+    settings = settings or OptimizerSettings()
+    start = time.perf_counter()
+    initial, from_odometry = initial_poses(graph)
+    kernel = make_loop_kernel(settings)
+    factors = _Factors(graph, initial, kernel)
+    if settings.batch:
+        poses = _solve_batch(factors, initial, settings)
+    else:
+        poses = _solve_isam2(factors, initial, settings)
+    dof = 3 if graph.dim == 2 else 6
+    threshold = float(chi2_dist.ppf(settings.outlier_quantile, dof))
+    chi2 = _loop_chi2(factors, poses)
+    weights = np.array([1.0 if kernel is None else float(kernel.weight(np.sqrt(c))) for c in chi2])
+    kernel_result = OptimizationResult(
+        ids=graph.ids, poses=poses, loop_indices=np.asarray(factors.loop_indices, dtype=int),
+        loop_inlier=chi2 <= threshold, loop_weight=weights, loop_chi2=chi2,
+        initialised_from_odometry=from_odometry, seconds=time.perf_counter() - start,
+        settings=replace(settings, gnc=False),
+        classification=f"outlier if whitened residual^2 > chi2({dof}) quantile {settings.outlier_quantile} "
+                       f"= {threshold:.2f}",
+    )  # fmt: skip
+    if not settings.gnc or not factors.loops:
+        return replace(kernel_result, settings=settings)
+    return refine_with_gnc(graph, kernel_result, settings, factors, start)
+
+
+def refine_with_gnc(
+    graph: PoseGraphData,
+    kernel_result: OptimizationResult,
+    settings: OptimizerSettings,
+    factors: _Factors | None = None,
+    start: float | None = None,
+) -> OptimizationResult:
+    """GNC (GTSAM's GncLMOptimizer, truncated least squares) over the whole graph from the
+    kernel solution, odometry and prior as known inliers; then one Levenberg-Marquardt polish
+    on the known inliers plus the loops GNC kept (inner LM solves are capped at
+    `gnc_inner_iterations`, so the polish gives the converged optimum)."""
+    start = time.perf_counter() - kernel_result.seconds if start is None else start
+    if factors is None:
+        initial, _ = initial_poses(graph)
+        factors = _Factors(graph, initial, make_loop_kernel(settings))
+    cfg = settings.gnc_config
+    init = kernel_result.poses if cfg.init == "current" else initial_poses(graph)[0]
+    n = len(graph.ids)
+    known = gtsam.NonlinearFactorGraph()
+    known.add(factors.prior)
+    for _, f in factors.odometry:
+        known.add(f)
+    n_known = known.size()
+    full = gtsam.NonlinearFactorGraph(known)
+    for _, _, plain in factors.loops:
+        full.add(plain)
+    lm = gtsam.LevenbergMarquardtParams()
+    lm.setMaxIterations(settings.gnc_inner_iterations)
+    params = gtsam.GncLMParams(lm)
+    params.setLossType(gtsam.GncLossType.TLS if cfg.loss == "tls" else gtsam.GncLossType.GM)
+    if params.maxIterations != cfg.max_iterations:  # GTSAM prints a warning on every set
+        params.setMaxIterations(cfg.max_iterations)
+    params.setKnownInliers(list(range(n_known)))
+    optimizer = gtsam.GncLMOptimizer(full, _values(init), params)
+    optimizer.setInlierCostThresholdsAtProbability(cfg.inlier_probability)
+    values = optimizer.optimize()
+    weights = np.asarray(optimizer.getWeights())[n_known:]
+    keep = weights >= cfg.weight_threshold
+    polish = gtsam.NonlinearFactorGraph(known)
+    for k, (_, _, plain) in enumerate(factors.loops):
+        if keep[k]:
+            polish.add(plain)
+    lm_final = gtsam.LevenbergMarquardtParams()
+    lm_final.setMaxIterations(settings.lm_max_iterations)
+    values = gtsam.LevenbergMarquardtOptimizer(polish, values, lm_final).optimize()
+    poses = _poses(values, n)
+    return OptimizationResult(
+        ids=graph.ids, poses=poses, loop_indices=kernel_result.loop_indices,
+        loop_inlier=keep, loop_weight=weights, loop_chi2=_loop_chi2(factors, poses),
+        initialised_from_odometry=kernel_result.initialised_from_odometry,
+        seconds=time.perf_counter() - start, settings=replace(settings, gnc=True),
+        classification=f"outlier if GNC ({cfg.loss}) weight < {cfg.weight_threshold}",
+        before_gnc=kernel_result,
+    )  # fmt: skip
+
+
+# --------------------------------------------------------------------------- evaluation
+
+
+def planar_alignment(est: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """Est poses moved by the SE(2) transform (rotation about z, xy translation) that best
+    aligns their positions onto ref's (2-D Umeyama without scale)."""
+    a, b = est[:, :2, 3], ref[:, :2, 3]
+    mu_a, mu_b = a.mean(axis=0), b.mean(axis=0)
+    cov = (b - mu_b).T @ (a - mu_a)
+    u, _, vt = np.linalg.svd(cov)
+    d = np.sign(np.linalg.det(u @ vt))
+    rot2 = u @ np.diag([1.0, d]) @ vt
+    transform = np.eye(4)
+    transform[:2, :2] = rot2
+    transform[:2, 3] = mu_b - rot2 @ mu_a
+    return transform @ est
+
+
+def trajectory_ate(gt: np.ndarray, est: np.ndarray, dim: int) -> AteResult:
+    """ATE of `est` against `gt` after SE(2) alignment (2-D graphs) or SE(3) (3-D graphs)."""
+    if dim == 2:
+        result = ate(gt, planar_alignment(np.asarray(est), np.asarray(gt)), "none")
+        return replace(result, alignment_kind="se2")
+    return ate(gt, est, "se3")
+
+
+def loop_classification_scores(predicted_outlier: np.ndarray, true_outlier: np.ndarray) -> dict[str, float | int | None]:
+    """Precision / recall of the outlier class (true positive = a false loop flagged outlier)."""
+    pred = np.asarray(predicted_outlier, dtype=bool)
+    truth = np.asarray(true_outlier, dtype=bool)
+    tp = int(np.sum(pred & truth))
+    fp = int(np.sum(pred & ~truth))
+    fn = int(np.sum(~pred & truth))
+    return {
+        "loops": int(len(pred)),
+        "true_outliers": int(truth.sum()),
+        "flagged_outliers": int(pred.sum()),
+        "true_positives": tp,
+        "false_positives": fp,
+        "false_negatives": fn,
+        "outlier_precision": tp / (tp + fp) if tp + fp else None,
+        "outlier_recall": tp / (tp + fn) if tp + fn else None,
+    }

@@ -1,0 +1,53 @@
+"""tools/bench_backend.py in seconds: injection protocol, one tiny run, the markdown tables."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+TOOL = Path(__file__).resolve().parents[2] / "tools" / "bench_backend.py"
+
+
+@pytest.fixture(scope="module")
+def bench():  # noqa: ANN201
+    spec = importlib.util.spec_from_file_location("bench_backend", TOOL)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["bench_backend"] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.parametrize("kind", ["random", "local", "grouped"])
+def test_injection_follows_the_protocol(bench, kind: str, shared_dir: Path) -> None:  # noqa: ANN001
+    graph = bench.load_benchmark("ring").graph
+    noisy, truth = bench.inject_false_loops(graph, 0.5, kind, seed=4)
+    false = [e for e, t in zip(noisy.edges, truth) if t]
+    assert len(false) == len(graph.loops) == 26  # 50 % of all loops
+    assert all(not e.is_odometry and e.i < e.j for e in false)
+    if kind == "local":
+        assert all(e.j - e.i <= bench.LOCAL_SPAN + 1 for e in false)
+    if kind == "grouped":
+        assert all(np.allclose(false[k].measured, false[0].measured) for k in range(10))
+        assert [e.i - false[0].i for e in false[:10]] == list(range(10))
+    again, _ = bench.inject_false_loops(graph, 0.5, kind, seed=4)
+    assert [(e.i, e.j) for e in again.edges] == [(e.i, e.j) for e in noisy.edges]  # seeded
+
+
+def test_tiny_run_json_and_markdown(bench, capsys, tmp_path: Path, shared_dir: Path) -> None:  # noqa: ANN001
+    out = tmp_path / "r.json"
+    assert bench.main(["--graphs", "ring", "--rates", "0.3", "--kinds", "random", "--kernels", "dcs",
+                       "--output", str(out), "--quiet"]) == 0  # fmt: skip
+    results = json.loads(capsys.readouterr().out)
+    assert results == json.loads(out.read_text())
+    rows = results["rows"]
+    assert {(r["kernel"], r["gnc"]) for r in rows} == {("dcs", False), ("dcs", True)}
+    gnc = next(r for r in rows if r["gnc"])
+    assert gnc["ate_ratio"] <= 1.1 and gnc["outlier_recall"] == 1.0 and gnc["false_loops"] == 11
+    assert bench.main(["--markdown", str(out)]) == 0
+    table = capsys.readouterr().out
+    assert "### Kernel `dcs`" in table and "| ring | random | 30% |" in table

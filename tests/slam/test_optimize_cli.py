@@ -1,0 +1,81 @@
+"""`ssmvpr-slam optimize`: outputs, evaluation, and one clear error line on malformed input."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from ssmvpr_slam.backend.g2o_io import read_pose_graph
+from ssmvpr_slam.cli import app
+from ssmvpr_slam.evaluation.trajectory_io import read_tum
+
+
+def invoke(*args: object):  # noqa: ANN201
+    return CliRunner().invoke(app, [str(a) for a in args])
+
+
+def test_optimize_ring_writes_outputs(tmp_path: Path, shared_dir: Path) -> None:
+    base = shared_dir / "data" / "posegraphs" / "ring"
+    times = tmp_path / "times.txt"
+    times.write_text("".join(f"{0.1 * k:.1f}\n" for k in range(434)))
+    out = tmp_path / "out"
+    result = invoke("optimize", base / "originalDataset" / "ring.g2o", "--gt", base / "groundTruth" / "ring.g2o",
+                    "--times", times, "--out", out)  # fmt: skip
+    assert result.exit_code == 0, result.output
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["vertices"] == 434 and metrics["loop_candidates"] == 26 and metrics["loops_outlier"] == 0
+    assert metrics["ate"]["rmse"] < 0.5 * metrics["ate_initial"]["rmse"]
+    assert metrics["solver"] == "isam2" and metrics["gnc"] is False and metrics["kernel"] == "dcs"
+    graph = read_pose_graph(out / "optimised.g2o")
+    assert graph.ids == tuple(range(434)) and len(graph.edges) == 459
+    stamps, poses = read_tum(out / "optimised.tum")
+    assert len(poses) == 434 and stamps[1] == pytest.approx(0.1)
+    np.testing.assert_allclose(poses[:, :3, 3], graph.poses[:, :3, 3], atol=1e-6)
+
+
+def test_optimize_reports_loop_classification(tmp_path: Path) -> None:
+    lines = [f"VERTEX_SE2 {k} 0 0 0" for k in range(12)]
+    lines += [f"EDGE_SE2 {k} {k + 1} 1 0 0.5235987756 100 0 0 100 0 100" for k in range(11)]
+    lines += ["EDGE_SE2 0 11 0.5 0.866025 5.759586531 100 0 0 100 0 100",  # true (12-gon closes)
+              "EDGE_SE2 2 8 0.1 0.1 0 100 0 0 100 0 100"]  # false  # fmt: skip
+    graph = tmp_path / "g.g2o"
+    graph.write_text("\n".join(lines) + "\n")
+    true_edges = tmp_path / "edges.txt"
+    true_edges.write_text("".join(f"{k} {k + 1}\n" for k in range(11)) + "0 11\n")
+    result = invoke("optimize", graph, "--gt-edges", true_edges, "--batch", "--out", tmp_path / "o")
+    assert result.exit_code == 0, result.output
+    metrics = json.loads((tmp_path / "o" / "metrics.json").read_text())
+    assert metrics["initialised_from_odometry"] is True
+    assert metrics["loop_classification"]["outlier_precision"] == 1.0
+    assert metrics["loop_classification"]["outlier_recall"] == 1.0
+    assert metrics["outlier_loops"] == [[2, 8]]
+
+
+@pytest.mark.parametrize(
+    ("line", "fragment"),
+    [
+        ("BOGUS 0 1", "unknown tag 'BOGUS'"),
+        ("EDGE_SE2 0 1 1 0", "too few values"),
+        ("EDGE_SE2 0 1 1 0 NaN 1 0 0 1 0 1", "NaN"),
+        ("EDGE_SE2 0 9 1 0 0 1 0 0 1 0 1", "vertex 9"),
+        ("EDGE_SE2 0 1 1 0 0 1 2 0 1 0 1", "not positive definite"),
+    ],
+)
+def test_malformed_graph_is_one_error_line(tmp_path: Path, line: str, fragment: str) -> None:
+    graph = tmp_path / "bad.g2o"
+    graph.write_text(f"VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\n{line}\n")
+    result = invoke("optimize", graph, "--out", tmp_path / "o")
+    assert result.exit_code == 2, result.output
+    assert "Traceback" not in result.output
+    errors = [x for x in result.stderr.splitlines() if x.startswith("error:")]
+    assert len(errors) == 1 and f"{graph}:3:" in errors[0] and fragment in errors[0], result.stderr
+    assert not (tmp_path / "o").exists()
+
+
+def test_missing_graph_file(tmp_path: Path) -> None:
+    result = invoke("optimize", tmp_path / "nope.g2o")
+    assert result.exit_code == 2 and "nope.g2o" in result.stderr

@@ -1,0 +1,291 @@
+#!/usr/bin/env python3
+"""Robust pose-graph optimisation against injected false loops (Suenderhauf & Protzel protocol).
+
+Graphs (outlier-free originals with ground truth): manhattan (Olson M3500), ring, ringCity
+from ``$SSMVPR_SHARED/data/posegraphs`` (default ../shared next to the repository); sphere2500
+(``sphere2500.txt`` + ``sphere2500_groundtruth.txt``, ground truth = its noise-free odometry
+chained) and city10000 (the shared ``city10000.g2o``, identical to gtsam's
+``T1_city10000_04`` edges, with gtsam's ``ISAM2_GT_city10000`` poses) from gtsam's data
+(``gtsam.findExampleDataFile``).
+
+False loops as Vertigo's ``generateDataset.py`` makes them: ``random`` joins two uniformly drawn
+vertices, ``local`` a vertex and one at most 20 ids later, ``grouped`` adds groups of 10
+consecutive, mutually consistent false loops (i+k, j+k); the measurement is a small random
+motion (translation N(0, 0.3 m) per axis, rotation N(0, 10 deg) per axis, 2-D: x, y, yaw) and
+the information matrix is that of the graph's first true loop. The outlier rate is the share
+of false loops among all loop candidates: rate r adds round(r / (1 - r) * true loops).
+
+Each row: ATE (RMSE, SE(2)/SE(3) aligned) of the solution divided by the ATE of the outlier-free
+optimum (plain least squares on the original graph), outlier precision / recall (GNC weight
+< 0.5, or without GNC whitened residual^2 > chi2 0.99 quantile), and runtime. GNC rows start
+GNC from the same kernel solution as the kernel's own row; their runtime includes it.
+
+    python tools/bench_backend.py                       # everything, JSON on stdout
+    python tools/bench_backend.py --graphs ring --rates 0.2 --kernels cauchy --kinds random
+    python tools/bench_backend.py --markdown results.json   # tables from a saved run
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from ssmvpr_slam.backend.g2o_io import GraphEdge, PoseGraphData, planar_pose, read_ground_truth, read_pose_graph  # noqa: E402
+from ssmvpr_slam.backend.graph_optimizer import (  # noqa: E402
+    KERNEL_NAMES,
+    OptimizerSettings,
+    loop_classification_scores,
+    optimize_graph,
+    refine_with_gnc,
+    trajectory_ate,
+)
+from ssmvpr_slam.backend.se3 import make_pose  # noqa: E402
+
+GRAPHS = ("ring", "ringCity", "manhattan", "sphere2500", "city10000")
+RATES = (0.1, 0.2, 0.3, 0.5)
+KINDS = ("random", "local", "grouped")
+KERNELS = ("cauchy", "huber", "dcs", "gm", "tukey")
+GROUP_SIZE = 10
+LOCAL_SPAN = 20
+
+
+def shared_dir() -> Path:
+    return Path(os.environ.get("SSMVPR_SHARED", REPO.parent / "shared"))
+
+
+@dataclass(frozen=True)
+class Benchmark:
+    name: str
+    graph: PoseGraphData
+    gt: np.ndarray
+
+
+def load_benchmark(name: str) -> Benchmark:
+    """One of GRAPHS with its ground-truth poses."""
+    base = shared_dir() / "data" / "posegraphs"
+    if name in ("ring", "ringCity"):
+        graph = read_pose_graph(base / name / "originalDataset" / f"{name}.g2o")
+        gt = read_ground_truth(base / name / "groundTruth" / f"{name}.g2o", graph)
+    elif name == "manhattan":
+        graph = read_pose_graph(base / "manhattan" / "originalDataset" / "g2o" / "manhattanOlson3500.g2o")
+        gt = read_ground_truth(base / "manhattan" / "groundTruth" / "manhattanOlson3500_nodes_groundTruth.dat", graph)
+    elif name == "sphere2500":
+        import gtsam
+
+        graph = read_pose_graph(gtsam.findExampleDataFile("sphere2500.txt"))
+        gt = read_ground_truth(gtsam.findExampleDataFile("sphere2500_groundtruth.txt"), graph)
+    elif name == "city10000":
+        import gtsam
+
+        graph = read_pose_graph(base / "city10000" / "originalDataset" / "city10000.g2o")
+        gt = read_ground_truth(gtsam.findExampleDataFile("ISAM2_GT_city10000.txt"), graph)
+    else:
+        raise ValueError(f"unknown graph {name!r}; expected one of {', '.join(GRAPHS)}")
+    return Benchmark(name, graph, gt)
+
+
+def _false_measurement(rng: np.random.Generator, dim: int) -> np.ndarray:
+    if dim == 2:
+        return planar_pose(rng.normal(0, 0.3), rng.normal(0, 0.3), rng.normal(0, math.radians(10)))
+    t = rng.normal(0, 0.3, 3)
+    roll, pitch, yaw = rng.normal(0, math.radians(10), 3)
+    cr, sr, cp, sp, cy, sy = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch), math.cos(yaw), math.sin(yaw)
+    rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
+    ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
+    rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
+    return make_pose(rz @ ry @ rx, t)
+
+
+def inject_false_loops(graph: PoseGraphData, rate: float, kind: str, seed: int) -> tuple[PoseGraphData, np.ndarray]:
+    """`graph` plus false loops making up `rate` of all loops; returns (graph, is_false per edge)."""
+    if kind not in KINDS:
+        raise ValueError(f"kind: expected one of {', '.join(KINDS)}, got {kind!r}")
+    if not 0 <= rate < 1:
+        raise ValueError(f"rate: must be in [0, 1), got {rate}")
+    rng = np.random.default_rng(seed)
+    loops = graph.loops
+    n_false = int(round(rate / (1 - rate) * len(loops)))
+    information = loops[0].information if loops else graph.edges[0].information
+    group = GROUP_SIZE if kind == "grouped" else 1
+    n_vertices = len(graph.ids)
+    false_edges: list[GraphEdge] = []
+    while len(false_edges) < n_false:
+        v1 = v2 = 0
+        while v1 == v2:
+            v1 = int(rng.integers(0, n_vertices - group))
+            if kind == "local":
+                v2 = int(rng.integers(v1, min(n_vertices - group, v1 + LOCAL_SPAN) + 1))
+            else:
+                v2 = int(rng.integers(0, n_vertices - group))
+            v1, v2 = min(v1, v2), max(v1, v2)
+            if v2 == v1 + 1:
+                v2 = v1 + 2
+            if v2 >= n_vertices:
+                v1 = v2 = 0
+        measured = _false_measurement(rng, graph.dim)
+        for k in range(min(group, n_false - len(false_edges))):
+            false_edges.append(GraphEdge(graph.ids[v1 + k], graph.ids[v2 + k], measured, information))
+    edges = (*graph.edges, *false_edges)
+    flags = np.array([False] * len(graph.edges) + [True] * len(false_edges))
+    return graph.with_edges(edges, f"{graph.source}+{kind}{rate:g}"), flags
+
+
+def _row(bench: Benchmark, kernel: str, gnc: bool, rate: float, kind: str, result, truth: np.ndarray,
+         reference_ate: float, n_false: int) -> dict:  # noqa: ANN001
+    ate = trajectory_ate(bench.gt, result.poses, bench.graph.dim).stats.rmse
+    scores = loop_classification_scores(~result.loop_inlier, truth[result.loop_indices])
+    return {
+        "graph": bench.name, "kernel": kernel, "gnc": gnc, "rate": rate, "kind": kind,
+        "true_loops": len(bench.graph.loops), "false_loops": n_false,
+        "ate_rmse": ate, "ate_reference": reference_ate, "ate_ratio": ate / reference_ate,
+        "outlier_precision": scores["outlier_precision"], "outlier_recall": scores["outlier_recall"],
+        "flagged_outliers": scores["flagged_outliers"], "seconds": result.seconds,
+    }  # fmt: skip
+
+
+def run_benchmark(graphs, rates, kinds, kernels, gnc_modes=(False, True), batch=True, seed=0,
+                  kernels_by_graph=None, log=None) -> dict:  # noqa: ANN001
+    """Rows for every (graph, kernel, gnc, rate, kind); see the module docstring."""
+    rows, references = [], {}
+    for name in graphs:
+        t0 = time.perf_counter()
+        bench = load_benchmark(name)
+        clean = optimize_graph(bench.graph, OptimizerSettings(kernel="none", gnc=False, batch=True))
+        reference = trajectory_ate(bench.gt, clean.poses, bench.graph.dim).stats.rmse
+        references[name] = {"ate_rmse": reference, "vertices": len(bench.graph.ids),
+                            "true_loops": len(bench.graph.loops), "seconds": clean.seconds}  # fmt: skip
+        graph_kernels = (kernels_by_graph or {}).get(name, kernels)
+        for rate in rates:
+            for kind in kinds:
+                seed_k = seed + 1000 * RATES_INDEX.get(rate, 9) + 100 * KINDS.index(kind) + GRAPHS.index(name)
+                noisy, truth = inject_false_loops(bench.graph, rate, kind, seed_k)
+                n_false = int(truth.sum())
+                for kernel in graph_kernels:
+                    settings = OptimizerSettings(kernel=kernel, gnc=False, batch=batch)
+                    base = optimize_graph(noisy, settings)
+                    if False in gnc_modes:
+                        rows.append(_row(bench, kernel, False, rate, kind, base, truth, reference, n_false))
+                    if True in gnc_modes:
+                        refined = refine_with_gnc(noisy, base, OptimizerSettings(kernel=kernel, gnc=True, batch=batch))
+                        rows.append(_row(bench, kernel, True, rate, kind, refined, truth, reference, n_false))
+                    if log:
+                        log(f"{name} rate={rate} {kind} {kernel}: " + ", ".join(
+                            f"gnc={r['gnc']} ratio={r['ate_ratio']:.3f} s={r['seconds']:.1f}"
+                            for r in rows[-len(gnc_modes):]))  # fmt: skip
+        if log:
+            log(f"{name}: done in {time.perf_counter() - t0:.0f} s")
+    return {
+        "protocol": {"rates": list(rates), "kinds": list(kinds), "kernels": list(kernels),
+                     "kernels_by_graph": kernels_by_graph or {}, "gnc": list(gnc_modes),
+                     "mode": "batch" if batch else "isam2", "seed": seed, "group_size": GROUP_SIZE,
+                     "local_span": LOCAL_SPAN},  # fmt: skip
+        "references": references,
+        "rows": rows,
+    }
+
+
+RATES_INDEX = {r: k for k, r in enumerate(RATES)}
+
+
+def _cell(value: float | None, fmt: str) -> str:
+    return "–" if value is None else fmt.format(value)
+
+
+def markdown_tables(results: dict) -> str:
+    """One table per kernel: rows graph / kind / rate, columns without and with GNC."""
+    rows = results["rows"]
+    out: list[str] = []
+    kernels = list(dict.fromkeys(r["kernel"] for r in rows))
+    for kernel in kernels:
+        out.append(f"### Kernel `{kernel}`\n")
+        out.append("| graph | outliers | rate | ATE/opt | prec | recall | s | ATE/opt GNC | prec GNC | recall GNC | s GNC |")
+        out.append("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+        keyed: dict[tuple, dict[bool, dict]] = {}
+        for r in rows:
+            if r["kernel"] == kernel:
+                keyed.setdefault((r["graph"], r["kind"], r["rate"]), {})[r["gnc"]] = r
+        for (graph, kind, rate), pair in keyed.items():
+            cells = []
+            for gnc in (False, True):
+                r = pair.get(gnc)
+                if r is None:
+                    cells += ["–"] * 4
+                else:
+                    cells += [_cell(r["ate_ratio"], "{:.3f}"), _cell(r["outlier_precision"], "{:.3f}"),
+                              _cell(r["outlier_recall"], "{:.3f}"), _cell(r["seconds"], "{:.1f}")]  # fmt: skip
+            out.append(f"| {graph} | {kind} | {rate:.0%} | " + " | ".join(cells) + " |")
+        out.append("")
+    return "\n".join(out)
+
+
+def summary(results: dict, tolerance: float = 1.10) -> list[dict]:
+    """Per (kernel, gnc): worst ATE ratio over all rows and whether every random-outlier row
+    is within `tolerance`."""
+    groups: dict[tuple[str, bool], list[dict]] = {}
+    for r in results["rows"]:
+        groups.setdefault((r["kernel"], r["gnc"]), []).append(r)
+    out = []
+    for (kernel, gnc), rows in groups.items():
+        random_rows = [r for r in rows if r["kind"] == "random"]
+        out.append({
+            "kernel": kernel, "gnc": gnc,
+            "worst_ratio_random": max((r["ate_ratio"] for r in random_rows), default=None),
+            "worst_ratio_all": max(r["ate_ratio"] for r in rows),
+            "random_within_tolerance": all(r["ate_ratio"] <= tolerance for r in random_rows),
+            "all_within_tolerance": all(r["ate_ratio"] <= tolerance for r in rows),
+            "seconds_total": sum(r["seconds"] for r in rows),
+        })  # fmt: skip
+    return out
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--graphs", nargs="+", default=list(GRAPHS), choices=GRAPHS)
+    parser.add_argument("--rates", nargs="+", type=float, default=list(RATES))
+    parser.add_argument("--kinds", nargs="+", default=list(KINDS), choices=KINDS)
+    parser.add_argument("--kernels", nargs="+", default=list(KERNELS), choices=[k for k in KERNEL_NAMES if k != "none"])
+    parser.add_argument("--graph-kernels", action="append", default=[], metavar="GRAPH=K1,K2",
+                        help="limit the kernels of one graph (e.g. city10000=cauchy,dcs)")
+    parser.add_argument("--gnc", choices=("both", "on", "off"), default="both")
+    parser.add_argument("--isam2", action="store_true", help="iSAM2 in vertex order instead of batch LM (slow)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--output", type=Path, help="also write the JSON here")
+    parser.add_argument("--markdown", nargs="?", const="-", metavar="RESULTS_JSON",
+                        help="print markdown tables: of a saved JSON, or (no value) of this run instead of JSON")
+    parser.add_argument("--quiet", action="store_true")
+    args = parser.parse_args(argv)
+    if args.markdown not in (None, "-"):
+        results = json.loads(Path(args.markdown).read_text())
+        print(markdown_tables(results))
+        return 0
+    by_graph = {}
+    for item in args.graph_kernels:
+        name, _, ks = item.partition("=")
+        by_graph[name] = [k for k in ks.split(",") if k]
+    gnc_modes = {"both": (False, True), "on": (True,), "off": (False,)}[args.gnc]
+    log = None if args.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
+    results = run_benchmark(args.graphs, args.rates, args.kinds, args.kernels, gnc_modes,
+                            batch=not args.isam2, seed=args.seed, kernels_by_graph=by_graph, log=log)  # fmt: skip
+    results["summary"] = summary(results)
+    text = json.dumps(results, indent=1)
+    if args.output:
+        from loopclosure.atomic import atomic_write_text
+
+        atomic_write_text(args.output, text + "\n")
+    print(markdown_tables(results) if args.markdown == "-" else text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
