@@ -157,14 +157,14 @@ class FolderSource(Source):
         for index, (path, time) in enumerate(zip(self.images, self.times)):
             if not clock.accept("frame", float(time), str(path)):
                 continue
-            pose = self.poses[index] if self.poses is not None else None
-            if self.poses is not None and pose is None:
-                self.stats.notes["unmatched_pose"] += 1
             try:
                 image = read_rgb(path)
             except FrontendInputError as error:  # the image is all a folder frame has
                 self.stats.skip("undecodable_image", f"{error}; frame skipped")
                 continue
+            pose = self.poses[index] if self.poses is not None else None
+            if self.poses is not None and pose is None:
+                self.stats.notes["unmatched_pose"] += 1
             frame = Frame(
                 index=self.stats.frames_yielded,
                 timestamp=float(time),
