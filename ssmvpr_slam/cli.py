@@ -41,9 +41,10 @@ def _user_errors() -> tuple[type[BaseException], ...]:
     from loopclosure.errors import LoopClosureInputError, WeightsNotFoundError
     from ssmvpr_slam.backend.g2o_io import PoseGraphFileError
     from ssmvpr_slam.config import ConfigError
+    from ssmvpr_slam.results import OutputError
 
     return (FrontendInputError, LoopClosureInputError, WeightsNotFoundError, ConfigError, FileNotFoundError,
-            PoseGraphFileError)  # fmt: skip
+            PoseGraphFileError, OutputError)  # fmt: skip
 
 
 def _print_error(message: str) -> None:
@@ -88,6 +89,11 @@ def _config(config: str | None, weights: Path | None = None, device: str | None 
     return cfg
 
 
+def _out_option(out: Path | None) -> str:
+    """How an error names the results folder: the option if given, else the config key."""
+    return "--out" if out is not None else "results.out_dir"
+
+
 def _odometry_kind(name: str) -> str:
     """CLI spelling (kiss-icp) to the config's (kiss_icp); anything else is left for validation."""
     return name.replace("-", "_")
@@ -127,6 +133,7 @@ def vpr_eval(
     out: OutOpt = None,
 ) -> None:
     """Recognition on a VPR benchmark: PR curves, AUC, recall@N, timings (the paper's protocol)."""
+    from ssmvpr_slam.results import output_dir
     from ssmvpr_slam.vpr.evaluate import run_vpr_eval
 
     cfg = _config(config, weights, device, out)
@@ -140,7 +147,8 @@ def vpr_eval(
         cfg.vpr.filtering.num_candidates = num_candidates
     if sequential is None:
         sequential = cfg.vpr.frame_correlation.enabled
-    run_vpr_eval(ref, query, cfg, gt, sequential, pca, console)
+    with output_dir(cfg.results.out_dir, _out_option(out)):
+        run_vpr_eval(ref, query, cfg, gt, sequential, pca, console)
 
 
 @app.command("simulate")
@@ -154,6 +162,7 @@ def simulate(
 ) -> None:
     """Render a loopy city traverse (camera, LiDAR, ground truth, drifting odometry) to MCAP."""
     from frontend.simulation.config import SimulationConfig
+    from ssmvpr_slam.results import output_file
     from ssmvpr_slam.runner import demo_frames_config, simulate_to_mcap
 
     cfg = demo_frames_config(_config(config))
@@ -161,8 +170,9 @@ def simulate(
         cfg.simulation = SimulationConfig.from_yaml(sim_config)
     updates = {k: v for k, v in {"max_frames": frames, "seed": seed}.items() if v is not None}
     cfg.simulation = _validated_update(cfg.simulation, updates)
-    simulate_to_mcap(cfg, out, console)
-    console.print(f"wrote [bold]{out}[/bold]")
+    with output_file(out, "--out"):
+        simulate_to_mcap(cfg, out, console)
+    console.print(f"wrote [bold]{escape(str(out))}[/bold]")
 
 
 @app.command("run")
@@ -179,6 +189,7 @@ def run(
     out: OutOpt = None,
 ) -> None:
     """Process a logged traverse end to end: odometry, SSM-VPR loops, iSAM2, evaluation."""
+    from ssmvpr_slam.results import output_dir
     from ssmvpr_slam.runner import run_log
 
     cfg = _config(config, weights, device, out)
@@ -186,7 +197,8 @@ def run(
         cfg.frontend.odometry.kind = _odometry_kind(odometry)  # type: ignore[assignment]
     if no_lidar_loops:
         cfg.pipeline.use_lidar_for_loops = False
-    run_log(log, cfg, map_dir, inject_wrong_loops, console)
+    with output_dir(cfg.results.out_dir, _out_option(out)):
+        run_log(log, cfg, map_dir, inject_wrong_loops, console)
 
 
 @app.command("demo")
@@ -200,6 +212,7 @@ def demo(
     out: OutOpt = None,
 ) -> None:
     """Simulate the default loopy traverse, run it, evaluate, and print before/after."""
+    from ssmvpr_slam.results import output_dir
     from ssmvpr_slam.runner import demo_frames_config, run_log, simulate_to_mcap
 
     cfg = demo_frames_config(_config(config, weights, device, out))
@@ -208,10 +221,10 @@ def demo(
     cfg.frontend.odometry.kind = _odometry_kind(odometry)  # type: ignore[assignment]
     if cfg.frontend.odometry.kind == "logged":
         cfg.pipeline.use_lidar_for_loops = False
-    log = Path(cfg.results.out_dir) / "demo.mcap"
-    log.parent.mkdir(parents=True, exist_ok=True)
-    simulate_to_mcap(cfg, log, console)
-    run_log(log, cfg, console=console, name="demo")
+    with output_dir(cfg.results.out_dir, _out_option(out)) as folder:
+        log = folder / "demo.mcap"
+        simulate_to_mcap(cfg, log, console)
+        run_log(log, cfg, console=console, name="demo")
 
 
 @app.command("fit-pca")
@@ -227,15 +240,18 @@ def fit_pca(
     from loopclosure.backbone import load_backbone
     from loopclosure.encoder import Encoder, evenly_spaced
     from loopclosure.images import list_images, read_image
+    from ssmvpr_slam.results import output_file
 
     cfg = _config(config, weights, device)
-    files = list_images(folder)
-    subset = [files[i] for i in evenly_spaced(len(files), cfg.vpr.spatial.pca.max_fit_images)]
-    encoder = Encoder(cfg.vpr, load_backbone(cfg.vpr.backbone, progress=True))
-    with console.status(f"fitting PCA on {len(subset)} images of {folder}"):
-        codebooks = encoder.fit_codebooks(encoder.prepare(read_image(p), str(p)) for p in subset)
-    codebooks.save(output)
-    console.print(f"codebooks ({codebooks.stage1.dim} + {codebooks.stage2.dim} dims) written to [bold]{output}[/bold]")
+    with output_file(output, "--output"):
+        files = list_images(folder)
+        subset = [files[i] for i in evenly_spaced(len(files), cfg.vpr.spatial.pca.max_fit_images)]
+        encoder = Encoder(cfg.vpr, load_backbone(cfg.vpr.backbone, progress=True))
+        with console.status(f"fitting PCA on {len(subset)} images of {escape(str(folder))}"):
+            codebooks = encoder.fit_codebooks(encoder.prepare(read_image(p), str(p)) for p in subset)
+        codebooks.save(output)
+    dims = f"{codebooks.stage1.dim} + {codebooks.stage2.dim} dims"
+    console.print(f"codebooks ({dims}) written to [bold]{escape(str(output))}[/bold]")
 
 
 @weights_app.command("fetch")
@@ -249,7 +265,7 @@ def weights_fetch(
     from loopclosure.weights import fetch_weights
 
     path = fetch_weights(cache_dir=cache_dir, source=source, force=force, progress=True)  # type: ignore[arg-type]
-    console.print(f"weights ready: [bold]{path}[/bold]")
+    console.print(f"weights ready: [bold]{escape(str(path))}[/bold]")
 
 
 @weights_app.command("path")
@@ -258,7 +274,7 @@ def weights_path(weights: WeightsOpt = None) -> None:
     """Show which weights file would be used (no download)."""
     from loopclosure.weights import resolve_weights
 
-    console.print(str(resolve_weights(weights, allow_download=False)))
+    console.print(str(resolve_weights(weights, allow_download=False)), markup=False, highlight=False)
 
 
 @app.command("config")
@@ -291,40 +307,41 @@ def optimize(
         KERNEL_NAMES, OptimizerSettings, loop_classification_scores, optimize_graph, trajectory_ate,
     )  # fmt: skip
     from ssmvpr_slam.evaluation.trajectory_io import write_tum
-    from ssmvpr_slam.results import write_json
+    from ssmvpr_slam.results import output_dir, write_json
 
     if kernel not in KERNEL_NAMES:
         raise g2o_io.PoseGraphFileError(f"--kernel: expected one of {', '.join(KERNEL_NAMES)}, got {kernel!r}")
-    data = g2o_io.read_pose_graph(graph)
-    stamps = g2o_io.read_times(times, data) if times is not None else None
-    gt_poses = g2o_io.read_ground_truth(gt, data, stamps) if gt is not None else None
-    true_pairs = g2o_io.read_edge_pairs(gt_edges) if gt_edges is not None else None
-    result = optimize_graph(data, OptimizerSettings(kernel=kernel, gnc=gnc, batch=batch))
-    g2o_io.write_g2o(out / "optimised.g2o", data, result.poses)
-    if stamps is not None:
-        write_tum(out / "optimised.tum", stamps, result.poses)
-    loops = [data.edges[k] for k in result.loop_indices]
-    metrics: dict[str, Any] = {
-        "graph": str(graph), "dimension": data.dim, "vertices": len(data.ids), "edges": len(data.edges),
-        "odometry_edges": len(data.edges) - len(loops), "loop_candidates": len(loops),
-        "initialised_from_odometry": result.initialised_from_odometry,
-        "solver": "batch" if batch else "isam2", "kernel": kernel, "gnc": gnc, "seconds": result.seconds,
-        "loops_inlier": int(result.loop_inlier.sum()), "loops_outlier": result.n_outliers,
-        "classification": result.classification,
-        "outlier_loops": [[e.i, e.j] for e, ok in zip(loops, result.loop_inlier) if not ok],
-    }  # fmt: skip
-    if gt_poses is not None:
-        metrics["ate"] = trajectory_ate(gt_poses, result.poses, data.dim).to_dict()
-        metrics["ate_initial"] = trajectory_ate(gt_poses, data.poses if data.has_initial_estimate()
-                                                else g2o_io.chain_odometry(data), data.dim).to_dict()  # fmt: skip
-    if true_pairs is not None:
-        truth = np.array([(min(e.i, e.j), max(e.i, e.j)) not in true_pairs for e in loops], dtype=bool)
-        metrics["loop_classification"] = loop_classification_scores(~result.loop_inlier, truth)
-    write_json(out / "metrics.json", metrics)
+    with output_dir(out, "--out"):  # checked before the graph is read
+        data = g2o_io.read_pose_graph(graph)
+        stamps = g2o_io.read_times(times, data) if times is not None else None
+        gt_poses = g2o_io.read_ground_truth(gt, data, stamps) if gt is not None else None
+        true_pairs = g2o_io.read_edge_pairs(gt_edges) if gt_edges is not None else None
+        result = optimize_graph(data, OptimizerSettings(kernel=kernel, gnc=gnc, batch=batch))
+        g2o_io.write_g2o(out / "optimised.g2o", data, result.poses)
+        if stamps is not None:
+            write_tum(out / "optimised.tum", stamps, result.poses)
+        loops = [data.edges[k] for k in result.loop_indices]
+        metrics: dict[str, Any] = {
+            "graph": str(graph), "dimension": data.dim, "vertices": len(data.ids), "edges": len(data.edges),
+            "odometry_edges": len(data.edges) - len(loops), "loop_candidates": len(loops),
+            "initialised_from_odometry": result.initialised_from_odometry,
+            "solver": "batch" if batch else "isam2", "kernel": kernel, "gnc": gnc, "seconds": result.seconds,
+            "loops_inlier": int(result.loop_inlier.sum()), "loops_outlier": result.n_outliers,
+            "classification": result.classification,
+            "outlier_loops": [[e.i, e.j] for e, ok in zip(loops, result.loop_inlier) if not ok],
+        }  # fmt: skip
+        if gt_poses is not None:
+            metrics["ate"] = trajectory_ate(gt_poses, result.poses, data.dim).to_dict()
+            metrics["ate_initial"] = trajectory_ate(gt_poses, data.poses if data.has_initial_estimate()
+                                                    else g2o_io.chain_odometry(data), data.dim).to_dict()  # fmt: skip
+        if true_pairs is not None:
+            truth = np.array([(min(e.i, e.j), max(e.i, e.j)) not in true_pairs for e in loops], dtype=bool)
+            metrics["loop_classification"] = loop_classification_scores(~result.loop_inlier, truth)
+        write_json(out / "metrics.json", metrics)
     summary = f"{len(data.ids)} vertices, {len(loops)} loop candidates, {result.n_outliers} rejected"
     if "ate" in metrics:
         summary += f", ATE {metrics['ate']['rmse']:.3f} m"
-    console.print(f"{summary}; wrote [bold]{out}[/bold] ({result.seconds:.1f} s)")
+    console.print(f"{summary}; wrote [bold]{escape(str(out))}[/bold] ({result.seconds:.1f} s)")
 
 
 def main() -> None:  # pragma: no cover - console script entry

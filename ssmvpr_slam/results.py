@@ -1,32 +1,212 @@
-"""Results folders: one timestamped folder per run and a `latest` link, as kiss-icp does."""
+"""Results folders: one timestamped folder per run and a `latest` link, as kiss-icp does.
+
+A results folder is written as one unit: everything goes into a hidden staging folder beside
+the target, which is renamed into place when complete; only then does `latest` move (a new
+link under a temp name, then ``os.replace``). A crash or an abandoned write leaves the
+previous results and the previous `latest` as they were, never a half-written folder.
+"""
 
 from __future__ import annotations
 
 import json
+import logging
 import os
+import shutil
+import signal
+import tempfile
+import threading
+from collections.abc import Iterator
+from contextlib import contextmanager
 from datetime import datetime
 from pathlib import Path
 from typing import Any
 
 from loopclosure.atomic import atomic_write_text
 
+log = logging.getLogger(__name__)
 
-def create_results_dir(base: str | Path, name: str) -> Path:
-    """`base/<name>_<YYYY-mm-dd_HH-MM-SS>` plus `base/latest` pointing at it."""
-    base = Path(base)
-    stamp = datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
-    folder = base / f"{name}_{stamp}"
-    suffix = 1
-    while folder.exists():
-        folder = base / f"{name}_{stamp}_{suffix}"
-        suffix += 1
-    folder.mkdir(parents=True)
-    link = base / "latest"
-    tmp_link = base / f".latest.{os.getpid()}"
-    tmp_link.unlink(missing_ok=True)
-    tmp_link.symlink_to(folder.name, target_is_directory=True)
-    os.replace(tmp_link, link)  # atomic switch of the link
-    return folder
+LATEST = "latest"
+
+
+class OutputError(ValueError):
+    """An output path that cannot be written (a file where a folder is wanted, no permission...)."""
+
+
+def _created_parents(path: Path) -> list[Path]:
+    """The missing folders from the nearest existing ancestor down to `path`, outermost first."""
+    missing = []
+    for folder in (path, *path.parents):
+        if folder.exists() or folder.is_symlink():
+            break
+        missing.append(folder)
+    return missing[::-1]
+
+
+def _check_writable(folder: Path, option: str, shown: Path) -> None:
+    try:
+        with tempfile.TemporaryFile(dir=folder):
+            pass
+    except OSError as exc:
+        raise OutputError(f"{option} {shown}: cannot write in {folder} ({exc.strerror or exc})") from None
+
+
+def _make_folder(folder: Path, option: str, shown: Path) -> None:
+    for part in (folder, *folder.parents):
+        if part.exists() and not part.is_dir():
+            what = "is a file" if part == shown else f"{part} is a file"
+            raise OutputError(f"{option} {shown}: {what}, not a folder")
+        if part.is_dir():
+            break
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(f"{option} {shown}: cannot create the folder ({exc.strerror or exc})") from None
+
+
+def _remove_if_empty(created: list[Path]) -> None:
+    for folder in reversed(created):  # innermost first
+        try:
+            folder.rmdir()
+        except OSError:
+            break  # not empty (something was written) or already gone
+
+
+@contextmanager
+def output_dir(path: str | Path, option: str = "--out") -> Iterator[Path]:
+    """Create and check an output folder before any work starts.
+
+    A file, or a folder that cannot be written, is an `OutputError` naming it. If the work in
+    the block fails, folders this created and left empty are removed again, so a refused run
+    leaves nothing behind."""
+    folder = Path(path)
+    created = _created_parents(folder)
+    _make_folder(folder, option, folder)
+    try:
+        _check_writable(folder, option, folder)
+        yield folder
+    except BaseException:
+        _remove_if_empty(created)
+        raise
+
+
+@contextmanager
+def output_file(path: str | Path, option: str = "--out") -> Iterator[Path]:
+    """Check an output file's place before any work starts: not a folder, its folder writable.
+
+    Like `output_dir`, missing parent folders are created, and removed again if the block fails
+    before anything was written into them."""
+    target = Path(path)
+    if target.is_dir():
+        raise OutputError(f"{option} {target}: is a folder; give a file name")
+    parent = target.parent
+    created = _created_parents(parent)
+    _make_folder(parent, option, target)
+    try:
+        _check_writable(parent, option, target)
+        yield target
+    except BaseException:
+        _remove_if_empty(created)
+        raise
+
+
+class StagedResults:
+    """A results folder under construction: write into `path`, then `publish()`."""
+
+    def __init__(self, base: str | Path, name: str) -> None:
+        self.base = Path(base)
+        self.name = name
+        self.stamp = datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
+        self.base.mkdir(parents=True, exist_ok=True)
+        # hidden, so globs for finished folders (run_*) never see a partial one
+        self.path = Path(tempfile.mkdtemp(prefix=f".{name}_{self.stamp}.", suffix=".partial", dir=self.base))
+        self.final: Path | None = None
+
+    def publish(self) -> Path:
+        """Rename the complete folder into place, then point `latest` at it."""
+        os.chmod(self.path, _default_dir_mode())  # mkdtemp makes 0700
+        suffix = 0
+        while True:
+            final = self.base / (f"{self.name}_{self.stamp}" + (f"_{suffix}" if suffix else ""))
+            if not final.exists() and not final.is_symlink():
+                try:
+                    os.rename(self.path, final)
+                    break
+                except OSError:  # taken meanwhile (another run finished in the same second)
+                    if not final.exists():
+                        raise
+            suffix += 1
+        self.final = final
+        point_latest(self.base, final.name)
+        return final
+
+    def discard(self) -> None:
+        shutil.rmtree(self.path, ignore_errors=True)
+
+
+def _default_dir_mode() -> int:
+    """Permissions a plain ``mkdir`` would give."""
+    umask = os.umask(0)
+    os.umask(umask)
+    return 0o777 & ~umask
+
+
+def point_latest(base: Path, name: str) -> None:
+    """Switch `base/latest` to `name` atomically (a temp link renamed over the old one)."""
+    link = base / LATEST
+    if link.exists() and not link.is_symlink():
+        log.warning("%s is not a link; left as it is (results are in %s)", link, base / name)
+        return
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{LATEST}.", dir=base)
+    os.close(fd)
+    tmp_link = Path(tmp_name)
+    tmp_link.unlink()
+    try:
+        tmp_link.symlink_to(name, target_is_directory=True)
+        os.replace(tmp_link, link)
+    except BaseException:
+        tmp_link.unlink(missing_ok=True)
+        raise
+
+
+@contextmanager
+def _interrupts_deferred() -> Iterator[None]:
+    """While results are written, a first Ctrl-C / SIGTERM waits for the write to finish; a
+    second abandons it (the staging folder is dropped, `latest` untouched)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    received: list[int] = []
+
+    def handler(signum: int, _frame: object) -> None:
+        received.append(signum)
+        if len(received) == 1:
+            log.warning("%s: finishing writing the results; send it again to abandon them",
+                        signal.Signals(signum).name)  # fmt: skip
+            return
+        raise KeyboardInterrupt
+
+    previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+
+
+@contextmanager
+def staged_results_dir(base: str | Path, name: str) -> Iterator[StagedResults]:
+    """Write a results folder as one unit: `staged.path` inside the block, `staged.final` after.
+
+    Any exception (or a second interrupt) in the block drops the staging folder and leaves the
+    previous `latest` as it was."""
+    staged = StagedResults(base, name)
+    with _interrupts_deferred():
+        try:
+            yield staged
+        except BaseException:
+            staged.discard()
+            raise
+        staged.publish()
 
 
 def write_json(path: Path, data: Any) -> None:

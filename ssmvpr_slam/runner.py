@@ -6,6 +6,7 @@ from pathlib import Path
 from typing import Any
 
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
@@ -16,7 +17,7 @@ from loopclosure.backbone import load_backbone
 from ssmvpr_slam.config import SlamConfig
 from ssmvpr_slam.pipeline import RunState, SlamPipeline
 from ssmvpr_slam.prior_map import PriorMap
-from ssmvpr_slam.results import create_results_dir
+from ssmvpr_slam.results import staged_results_dir
 from ssmvpr_slam.run_results import write_run_results
 
 
@@ -51,15 +52,16 @@ def run_log(
                             f"{in_graph} in graph | {fps:.1f} fps")  # fmt: skip
 
         pipeline.run(frames, on_frame)
-    folder = create_results_dir(config.results.out_dir, name)
     extra = {"log": str(log), "source": source.description, "source_stats": _stats(source),
              "odometry_kind": config.frontend.odometry.kind, "prior_map": str(prior_map) if prior_map else None,
              "injected_wrong_loop_rate": inject_wrong_loops}  # fmt: skip
-    metrics = write_run_results(folder, pipeline, config, extra)
+    with staged_results_dir(config.results.out_dir, name) as staged:  # `latest` moves once complete
+        metrics = write_run_results(staged.path, pipeline, config, extra)
+    folder = staged.final
     console.print(summary_table(metrics))
     if pipeline.state.interrupted:
         console.print("[yellow]stopped early on request: results cover the frames processed so far[/yellow]")
-    console.print(f"results in [bold]{folder}[/bold]")
+    console.print(f"results in [bold]{escape(str(folder))}[/bold]")
     if pipeline.state.step_error is not None:
         raise pipeline.state.step_error  # results up to the failing frame are written above
     if pipeline.state.source_error is not None:

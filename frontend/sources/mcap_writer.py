@@ -72,12 +72,16 @@ class McapFrameWriter:
         """Finish the log and move it to its final name."""
         if self._writer is None:
             return
-        self._writer.finish()
-        self._file.flush()
-        os.fsync(self._file.fileno())
-        self._file.close()
-        os.chmod(self._tmp_path, default_file_mode())
-        os.replace(self._tmp_path, self.path)
+        try:
+            self._writer.finish()
+            self._file.flush()
+            os.fsync(self._file.fileno())
+            self._file.close()
+            os.chmod(self._tmp_path, default_file_mode())
+            os.replace(self._tmp_path, self.path)
+        except BaseException:  # e.g. the target is a folder: no temp file is left behind
+            self.abort()
+            raise
         self._writer = None
 
     def abort(self) -> None:

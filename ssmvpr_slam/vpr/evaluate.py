@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 from rich.console import Console
+from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 from threadpoolctl import threadpool_limits
@@ -30,7 +31,8 @@ from loopclosure.recognizer import Recognizer
 from loopclosure.sequence_matcher import SequenceMatcher
 from loopclosure.spatial import spatial_scores
 from ssmvpr_slam.config import SlamConfig, dump_config
-from ssmvpr_slam.results import create_results_dir, write_json
+from ssmvpr_slam.prior_map import encoder_signature
+from ssmvpr_slam.results import staged_results_dir, write_json
 
 
 @dataclass
@@ -313,14 +315,16 @@ def run_vpr_eval(
     metrics["inputs"] = {"ref_dir": str(ref_dir), "query_dir": str(query_dir),
                          "ground_truth": str(ground_truth) if ground_truth else "frame-aligned"}  # fmt: skip
 
-    folder = create_results_dir(config.results.out_dir, "vpr_eval")
-    write_json(folder / "metrics.json", metrics)
-    write_matches_csv(folder / "matches.csv", outcome, gt, config.vpr_eval.tolerance, ref_files, query_files)
-    atomic_write_text(folder / "config.yaml", dump_config(config))
-    if config.results.save_database:
-        database.save(folder / "database")
-    if config.results.plots:
-        write_plots(folder, outcome, gt, metrics, config)
+    with staged_results_dir(config.results.out_dir, "vpr_eval") as staged:  # `latest` moves once complete
+        folder = staged.path
+        write_json(folder / "metrics.json", metrics)
+        write_matches_csv(folder / "matches.csv", outcome, gt, config.vpr_eval.tolerance, ref_files, query_files)
+        atomic_write_text(folder / "config.yaml", dump_config(config))
+        if config.results.save_database:  # signed like a run's database, so --map can check it
+            database.save(folder / "database", extra={"encoder": encoder_signature(config.vpr)})
+        if config.results.plots:
+            write_plots(folder, outcome, gt, metrics, config)
+    folder = staged.final
     console.print(summary_table(metrics))
-    console.print(f"results in [bold]{folder}[/bold]")
+    console.print(f"results in [bold]{escape(str(folder))}[/bold]")
     return folder, metrics
