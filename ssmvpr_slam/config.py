@@ -7,13 +7,15 @@ command-line options. Unknown keys are errors, so a typo in a preset fails loudl
 
 from __future__ import annotations
 
+import json
 import os
+import re
 from pathlib import Path
 from typing import Annotated, Any
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
-from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
+from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict, SettingsError
 
 from frontend.config import FrontendConfig
 from frontend.simulation.config import SimulationConfig
@@ -94,6 +96,10 @@ def _read_yaml(path: Path) -> dict[str, Any]:
         data = yaml.safe_load(path.read_text()) or {}
     except OSError as exc:
         raise ConfigError(f"cannot read config {path}: {exc.strerror}") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(
+            f"config {path} is not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset {exc.start})"
+        ) from None
     except yaml.YAMLError as exc:
         raise ConfigError(f"config {path} is not valid YAML: {exc}".splitlines()[0]) from None
     if not isinstance(data, dict):
@@ -126,12 +132,57 @@ def load_config(config: str | Path | None = None, overrides: dict[str, Any] | No
     data = _merge(data, overrides or {})
     try:
         return SlamConfig(**data)
+    except SettingsError as exc:  # a nested SSMVPR_ variable whose value is not the JSON it must be
+        raise ConfigError(_env_json_error(exc)) from None
     except ValidationError as exc:
         first = exc.errors()[0]
         where = ".".join(str(p) for p in first["loc"])
         variable = _env_variable(first["loc"])
         origin = f"environment variable {variable}" if variable else f"config {source}"
         raise ConfigError(f"{origin}: {where}: {first['msg']} ({exc.error_count()} error(s))") from None
+
+
+def _field_annotation(loc: list[str]) -> Any:
+    """The annotation of the config field at `loc` (names case-insensitive), None if there is none."""
+    model: Any = SlamConfig
+    annotation: Any = None
+    for part in loc:
+        if not (isinstance(model, type) and issubclass(model, BaseModel)):
+            return None
+        fields = {name.lower(): info for name, info in model.model_fields.items()}
+        if part.lower() not in fields:
+            return None
+        annotation = model = fields[part.lower()].annotation
+    return annotation
+
+
+def _env_json_error(exc: SettingsError) -> str:
+    """Name the SSMVPR_ variable(s) that pydantic-settings could not parse as JSON."""
+    found = re.search(r'field "([^"]+)"', str(exc))  # 'error parsing value for field "vpr" from ...'
+    section = found.group(1) if found else ""
+    prefix = f"SSMVPR_{section}".upper()
+    mine = {k: v for k, v in os.environ.items() if k.upper() == prefix or k.upper().startswith(prefix + "__")}
+
+    def not_json(value: str) -> bool:
+        try:
+            json.loads(value)
+        except ValueError:
+            return True
+        return False
+
+    def is_section(key: str) -> bool:
+        annotation = _field_annotation(key.upper().removeprefix("SSMVPR_").split("__"))
+        return isinstance(annotation, type) and issubclass(annotation, BaseModel)
+
+    culprits = [k for k, v in mine.items() if not_json(v)] or sorted(mine)
+    if not culprits:
+        return f"environment: cannot parse the value for config section {section!r} ({exc})"
+    key = sorted(culprits, key=is_section, reverse=True)[0]
+    where = key.upper().removeprefix("SSMVPR_").lower().replace("__", ".")
+    if is_section(key):
+        return (f"environment variable {key}={mine[key]!r}: not valid JSON; {where} is a section, "
+                f"so give a JSON object or set one field as {key}__<FIELD>=value")
+    return f"environment variable {key}={mine[key]!r}: not valid JSON, which {where} needs (e.g. [1, 2])"
 
 
 def _env_variable(loc: tuple[Any, ...]) -> str | None:
