@@ -151,27 +151,29 @@ class PlaceDatabase:
 
     @classmethod
     def load(cls, folder: str | Path) -> "PlaceDatabase":
+        """Read a saved folder; anything malformed is a `LoopClosureInputError` naming its file."""
         folder = Path(folder)
         manifest_path = folder / MANIFEST
         if not manifest_path.is_file():
             raise LoopClosureInputError(f"not a place database (no {MANIFEST}): {folder}")
+        manifest = _read_manifest(manifest_path)
+        n = manifest["num_places"]
         try:
-            manifest = json.loads(manifest_path.read_text())
-        except json.JSONDecodeError as exc:
-            raise LoopClosureInputError(f"corrupt manifest {manifest_path}: {exc}") from None
-        if manifest.get("format") != FORMAT:
-            raise LoopClosureInputError(f"{manifest_path} is not a {FORMAT} manifest")
-        if manifest.get("version") != FORMAT_VERSION:
+            config = DatabaseConfig(**manifest.get("config") or {})
+        except (TypeError, ValueError) as exc:  # pydantic's ValidationError is a ValueError
+            raise LoopClosureInputError(f"{manifest_path}: invalid database config ({str(exc).splitlines()[0]})") from None
+        db = cls(Codebooks.load(folder / "codebooks.npz"), config)
+        extra = manifest.get("extra") or {}
+        if not isinstance(extra, dict):
+            raise LoopClosureInputError(f"{manifest_path}: 'extra' must be an object, got {type(extra).__name__}")
+        db.extra = dict(extra)
+        dims = (db.codebooks.stage1.dim, db.codebooks.stage2.dim)
+        if n and (manifest["stage1_shape"][-1], manifest["stage2_shape"][-1]) != dims:
             raise LoopClosureInputError(
-                f"{manifest_path} has format version {manifest.get('version')}, this build reads {FORMAT_VERSION}"
+                f"{folder / 'codebooks.npz'}: codebooks give {dims[0]}/{dims[1]}-dim codes, "
+                f"{manifest_path} says {manifest['stage1_shape'][-1]}/{manifest['stage2_shape'][-1]}"
             )
-        n = int(manifest["num_places"])
-        db = cls(Codebooks.load(folder / "codebooks.npz"), DatabaseConfig(**manifest["config"]))
-        db.extra = dict(manifest.get("extra") or {})
-        try:
-            places = json.loads((folder / "places.json").read_text())
-        except (OSError, json.JSONDecodeError) as exc:
-            raise LoopClosureInputError(f"cannot read {folder / 'places.json'}: {exc}") from None
+        places = _read_places(folder / "places.json")
         if n == 0:
             return db
         stage1, stage2 = (_load_npy(folder / name, n) for name in ("stage1.npy", "stage2.npy"))
@@ -179,10 +181,60 @@ class PlaceDatabase:
             raise LoopClosureInputError(f"{folder / 'places.json'} lists {len(places)} places, manifest says {n}")
         if list(stage1.shape[1:]) != manifest["stage1_shape"] or list(stage2.shape[1:]) != manifest["stage2_shape"]:
             raise LoopClosureInputError(f"array shapes in {folder} disagree with its manifest")
+        for name, array in (("stage1.npy", stage1), ("stage2.npy", stage2)):
+            finite = np.isfinite(array[:n].reshape(n, -1)).all(axis=1)
+            if not finite.all():  # NaN codes would vote for nothing or match everything
+                bad = np.flatnonzero(~finite)
+                raise LoopClosureInputError(
+                    f"{folder / name}: codes of {len(bad)} of {n} places are NaN or inf (first: place {bad[0]})"
+                )
         db._stage1 = _GrowingArray(stage1.shape[1:], np.dtype(db.config.stage1_dtype), stage1[:n])
         db._stage2 = _GrowingArray(stage2.shape[1:], np.dtype(db.config.stage2_dtype), stage2[:n])
-        db.places = [PlaceInfo(**p) for p in places[:n]]
+        db.places = places[:n]
         return db
+
+
+def _read_manifest(path: Path) -> dict[str, Any]:
+    """The manifest as a checked mapping: format, version, a place count and the code shapes."""
+    try:
+        manifest = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise LoopClosureInputError(f"corrupt manifest {path}: {exc}") from None
+    if not isinstance(manifest, dict):
+        raise LoopClosureInputError(f"{path}: the manifest must be a JSON object, got {type(manifest).__name__}")
+    if manifest.get("format") != FORMAT:
+        raise LoopClosureInputError(f"{path} is not a {FORMAT} manifest")
+    if manifest.get("version") != FORMAT_VERSION:
+        raise LoopClosureInputError(f"{path} has format version {manifest.get('version')}, this build reads {FORMAT_VERSION}")
+    n = manifest.get("num_places")
+    if "num_places" not in manifest:
+        raise LoopClosureInputError(f"{path}: no num_places")
+    if isinstance(n, bool) or not isinstance(n, int) or n < 0:
+        raise LoopClosureInputError(f"{path}: num_places must be a whole number >= 0, got {n!r}")
+    for key, ndim in (("stage1_shape", 2), ("stage2_shape", 3)):
+        shape = manifest.get(key)
+        if not (isinstance(shape, list) and len(shape) == ndim and all(type(d) is int and d >= 0 for d in shape)):
+            raise LoopClosureInputError(f"{path}: {key} must be {ndim} whole numbers, got {shape!r}")
+    return manifest
+
+
+def _read_places(path: Path) -> list[PlaceInfo]:
+    try:
+        places = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise LoopClosureInputError(f"cannot read {path}: {exc}") from None
+    if not isinstance(places, list):
+        raise LoopClosureInputError(f"{path}: must be a JSON list of places, got {type(places).__name__}")
+    out = []
+    for index, place in enumerate(places):
+        try:
+            info = PlaceInfo(**place)
+        except TypeError:  # not an object, or unknown/missing keys
+            info = None
+        if info is None or type(info.frame_id) is not int or not isinstance(info.extra, dict):
+            raise LoopClosureInputError(f"{path}: place {index} is not a place record ({str(place)[:80]})")
+        out.append(info)
+    return out
 
 
 def _npy_bytes(array: np.ndarray) -> bytes:
@@ -196,8 +248,10 @@ def _npy_bytes(array: np.ndarray) -> bytes:
 def _load_npy(path: Path, n: int) -> np.ndarray:
     try:
         array = np.load(path, allow_pickle=False)
-    except (OSError, ValueError) as exc:
+    except (OSError, ValueError, EOFError) as exc:
         raise LoopClosureInputError(f"cannot read {path}: {exc}") from None
+    if not isinstance(array, np.ndarray) or array.dtype.kind not in "fiu" or array.ndim < 1:
+        raise LoopClosureInputError(f"{path}: not an array of numeric codes")
     if len(array) < n:
         raise LoopClosureInputError(f"{path} holds {len(array)} places, its manifest says {n}")
     return array

@@ -7,6 +7,8 @@ nothing but numpy to use.
 from __future__ import annotations
 
 import io
+import zipfile
+import zlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -112,8 +114,15 @@ class Codebooks:
         try:
             with np.load(path, allow_pickle=False) as data:
                 arrays = dict(data)
-            return cls(PCAProjection.from_arrays(arrays, "stage1_"), PCAProjection.from_arrays(arrays, "stage2_"))
+            books = cls(PCAProjection.from_arrays(arrays, "stage1_"), PCAProjection.from_arrays(arrays, "stage2_"))
         except FileNotFoundError:
             raise LoopClosureInputError(f"PCA codebooks not found: {path}") from None
-        except (KeyError, ValueError, OSError) as exc:
-            raise LoopClosureInputError(f"not a PCA codebook file: {path} ({exc})") from None
+        except (KeyError, ValueError, OSError, EOFError, IndexError, zipfile.BadZipFile, zlib.error) as exc:
+            # a truncated or garbled .npz raises any of these, depending on where it was cut
+            raise LoopClosureInputError(f"not a PCA codebook file: {path} ({type(exc).__name__}: {exc})") from None
+        for name, p in (("stage1", books.stage1), ("stage2", books.stage2)):
+            arrays_ok = (p.components.ndim == 2 and p.mean.shape == (p.input_dim,)
+                         and p.explained_variance.shape == (p.dim,))  # fmt: skip
+            if not arrays_ok or not all(np.isfinite(a).all() for a in (p.mean, p.components, p.explained_variance)):
+                raise LoopClosureInputError(f"{path}: the {name} codebook's arrays are inconsistent or not finite")
+        return books

@@ -10,6 +10,9 @@ size or cube layout are not comparable and would match nonsense.
 from __future__ import annotations
 
 import io
+import logging
+import zipfile
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -18,10 +21,12 @@ import numpy as np
 
 from loopclosure.atomic import atomic_write_bytes
 from loopclosure.config import VPRConfig
-from loopclosure.database import PlaceDatabase
+from loopclosure.database import MANIFEST, PlaceDatabase
 from loopclosure.errors import LoopClosureInputError
 
 SCANS_FILE = "scans.npz"
+
+log = logging.getLogger(__name__)
 
 
 def encoder_signature(vpr: VPRConfig) -> dict[str, Any]:
@@ -69,7 +74,11 @@ class PriorMap:
         database = PlaceDatabase.load(folder)
         saved = database.extra.get("encoder")
         wanted = encoder_signature(vpr)
-        if saved is not None and saved != wanted:
+        if saved is None:  # written before databases were signed: cannot be checked
+            log.warning("prior map %s records no encoder settings; assuming they match this configuration", folder)
+        elif not isinstance(saved, dict):
+            raise LoopClosureInputError(f"{folder / MANIFEST}: extra.encoder must be an object, got {saved!r}")
+        elif saved != wanted:
             diff = sorted(k for k in wanted if saved.get(k) != wanted[k])
             raise LoopClosureInputError(
                 f"prior map {folder}: encoded with other settings ({', '.join(diff)}); "
@@ -80,8 +89,8 @@ class PriorMap:
             for key, target in (("map_pose", poses), ("gt_pose", gt)):
                 value = info.extra.get(key)
                 if value is not None:
-                    pose = np.asarray(value, dtype=np.float64).reshape(4, 4)
-                    if np.all(np.isfinite(pose)):
+                    pose = _pose_of(value, folder / "places.json", index, key)
+                    if np.all(np.isfinite(pose)):  # NaN marks a place without one
                         target[index] = pose
         return cls(database, poses, _load_scans(folder / SCANS_FILE, len(database)), gt, folder)
 
@@ -110,15 +119,31 @@ def save_map(
     database.save(folder, extra={"encoder": encoder_signature(vpr)})
 
 
+def _pose_of(value: Any, path: Path, index: int, key: str) -> np.ndarray:
+    """A place's saved 4x4 pose (16 numbers, row-major); anything else names the place."""
+    try:
+        pose = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        pose = None
+    if pose is None or pose.size != 16:
+        shown = f"{pose.size} values" if pose is not None else repr(value)[:60]
+        raise LoopClosureInputError(f"{path}: place {index}: {key} must be 16 numbers (a 4x4 pose), got {shown}")
+    return pose.reshape(4, 4)
+
+
 def _load_scans(path: Path, num_places: int) -> dict[int, np.ndarray]:
     if not path.is_file():
         return {}
     try:
         with np.load(path, allow_pickle=False) as data:
             scans = {int(name[1:]): np.asarray(data[name], dtype=np.float64) for name in data.files}
-    except (OSError, ValueError, KeyError) as exc:
-        raise LoopClosureInputError(f"cannot read the prior map's scans {path}: {exc}") from None
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
+        # a truncated .npz raises any of these, depending on where it was cut
+        raise LoopClosureInputError(f"cannot read the prior map's scans {path}: {type(exc).__name__}: {exc}") from None
     bad = [p for p, s in scans.items() if not 0 <= p < num_places or s.ndim != 2 or s.shape[1] != 3]
     if bad:
         raise LoopClosureInputError(f"{path}: scans for unknown places or not Nx3: {bad[:5]}")
+    bad = [p for p, s in scans.items() if not np.isfinite(s).all()]
+    if bad:
+        raise LoopClosureInputError(f"{path}: scans of places {bad[:5]} contain NaN or inf")
     return scans

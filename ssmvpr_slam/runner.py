@@ -33,8 +33,8 @@ def run_log(
     console = console or Console()
     source = open_source(log, config.frontend.source, config.frontend.pose_files)
     odometry = make_odometry(config.frontend.odometry, config.frontend.pose_files)
+    database = PriorMap.load(prior_map, config.vpr) if prior_map is not None else None  # before the slow part
     backbone = load_backbone(config.vpr.backbone, progress=True)
-    database = PriorMap.load(prior_map, config.vpr) if prior_map is not None else None
     pipeline = SlamPipeline(config, odometry, backbone, database, inject_wrong_loops)
     frames = iter(source)
 
