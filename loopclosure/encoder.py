@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 
@@ -12,8 +13,10 @@ from loopclosure.backbone import Backbone
 from loopclosure.config import VPRConfig
 from loopclosure.cubes import extract_cubes
 from loopclosure.errors import LoopClosureInputError
-from loopclosure.images import as_rgb, resize_square
+from loopclosure.images import as_rgb, resize_square, too_small
 from loopclosure.pca import Codebooks, fit_pca
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -52,8 +55,16 @@ class Encoder:
         self.backbone = backbone
         self.codebooks = codebooks
 
-    def prepare(self, image: np.ndarray, name: str = "image") -> np.ndarray:
-        return resize_square(as_rgb(image, name), self.config.backbone.input_size)
+    def prepare(self, image: np.ndarray, name: str = "image", strict: bool = False) -> np.ndarray:
+        """Square RGB input for the backbone. A tiny image is refused when `strict` (a benchmark
+        or a PCA fit on files the user chose), else it is used with a warning (a stream)."""
+        rgb = as_rgb(image, name)
+        problem = too_small(rgb, name)
+        if problem is not None:
+            if strict:
+                raise LoopClosureInputError(problem)
+            log.warning("%s", problem)
+        return resize_square(rgb, self.config.backbone.input_size)
 
     def raw_cubes(self, images: Sequence[np.ndarray]) -> RawCubes:
         """Backbone + cube extraction for one batch of prepared (square RGB) images."""

@@ -9,6 +9,10 @@ import numpy as np
 
 from loopclosure.errors import LoopClosureInputError
 
+# Below this many pixels on a side the backbone sees an upsampled blur (the input is 224 or
+# more), so the codes say nothing about the place: a stream warns, a benchmark refuses.
+MIN_IMAGE_SIDE = 32
+
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".ppm", ".pgm", ".tif", ".tiff", ".webp")
 
 
@@ -45,6 +49,14 @@ def as_rgb(image: np.ndarray, name: str = "image") -> np.ndarray:
     if image.ndim == 3 and image.shape[2] == 4:
         return np.ascontiguousarray(image[:, :, :3])
     raise LoopClosureInputError(f"{name}: expected HxW, HxWx3 or HxWx4, got shape {image.shape}")
+
+
+def too_small(image: np.ndarray, name: str = "image", min_side: int = MIN_IMAGE_SIDE) -> str | None:
+    """Why `image` is too small to describe a place, or None if it is not."""
+    height, width = image.shape[:2]
+    if min(height, width) >= min_side:
+        return None
+    return f"{name}: image of {width}x{height} pixels is smaller than {min_side} px on a side; its codes are unreliable"
 
 
 def resize_square(image: np.ndarray, size: int) -> np.ndarray:

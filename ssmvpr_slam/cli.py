@@ -248,7 +248,7 @@ def fit_pca(
         subset = [files[i] for i in evenly_spaced(len(files), cfg.vpr.spatial.pca.max_fit_images)]
         encoder = Encoder(cfg.vpr, load_backbone(cfg.vpr.backbone, progress=True))
         with console.status(f"fitting PCA on {len(subset)} images of {escape(str(folder))}"):
-            codebooks = encoder.fit_codebooks(encoder.prepare(read_image(p), str(p)) for p in subset)
+            codebooks = encoder.fit_codebooks(encoder.prepare(read_image(p), str(p), strict=True) for p in subset)
         codebooks.save(output)
     dims = f"{codebooks.stage1.dim} + {codebooks.stage2.dim} dims"
     console.print(f"codebooks ({dims}) written to [bold]{escape(str(output))}[/bold]")

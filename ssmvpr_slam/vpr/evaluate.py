@@ -71,7 +71,7 @@ def _progress(console: Console) -> Progress:
 
 def _prepared(encoder: Encoder, files: Sequence[Path]) -> Iterator[np.ndarray]:
     for path in files:
-        yield encoder.prepare(read_image(path), str(path))
+        yield encoder.prepare(read_image(path), str(path), strict=True)
 
 
 def encode_folder(
