@@ -132,7 +132,7 @@ class SlamPipeline:
         database = prior_map.database if prior_map is not None else None
         self.detector = LoopDetector(config.vpr, config.detector, Encoder(config.vpr, backbone), database)
         self.registrar = LoopRegistrar(config.backend.registration)
-        self.graph = PoseGraph(config.backend.pose_graph)
+        self.graph = PoseGraph(config.backend.pose_graph.for_odometry(config.frontend.odometry.kind))
         self.state = RunState()
         self.stop = StopFlag()
         self.inject_wrong_loops = inject_wrong_loops

@@ -76,12 +76,15 @@ def ideal_loops(gt: np.ndarray, radius: float, min_gap: int) -> list[tuple[int, 
     ]
 
 
-def optimise(config: SlamConfig, gt: np.ndarray, odom: np.ndarray, loops: list[tuple[int, int, bool]]) -> np.ndarray:
-    """Stream keyframes and ideal loops through the pipeline's pose graph, in time order."""
+def optimise(
+    config: SlamConfig, kind: str, gt: np.ndarray, odom: np.ndarray, loops: list[tuple[int, int, bool]]
+) -> np.ndarray:
+    """Stream keyframes and ideal loops through the pipeline's pose graph (with the odometry
+    sigmas the pipeline uses for `kind`), in time order."""
     lidar = config.backend.registration.lidar
     sigmas = sigmas6(lidar.rot_sigma, lidar.trans_sigma)
     by_query = {q: m for m, q, _ in loops}
-    graph = PoseGraph(config.backend.pose_graph)
+    graph = PoseGraph(config.backend.pose_graph.for_odometry(kind))
     for k, pose in enumerate(odom):
         graph.add_keyframe(k, pose)
         if k in by_query:
@@ -117,7 +120,7 @@ def bench(config: SlamConfig, kind: str, sim_config: SimulationConfig) -> dict[s
         "odometry_kitti_rel_error": kitti(config, gt, odom),
     }
     for label, subset in (("forward", [lp for lp in loops if lp[2]]), ("forward_and_reverse", loops)):
-        est = optimise(config, gt, odom, subset)
+        est = optimise(config, kind, gt, odom, subset)
         value = ate(gt, est).stats.rmse
         out[label] = {
             "loops": len(subset),

@@ -249,3 +249,29 @@ def test_distance_scaled_odometry_noise_weakens_long_edges():
     graph = PoseGraph(cfg)
     np.testing.assert_allclose(graph._odometry_sigmas(10.0)[3:], 0.05 + 1.0)
     np.testing.assert_allclose(graph._odometry_sigmas(0.0)[:3], 0.01)
+
+
+def test_odometry_sigmas_follow_the_odometry_source() -> None:
+    from ssmvpr_slam.backend.config import OdometryNoiseConfig, PoseGraphConfig
+
+    cfg = PoseGraphConfig()
+    # kiss-icp turns far more accurately than wheels: its own, tighter rotation sigma
+    kiss = cfg.for_odometry("kiss_icp").odometry
+    assert kiss.rot_sigma < cfg.odometry.rot_sigma
+    assert cfg.for_odometry("logged").odometry == cfg.odometry  # no entry: the generic sigmas
+    custom = PoseGraphConfig.model_validate(
+        {"odometry_by_source": {"logged": {"rot_sigma": 0.05, "trans_sigma": 0.3}}}
+    )
+    assert custom.for_odometry("logged").odometry == OdometryNoiseConfig(rot_sigma=0.05, trans_sigma=0.3)
+    assert custom.for_odometry("kiss_icp").odometry == custom.odometry  # replaced mapping: no kiss entry
+    with pytest.raises(ValueError, match="odometry_by_source"):
+        PoseGraphConfig.model_validate({"odometry_by_source": {"wheels": {"rot_sigma": 0.1}}})
+
+    # the graph built for a source really uses those sigmas on its odometry factors
+    graph = PoseGraph(cfg.for_odometry("kiss_icp"))
+    graph.add_keyframe(0, np.eye(4))
+    step = np.eye(4)
+    step[0, 3] = 2.0
+    graph.add_keyframe(1, step)
+    sigmas = np.sqrt(np.diag(np.linalg.inv(graph._odom_edges[0].gaussian.information())))
+    assert np.allclose(sigmas[:3], kiss.rot_sigma) and np.allclose(sigmas[3:], kiss.trans_sigma)
