@@ -157,39 +157,11 @@ def evaluate_run(pipeline: SlamPipeline, odom: np.ndarray, optimised: np.ndarray
             if r.proposal.sequence_score is not None:
                 seq_scores[r.proposal.query_id] = r.proposal.sequence_score
         out["stream_pr_auc_sequence"] = pr_auc(precision_recall_curve(seq_scores, correct, has_truth))
-    out["loops"]["by_direction"] = _recall_by_direction(
-        gt, set(evaluation.revisit_ids), session, evaluation, loops_cfg.min_frame_gap
-    )
-    return out
-
-
-def _recall_by_direction(
-    gt: np.ndarray, revisits: set[int], session: list[LoopRecord], evaluation: Any, min_frame_gap: int
-) -> dict[str, Any]:
-    """Recall of forward and reverse revisits apart: a revisit is forward when it is driven the
-    way the nearest earlier visit (at least min_frame_gap keyframes back) was (ground truth)."""
-    pos = gt[:, :3, 3]
-
-    def heading(i: int) -> np.ndarray:
-        v = pos[min(i + 1, len(pos) - 1)] - pos[max(i - 1, 0)]
-        return v / max(float(np.linalg.norm(v)), 1e-9)
-
-    kind = {}
-    for q in revisits:
-        earlier = pos[: q - min_frame_gap + 1]
-        m = int(np.argmin(np.linalg.norm(earlier - pos[q], axis=1)))
-        kind[q] = "forward" if float(heading(q) @ heading(m)) > 0 else "reverse"
-    in_graph = [r for r in session if r.in_graph]
-    recalled = {r.proposal.query_id for r, ok in zip(in_graph, evaluation.loop_correct) if ok} & set(revisits)
-    out: dict[str, Any] = {}
-    for name in ("forward", "reverse"):
-        ids = [q for q, k in kind.items() if k == name]
-        out[name] = {
-            "revisits": len(ids),
-            "recalled": sum(q in recalled for q in ids),
-            "recall": sum(q in recalled for q in ids) / len(ids) if ids else None,
-            "loops_in_graph_by_sequence_direction": sum(r.proposal.direction == name for r in in_graph),
-        }
+    # evaluate_loops splits recall by direction and camera visibility; add what the detector
+    # itself called each loop in the graph (the direction of its winning sequence)
+    in_graph_records = [r for r in session if r.in_graph]
+    for name, counts in out["loops"]["by_direction"].items():
+        counts["loops_in_graph_by_sequence_direction"] = sum(r.proposal.direction == name for r in in_graph_records)
     return out
 
 

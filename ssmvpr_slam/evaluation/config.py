@@ -42,6 +42,10 @@ class LoopMetricsConfig(_Strict):
         10.0, gt=0, description="m; an accepted loop within this distance is correct"
     )
     min_frame_gap: int = Field(50, ge=1, description="keyframes; q - m must be at least this")
+    view_angle_deg: float = Field(
+        45.0, gt=0, le=180,
+        description="deg; a revisit is camera-visible when an earlier visit looked within this of its heading",
+    )
 
     @model_validator(mode="after")
     def _correct_not_tighter(self) -> LoopMetricsConfig:

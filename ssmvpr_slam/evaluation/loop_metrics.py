@@ -7,6 +7,10 @@
 * Per query keyframe: a query with accepted loops is a true positive if all of its loops are
   correct and a false positive if any is wrong. precision = TP / (TP + FP).
 * recall = revisit keyframes with at least one correct accepted loop / revisit keyframes.
+* A revisit is forward when it is driven the way its nearest earlier visit was, reverse
+  otherwise; it is camera-visible when some earlier visit within the radius was driven within
+  ``view_angle_deg`` of its heading. A forward camera cannot see a place driven the other way
+  (or crossed at right angles), so ``recall_visible`` counts only what a camera could recognise.
 Undefined ratios (no accepted loops, no revisits) are None, which metrics.json stores as null.
 """
 
@@ -33,6 +37,10 @@ class LoopEvaluation:
     n_true_positive_queries: int
     n_false_positive_queries: int
     n_recalled_revisits: int
+    recall_visible: float | None
+    n_visible_revisits: int
+    n_recalled_visible: int
+    by_direction: dict[str, dict[str, float | int | None]]
     n_loops: int
     n_correct_loops: int
     loop_correct: list[bool]
@@ -74,6 +82,43 @@ def find_revisits(gt: np.ndarray, radius: float, min_frame_gap: int) -> np.ndarr
     return np.unique(hi[hi - lo >= min_frame_gap])
 
 
+@dataclass(frozen=True)
+class RevisitKinds:
+    """Per revisit keyframe (ascending ids): its direction and whether a camera could see it."""
+
+    ids: np.ndarray
+    forward: np.ndarray  # bool: driven the way the nearest earlier visit was
+    visible: np.ndarray  # bool: an earlier visit in the radius looked within the view angle
+
+
+def classify_revisits(
+    gt: np.ndarray, revisits: np.ndarray, radius: float, min_frame_gap: int, view_angle_deg: float
+) -> RevisitKinds:
+    """Direction and camera visibility of each revisit, from ground-truth positions alone.
+
+    Headings come from the direction of travel (a central difference of positions), so the
+    ground truth may be in any sensor frame; a vehicle's camera looks along its travel.
+    """
+    pos = gt_positions("gt", gt)
+    ids = np.asarray(revisits, dtype=int)
+    forward = np.zeros(len(ids), bool)
+    visible = np.zeros(len(ids), bool)
+    if len(ids) == 0:
+        return RevisitKinds(ids, forward, visible)
+    ahead = pos[np.minimum(np.arange(len(pos)) + 1, len(pos) - 1)] - pos[np.maximum(np.arange(len(pos)) - 1, 0)]
+    heading = ahead / np.maximum(np.linalg.norm(ahead, axis=1, keepdims=True), 1e-9)
+    cos_view = np.cos(np.radians(view_angle_deg))
+    tree = cKDTree(pos)
+    for k, q in enumerate(ids):
+        near = np.array([m for m in tree.query_ball_point(pos[q], r=radius) if q - m >= min_frame_gap], dtype=int)
+        if len(near) == 0:  # not a revisit under these settings: neither forward nor visible
+            continue
+        nearest = near[np.argmin(np.linalg.norm(pos[near] - pos[q], axis=1))]
+        forward[k] = float(heading[q] @ heading[nearest]) > 0.0
+        visible[k] = bool(np.any(heading[near] @ heading[q] >= cos_view))
+    return RevisitKinds(ids, forward, visible)
+
+
 def evaluate_loops(
     gt: np.ndarray,
     loops: Sequence[tuple[int, int]],
@@ -96,7 +141,11 @@ def evaluate_loops(
     tp = sum(all(flags) for flags in per_query.values())
     fp = len(per_query) - tp
     revisit_set = set(revisits.tolist())
-    recalled = sum(1 for q, flags in per_query.items() if q in revisit_set and any(flags))
+    recalled_ids = {q for q, flags in per_query.items() if q in revisit_set and any(flags)}
+    recalled = len(recalled_ids)
+    kinds = classify_revisits(pos, revisits, cfg.revisit_radius, cfg.min_frame_gap, cfg.view_angle_deg)
+    hit = np.array([q in recalled_ids for q in kinds.ids.tolist()], bool)
+    n_visible = int(kinds.visible.sum())
     return LoopEvaluation(
         precision=tp / len(per_query) if per_query else None,
         recall=recalled / len(revisit_set) if revisit_set else None,
@@ -105,12 +154,30 @@ def evaluate_loops(
         n_true_positive_queries=tp,
         n_false_positive_queries=fp,
         n_recalled_revisits=recalled,
+        recall_visible=int((hit & kinds.visible).sum()) / n_visible if n_visible else None,
+        n_visible_revisits=n_visible,
+        n_recalled_visible=int((hit & kinds.visible).sum()),
+        by_direction={
+            name: _recall_counts(hit[mask], kinds.visible[mask])
+            for name, mask in (("forward", kinds.forward), ("reverse", ~kinds.forward))
+        },
         n_loops=len(correct_flags),
         n_correct_loops=int(sum(correct_flags)),
         loop_correct=correct_flags,
         loop_distance_m=distances,
         revisit_ids=sorted(revisit_set),
     )
+
+
+def _recall_counts(hit: np.ndarray, visible: np.ndarray) -> dict[str, float | int | None]:
+    n, n_vis = len(hit), int(visible.sum())
+    return {
+        "revisits": n,
+        "recalled": int(hit.sum()),
+        "recall": float(hit.sum()) / n if n else None,
+        "visible": n_vis,
+        "recall_visible": float((hit & visible).sum()) / n_vis if n_vis else None,
+    }
 
 
 def _loop_ids(k: int, loop: tuple[int, int], n: int) -> tuple[int, int]:

@@ -11,7 +11,7 @@ from scipy.spatial.transform import Rotation
 from ssmvpr_slam.backend.se3 import make_pose, rot_z
 from ssmvpr_slam.evaluation.alignment import umeyama
 from ssmvpr_slam.evaluation.config import LoopMetricsConfig
-from ssmvpr_slam.evaluation.loop_metrics import evaluate_loops, find_revisits
+from ssmvpr_slam.evaluation.loop_metrics import classify_revisits, evaluate_loops, find_revisits
 from ssmvpr_slam.evaluation.metrics import associate, ate, drift_per_100m, rpe
 
 
@@ -167,3 +167,42 @@ def test_loop_metrics_bad_input():
         evaluate_loops(loop_gt(), [(30, 1)])
     with pytest.raises(ValueError, match="correct_radius"):
         LoopMetricsConfig(revisit_radius=5.0, correct_radius=1.0)
+
+
+def _drive(points: list[tuple[float, float]], step: float = 1.0) -> np.ndarray:
+    """(N, 3) positions every `step` metres along a polyline."""
+    out = []
+    for (x0, y0), (x1, y1) in zip(points[:-1], points[1:]):
+        n = int(round(np.hypot(x1 - x0, y1 - y0) / step))
+        t = np.arange(n) / n
+        out.append(np.stack([x0 + t * (x1 - x0), y0 + t * (y1 - y0), np.zeros(n)], axis=1))
+    return np.concatenate(out)
+
+
+def test_revisits_split_by_direction_and_camera_visibility():
+    # east along y=0, a U-turn onto y=2 (inside the 5 m radius) driving west: reverse revisits;
+    # then east again on y=0: forward revisits; finally south across the street: a crossing
+    gt = _drive([(0, 0), (100, 0), (100, 2), (0, 2), (0, 0), (100, 0), (100, 20), (50, 20), (50, -30)])
+    cfg = LoopMetricsConfig(revisit_radius=5.0, correct_radius=10.0, min_frame_gap=20, view_angle_deg=45.0)
+    revisits = find_revisits(gt, cfg.revisit_radius, cfg.min_frame_gap)
+    kinds = classify_revisits(
+        gt, revisits, cfg.revisit_radius, cfg.min_frame_gap, cfg.view_angle_deg
+    )
+    west = (gt[kinds.ids, 1] == 2.0) & (gt[kinds.ids, 0] > 5) & (gt[kinds.ids, 0] < 95)  # westward, mid-street
+    second_east = (kinds.ids > 210) & (kinds.ids < 300) & (gt[kinds.ids, 1] == 0)
+    crossing = kinds.ids >= 374  # the last leg crosses the streets at x = 50, heading south
+    assert west.sum() > 50 and second_east.sum() > 50 and crossing.any()
+    assert not kinds.forward[west].any() and not kinds.visible[west].any()
+    assert kinds.forward[second_east].all() and kinds.visible[second_east].all()
+    assert not kinds.visible[crossing].any()  # seen at right angles: no camera overlap
+
+    # recall over all revisits vs over what a forward camera can see: loops only on the forward leg
+    loops = [(int(q), int(q) - 202) for q in kinds.ids[second_east]]
+    ev = evaluate_loops(gt, loops, cfg)
+    assert ev.precision == 1.0
+    assert ev.n_visible_revisits < ev.n_revisits
+    assert ev.recall < 0.6 < ev.recall_visible
+    fwd, rev = ev.by_direction["forward"], ev.by_direction["reverse"]
+    assert fwd["recalled"] == len(loops) and rev["recalled"] == 0
+    assert rev["visible"] == 0 and rev["recall_visible"] is None
+    assert fwd["revisits"] + rev["revisits"] == ev.n_revisits
