@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import csv
 import io
+from dataclasses import replace
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any
 
 import numpy as np
@@ -16,7 +18,7 @@ from ssmvpr_slam.config import SlamConfig, dump_config
 from ssmvpr_slam.evaluation.loop_metrics import evaluate_loops, find_revisits
 from ssmvpr_slam.evaluation.metrics import ate, drift_per_100m, kitti_relative_error, rpe
 from ssmvpr_slam.evaluation.trajectory_io import write_kitti, write_tum
-from ssmvpr_slam.pipeline import LoopRecord, SlamPipeline
+from ssmvpr_slam.pipeline import Keyframe, LoopRecord, SlamPipeline
 from ssmvpr_slam.prior_map import save_map
 from ssmvpr_slam.results import write_json
 
@@ -53,7 +55,8 @@ def _gt_distance(pipeline: SlamPipeline, record: LoopRecord) -> float | None:
     if p.prior_map or p.match_id >= len(kfs):
         return None
     q, m = kfs[p.query_id].gt_pose, kfs[p.match_id].gt_pose
-    return None if q is None or m is None else float(np.linalg.norm(q[:3, 3] - m[:3, 3]))
+    distance = None if q is None or m is None else float(np.linalg.norm(q[:3, 3] - m[:3, 3]))
+    return distance if distance is not None and np.isfinite(distance) else None  # NaN: no ground truth there
 
 
 def _session_places(pipeline: SlamPipeline) -> dict[int, int]:
@@ -103,7 +106,50 @@ def _prior_map_metrics(pipeline: SlamPipeline, config: SlamConfig) -> dict[str, 
     return out
 
 
+def has_ground_truth(keyframes: list[Keyframe]) -> np.ndarray:
+    """Which keyframes carry a usable ground-truth pose (not None, all finite)."""
+    return np.array([k.gt_pose is not None and bool(np.isfinite(k.gt_pose).all()) for k in keyframes], bool)
+
+
 def evaluate_run(pipeline: SlamPipeline, odom: np.ndarray, optimised: np.ndarray, config: SlamConfig) -> dict[str, Any]:
+    """Evaluate on the keyframes that have ground truth and say how many those are.
+
+    Logs often lose ground truth for a while (GNSS outage, a reference that ends early);
+    dropping the whole evaluation for that hides what can be measured. Keyframes without it
+    are left out: the trajectory errors use the covered ones, and loops count only when both
+    ends are covered (both re-indexed into the covered keyframes). `ground_truth_coverage` is
+    covered / all keyframes."""
+    kfs = pipeline.state.keyframes
+    covered = has_ground_truth(kfs)
+    coverage = {"ground_truth_coverage": float(covered.mean()) if len(kfs) else 0.0,
+                "ground_truth_keyframes": int(covered.sum())}  # fmt: skip
+    if not covered.any():
+        return {"ground_truth": False, **coverage}
+    if covered.all():
+        return {**_evaluate_covered(pipeline, odom, optimised, config), **coverage}
+    keep = np.flatnonzero(covered)
+    index = {int(old): new for new, old in enumerate(keep)}
+    loops = []
+    for r in pipeline.state.loops:
+        p = r.proposal
+        if p.prior_map or r.injected:  # not judged against the session's ground truth either way
+            loops.append(r)
+        elif p.query_id in index and p.match_id in index:
+            loops.append(replace(r, proposal=replace(p, query_id=index[p.query_id], match_id=index[p.match_id])))
+    view = SimpleNamespace(state=SimpleNamespace(keyframes=[kfs[i] for i in keep], loops=loops))
+    out = _evaluate_covered(view, odom[keep], optimised[keep], config)  # type: ignore[arg-type]
+    # the aligned poses and per-pose errors cover only some keyframes: the plots use the full run
+    out.pop("_aligned", None)
+    out.pop("_errors", None)
+    session = [r for r in pipeline.state.loops if not r.proposal.prior_map and not r.injected]
+    out["loops"]["judged_in_graph"] = out["loops"]["in_graph"]  # those precision/recall are computed on
+    out["loops"]["proposed"] = len(session)
+    out["loops"]["gate_accepted"] = sum(r.proposal.accepted for r in session)
+    out["loops"]["in_graph"] = sum(r.in_graph for r in session)
+    return {**out, **coverage}
+
+
+def _evaluate_covered(pipeline: SlamPipeline, odom: np.ndarray, optimised: np.ndarray, config: SlamConfig) -> dict[str, Any]:
     """ATE/RPE/KITTI error of odometry vs optimised, loop precision/recall and the stream's PR-AUC."""
     kfs = pipeline.state.keyframes
     if not kfs or any(k.gt_pose is None for k in kfs):
@@ -179,10 +225,11 @@ def write_run_results(folder: Path, pipeline: SlamPipeline, config: SlamConfig, 
         write_tum(folder / "optimised.tum", stamps, optimised)
         write_kitti(folder / "optimised.kitti", optimised)
         write_g2o(folder / "pose_graph.g2o", from_pose_graph(pipeline.graph, optimised))
-        if all(k.gt_pose is not None for k in kfs):
-            gt = np.array([k.gt_pose for k in kfs])
-            write_tum(folder / "ground_truth.tum", stamps, gt)
-            write_kitti(folder / "ground_truth.kitti", gt)
+        covered = has_ground_truth(kfs)
+        if covered.any():  # TUM has stamps, so a partial ground truth is still one file evo reads
+            write_tum(folder / "ground_truth.tum", stamps[covered], np.array([k.gt_pose for k, ok in zip(kfs, covered) if ok]))
+        if covered.all():  # KITTI lines are matched by position: only a complete one
+            write_kitti(folder / "ground_truth.kitti", np.array([k.gt_pose for k in kfs]))
     write_loop_csv(folder / "loop_closures.csv", pipeline.state.loops,
                    [_gt_distance(pipeline, r) for r in pipeline.state.loops], final)  # fmt: skip
     atomic_write_text(folder / "config.yaml", dump_config(config))
@@ -220,7 +267,7 @@ def _plots(folder, kfs, odom, optimised, pipeline, errors, loop_eval, config) ->
     from ssmvpr_slam.evaluation.metrics import path_lengths
     from ssmvpr_slam.evaluation.plots import plot_loop_summary, plot_trajectories, plot_translation_error
 
-    gt = np.array([k.gt_pose for k in kfs]) if all(k.gt_pose is not None for k in kfs) else None
+    gt = np.array([k.gt_pose for k in kfs]) if has_ground_truth(kfs).all() else None
     graph_loops = [r for r in pipeline.state.loops if r.in_graph and not r.proposal.prior_map]
     edges = [(r.proposal.query_id, r.proposal.match_id) for r in graph_loops]
     correct = None

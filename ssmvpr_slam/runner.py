@@ -88,6 +88,9 @@ def summary_table(metrics: dict[str, Any]) -> Table:
                       f"{loops['proposed']} / {loops['gate_accepted']} / {loops['in_graph']}")  # fmt: skip
         fmt = lambda v: "n/a" if v is None else f"{v:.3f}"  # noqa: E731
         table.add_row("loop precision / recall", f"{fmt(loops['precision'])} / {fmt(loops['recall'])}")
+    if "ground_truth_coverage" in metrics:  # evaluated on the keyframes with ground truth only
+        covered, total = metrics["ground_truth_keyframes"], metrics["keyframes"]
+        table.add_row("ground truth coverage", f"{covered} / {total} keyframes ({100 * metrics['ground_truth_coverage']:.0f}%)")
     if "ate_odometry" in metrics:
         table.add_row("ATE RMSE odometry", f"{metrics['ate_odometry']['rmse']:.2f} m")
         table.add_row("ATE RMSE optimised", f"{metrics['ate_optimised']['rmse']:.2f} m")
