@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from pydantic import ValidationError
 
 from loopclosure.atomic import atomic_write_bytes, atomic_write_text
 from loopclosure.config import DatabaseConfig
@@ -160,8 +161,12 @@ class PlaceDatabase:
         n = manifest["num_places"]
         try:
             config = DatabaseConfig(**manifest.get("config") or {})
-        except (TypeError, ValueError) as exc:  # pydantic's ValidationError is a ValueError
-            raise LoopClosureInputError(f"{manifest_path}: invalid database config ({str(exc).splitlines()[0]})") from None
+        except ValidationError as exc:
+            first = exc.errors()[0]
+            where = ".".join(str(p) for p in first["loc"])
+            raise LoopClosureInputError(f"{manifest_path}: config.{where}: {first['msg']}") from None
+        except TypeError:  # not a mapping
+            raise LoopClosureInputError(f"{manifest_path}: config must be an object") from None
         db = cls(Codebooks.load(folder / "codebooks.npz"), config)
         extra = manifest.get("extra") or {}
         if not isinstance(extra, dict):
@@ -179,8 +184,12 @@ class PlaceDatabase:
         stage1, stage2 = (_load_npy(folder / name, n) for name in ("stage1.npy", "stage2.npy"))
         if len(places) < n:
             raise LoopClosureInputError(f"{folder / 'places.json'} lists {len(places)} places, manifest says {n}")
-        if list(stage1.shape[1:]) != manifest["stage1_shape"] or list(stage2.shape[1:]) != manifest["stage2_shape"]:
-            raise LoopClosureInputError(f"array shapes in {folder} disagree with its manifest")
+        for name, array in (("stage1.npy", stage1), ("stage2.npy", stage2)):
+            wanted = manifest[f"{name[:6]}_shape"]
+            if list(array.shape[1:]) != wanted:
+                raise LoopClosureInputError(
+                    f"{folder / name}: codes of shape {list(array.shape[1:])}, its manifest says {wanted}"
+                )
         for name, array in (("stage1.npy", stage1), ("stage2.npy", stage2)):
             finite = np.isfinite(array[:n].reshape(n, -1)).all(axis=1)
             if not finite.all():  # NaN codes would vote for nothing or match everything
