@@ -177,7 +177,7 @@ def _env_json_error(exc: SettingsError) -> str:
     culprits = [k for k, v in mine.items() if not_json(v)] or sorted(mine)
     if not culprits:
         return f"environment: cannot parse the value for config section {section!r} ({exc})"
-    key = sorted(culprits, key=is_section, reverse=True)[0]
+    key = max(culprits, key=is_section)  # a section set to a non-object is the likelier mistake
     where = key.upper().removeprefix("SSMVPR_").lower().replace("__", ".")
     if is_section(key):
         return (f"environment variable {key}={mine[key]!r}: not valid JSON; {where} is a section, "

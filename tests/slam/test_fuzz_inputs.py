@@ -385,8 +385,9 @@ MAP_CASES: dict[str, Callable[[Path], str]] = {
     "codebooks_truncated": _bytes("codebooks.npz", lambda b: b[: len(b) // 2]),
     "codebooks_garbage": _bytes("codebooks.npz", lambda b: b"PK\x03\x04" + b"\x00" * 40),
     "codebooks_missing": _remove("codebooks.npz"),
-    "codebooks_nan": lambda f: (np.savez(f / "codebooks.npz", **{k: (v * np.nan if k == "stage1_mean" else v)
-                                for k, v in np.load(f / "codebooks.npz").items()}), "codebooks.npz")[1],  # fmt: skip
+    "codebooks_nan": lambda f: (np.savez(f / "codebooks.npz", **{
+        k: (v * np.nan if k == "stage1_mean" else v) for k, v in np.load(f / "codebooks.npz").items()
+    }), "codebooks.npz")[1],
     "scans_truncated": _bytes("scans.npz", lambda b: b[: len(b) // 2]),
     "scans_garbage": _bytes("scans.npz", lambda b: b"not a zip at all"),
     "scans_nan": lambda f: (np.savez(f / "scans.npz", p0=np.full((5, 3), np.nan)), "scans.npz")[1],
