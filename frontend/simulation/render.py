@@ -275,13 +275,13 @@ class LidarRenderer:
         yaws,
         rng: np.random.Generator,
         *,
-        road_z: float = 0.0,
+        road_z: float | np.ndarray = 0.0,
         pitch: float = 0.0,
         grade: float = 0.0,
         scene: Scene | None = None,
     ):
-        """One sweep; xs, ys, yaws: scalar or (azimuths,) pose of the sensor at each column,
-        above road height ``road_z`` with the vehicle pitched by ``pitch`` on a road of grade
+        """One sweep; xs, ys, yaws, road_z: scalar or (azimuths,) pose of the sensor at each
+        column, above road height ``road_z`` with the vehicle pitched by ``pitch`` on a road of grade
         ``grade``.
 
         Returns (points (N, 3) float64 sensor frame, times (N,) float64 seconds from the sweep
@@ -298,7 +298,8 @@ class LidarRenderer:
         ang = yaws + self.az
         tk, sk, uk = cast_rays(scene, segs, xs, ys, np.cos(ang), np.sin(ang), cfg.layers)
         h = np.float32(cfg.height_m)
-        z_s = np.float32(road_z) + h
+        # the sensor's height at each column: the vehicle climbs during a sweep as it moves
+        z_s = (np.broadcast_to(np.asarray(road_z, np.float32), (n,)) + h)[None, :]
         B = cfg.beams
         # World elevation of each beam at each azimuth: the true elevation tilted by the pitch.
         cos_az = np.cos(self.az)
@@ -326,7 +327,7 @@ class LidarRenderer:
         # Ground: the road's local plane along each azimuth.
         drop = np.float32(grade) * cos_az[None, :].astype(np.float32) - tan_w
         t_ground = np.where(drop > 1e-6, h / np.where(drop > 1e-6, drop, 1.0), np.inf).astype(np.float32)
-        t_ground = self._ground_relief(xs, ys, ang, t_ground, drop, float(z_s), tan_w)
+        t_ground = self._ground_relief(xs, ys, ang, t_ground, drop, z_s[0], tan_w)
         t_hit = np.where(np.isinf(t_hit), t_ground, np.minimum(t_hit, t_ground))  # NaN (lost) stays NaN
         rng_m = t_hit.astype(np.float64) * np.sqrt(1.0 + tan_w.astype(np.float64) ** 2)
         rng_m = rng_m * (1.0 + cfg.range_scale_error) + self.range_bias[:, None]
@@ -358,7 +359,7 @@ class LidarRenderer:
         t = tk[c, k]
         length = np.linalg.norm(scene.p1[seg] - scene.p0[seg], axis=1)
         u = (scene.u0[seg] + uk[c, k] * length).astype(np.float32)
-        v = (z_s + t * tan_w[b, c] - scene.z0[seg]).astype(np.float32)
+        v = (z_s[0, c] + t * tan_w[b, c] - scene.z0[seg]).astype(np.float32)
         _, key = self.city.wall_albedo(scene.surface[seg], u, v)
         glass = key < 1.0
         b, c, t, key = b[glass], c[glass], t[glass], key[glass]
@@ -384,7 +385,7 @@ class LidarRenderer:
         ca, sa = np.cos(ang[c]), np.sin(ang[c])
         for _ in range(_GROUND_STEPS):
             gz = self.city.ground_z(xs[c] + t * ca, ys[c] + t * sa)
-            t = np.maximum(t + (z_s + t * slope - gz) / d, 0.1)
+            t = np.maximum(t + (z_s[c] + t * slope - gz) / d, 0.1)
         out = t_ground.copy()
         out[b, c] = t.astype(np.float32)
         return out

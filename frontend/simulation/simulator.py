@@ -159,14 +159,17 @@ class TraverseSimulator:
         if self.lidar is None:
             return None, None
         rng = np.random.default_rng([self.config.seed, _STREAM_LIDAR, k])
-        if self.config.lidar.motion_distortion:
+        if self.config.lidar.motion_distortion:  # every column from where the vehicle was then
             t = self.route_times[k] - self.lidar.period + self.lidar.col_times
-            xs, ys, yaws = self.route.pose_at(self.route.arc_length_at(t))
+            arc = self.route.arc_length_at(t)
+            xs, ys, yaws = self.route.pose_at(arc)
+            zs = self.route.height_at(arc)
         else:
             xs, ys, yaws = self.xy_yaw[k]
+            zs = float(self.road_z[k])
         return self.lidar.scan(
             xs, ys, yaws, rng,
-            road_z=float(self.road_z[k]), pitch=float(self.pitch[k]), grade=float(self.grade[k]),
+            road_z=zs, pitch=float(self.pitch[k]), grade=float(self.grade[k]),
             scene=scene or self.scene(k),
         )
 

@@ -146,3 +146,41 @@ def test_foliage_is_porous_to_the_lidar():
     x, y, yaw = sim.xy_yaw[k]
     scans = [sim.lidar.scan(x, y, yaw, np.random.default_rng(seed), road_z=float(sim.road_z[k]), scene=scene)[0] for seed in (1, 2)]
     assert abs(len(scans[0]) - len(scans[1])) > 0 or not np.allclose(scans[0], scans[1])
+
+
+def test_a_distorted_sweep_on_a_slope_is_one_static_world():
+    """Each column of a sweep is measured from where the vehicle was at that instant, height
+    included: put back through those poses, a perfect unit's ground returns lie on the ground.
+    (Rendering every column from the sweep's end height made climbing roads look steeper to the
+    scan matcher, an error that was the same on every visit.)"""
+    from frontend.simulation.simulator import pose_matrix
+
+    cfg = SimulationConfig.model_validate({
+        "route": {"terrain_amplitude_m": 8.0, "terrain_wavelength_m": 120.0},
+        "camera": {"enabled": False},
+        "lidar": {"range_noise_sigma_m": 0.0, "range_bias_sigma_m": 0.0, "beam_elevation_error_deg": 0.0,
+                  "foliage_return_probability": 0.0, "glass_pass_probability": 0.0,
+                  "glass_dropout_probability": 0.0, "motion_distortion": True},
+        "max_frames": 200,
+    })  # fmt: skip
+    sim = TraverseSimulator(cfg)
+    k = int(np.argmax(np.abs(sim.grade) * (np.arange(len(sim)) > 5)))
+    climb = abs(sim.road_z[k] - sim.road_z[k - 1])
+    assert climb > 0.1, "the test needs a frame on a slope"
+    points, times = sim.render_scan(k)
+    t = sim.route_times[k] - sim.lidar.period + times
+    arc = sim.route.arc_length_at(t)
+    x, y, yaw = sim.route.pose_at(arc)
+    z = sim.route.height_at(arc) + cfg.lidar.height_m
+    world = np.empty_like(points)
+    for c in np.unique(times):  # one pose per column
+        sel = times == c
+        pose = pose_matrix(x[sel][0], y[sel][0], z[sel][0], yaw[sel][0], float(sim.pitch[k]))
+        world[sel] = points[sel] @ pose[:3, :3].T + pose[:3, 3]
+    ground = world[:, 2] < sim.city.ground_z(world[:, 0], world[:, 1]) + 0.05
+    ground &= np.linalg.norm(points[:, :2], axis=1) < 25.0  # near returns: pitch approximations stay small
+    assert ground.sum() > 1000
+    err = world[ground, 2] - sim.city.ground_z(world[ground, 0], world[ground, 1])
+    assert np.abs(np.median(err)) < 0.01 and np.percentile(np.abs(err), 90) < 0.03, (np.median(err), climb)
+    first = times[ground] < np.percentile(times, 25)  # the early columns are where the climb showed
+    assert np.abs(np.median(err[first])) < 0.01
