@@ -88,6 +88,10 @@ def summary_table(metrics: dict[str, Any]) -> Table:
                       f"{loops['proposed']} / {loops['gate_accepted']} / {loops['in_graph']}")  # fmt: skip
         fmt = lambda v: "n/a" if v is None else f"{v:.3f}"  # noqa: E731
         table.add_row("loop precision / recall", f"{fmt(loops['precision'])} / {fmt(loops['recall'])}")
+        if "recall_visible" in loops:  # what a camera could see: reverse revisits show the far side
+            fwd, rev = loops["by_direction"]["forward"], loops["by_direction"]["reverse"]
+            table.add_row("recall: camera-visible / forward / reverse revisits",
+                          f"{fmt(loops['recall_visible'])} / {fmt(fwd['recall'])} / {fmt(rev['recall'])}")  # fmt: skip
     if "ground_truth_coverage" in metrics:  # evaluated on the keyframes with ground truth only
         covered, total = metrics["ground_truth_keyframes"], metrics["keyframes"]
         table.add_row("ground truth coverage", f"{covered} / {total} keyframes ({100 * metrics['ground_truth_coverage']:.0f}%)")
