@@ -23,7 +23,15 @@ from loopclosure.config import DetectorConfig, SequenceMatchConfig, VPRConfig
 from ssmvpr_slam.backend.config import BackendConfig
 from ssmvpr_slam.evaluation.config import EvaluationConfig
 
-PRESETS_DIR = Path(__file__).resolve().parents[1] / "configs"
+def _presets_dir() -> Path:
+    """The YAML presets: shipped in the package (`ssmvpr_slam/presets`, a wheel install), or the
+    checkout's top-level `configs/` (an editable install), which pyproject maps to the same place."""
+    here = Path(__file__).resolve().parent
+    packaged = here / "presets"
+    return packaged if packaged.is_dir() else here.parent / "configs"
+
+
+PRESETS_DIR = _presets_dir()
 
 
 class ConfigError(ValueError):

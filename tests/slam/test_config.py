@@ -193,3 +193,19 @@ def test_overrides_argument_and_dump_roundtrip(tmp_path: Path) -> None:
     path.write_text(dump_config(cfg))
     assert load_config(path) == cfg
     assert isinstance(cfg, SlamConfig)
+
+
+def test_pyproject_ships_every_package_and_the_presets() -> None:
+    """pyproject lists packages by hand (the presets are mapped in from configs/): a new
+    subpackage missing from that list would be left out of the wheel."""
+    import tomllib
+
+    from setuptools import find_packages
+
+    root = Path(__file__).resolve().parents[2]
+    tool = tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]
+    found = find_packages(str(root), include=["ssmvpr_slam*", "frontend*", "loopclosure*"])
+    assert set(tool["packages"]) == set(found) | {"ssmvpr_slam.presets"}
+    assert tool["package-dir"] == {"ssmvpr_slam.presets": "configs"}
+    assert tool["package-data"]["ssmvpr_slam.presets"] == ["*.yaml"]
+    assert (root / "configs" / "default.yaml").is_file()
