@@ -3,9 +3,13 @@
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 import pytest
+
+# tests import their shared helpers (cli_helpers) by module name; importlib mode adds no path
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 SHARED = Path(os.environ.get("SSMVPR_SHARED", Path(__file__).resolve().parents[2] / "shared"))
 

@@ -4,42 +4,19 @@ never a traceback (typer.testing.CliRunner on ssmvpr_slam.cli.app)."""
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
-from typer.testing import CliRunner
 
 from frontend.config import McapWriterConfig
 from frontend.simulation import SimulationConfig, TraverseSimulator
 from frontend.sources import write_frames
-from ssmvpr_slam.cli import app
 from ssmvpr_slam.evaluation.trajectory_io import read_tum
 
 
-@pytest.fixture(autouse=True)
-def _clean_environment(monkeypatch: pytest.MonkeyPatch) -> None:
-    for key in list(os.environ):
-        if key.upper().startswith("SSMVPR_"):
-            monkeypatch.delenv(key)
-
-
-def invoke(*args: object, env: dict[str, str] | None = None):  # noqa: ANN201
-    return CliRunner().invoke(app, [str(a) for a in args], env=env)
-
-
-def assert_user_error(result, *fragments: str) -> str:  # noqa: ANN001
-    """Exit 2, exactly one `error:` line on stderr holding every fragment, no traceback."""
-    assert result.exit_code == 2, (result.exit_code, result.output, result.exception)
-    assert isinstance(result.exception, SystemExit)
-    assert "Traceback" not in result.output
-    errors = [line for line in result.stderr.splitlines() if line.startswith("error:")]
-    assert len(errors) == 1, result.stderr
-    for fragment in fragments:
-        assert fragment in errors[0], (fragment, errors[0])
-    return errors[0]
+from cli_helpers import assert_user_error, clean_ssmvpr_environment, invoke  # noqa: E402, F401
 
 
 def _write_images(folder: Path, n: int, seed: int) -> list[Path]:

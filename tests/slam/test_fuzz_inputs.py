@@ -20,7 +20,6 @@ from types import SimpleNamespace
 import cv2
 import numpy as np
 import pytest
-from typer.testing import CliRunner
 
 from frontend.config import McapWriterConfig
 from frontend.poses_io import write_kitti
@@ -30,7 +29,6 @@ from loopclosure.database import PlaceDatabase, PlaceInfo
 from loopclosure.detector import LoopProposal
 from loopclosure.encoder import Encoder, PlaceCodes
 from loopclosure.pca import Codebooks, PCAProjection
-from ssmvpr_slam.cli import app
 from ssmvpr_slam.config import load_config
 from ssmvpr_slam.pipeline import Keyframe, LoopRecord
 from ssmvpr_slam.prior_map import PriorMap, save_map
@@ -38,27 +36,7 @@ from ssmvpr_slam.results import staged_results_dir
 from ssmvpr_slam.run_results import evaluate_run
 
 
-@pytest.fixture(autouse=True)
-def _clean_environment(monkeypatch: pytest.MonkeyPatch) -> None:
-    for key in list(os.environ):
-        if key.upper().startswith("SSMVPR_"):
-            monkeypatch.delenv(key)
-
-
-def invoke(*args: object, env: dict[str, str] | None = None):  # noqa: ANN201
-    return CliRunner().invoke(app, [str(a) for a in args], env=env)
-
-
-def assert_user_error(result, *fragments: str) -> str:  # noqa: ANN001
-    """Exit 2, one `error:` line on stderr holding every fragment, no traceback (as test_cli_errors)."""
-    assert result.exit_code == 2, (result.exit_code, result.output, result.exception)
-    assert isinstance(result.exception, SystemExit)
-    assert "Traceback" not in result.output
-    errors = [line for line in result.stderr.splitlines() if line.startswith("error:")]
-    assert len(errors) == 1, result.stderr
-    for fragment in fragments:
-        assert fragment in errors[0], (fragment, errors[0])
-    return errors[0]
+from cli_helpers import assert_user_error, clean_ssmvpr_environment, invoke  # noqa: E402, F401
 
 
 def _tree(folder: Path) -> set[str]:
