@@ -1,7 +1,12 @@
 """Benchmark the city simulator at default settings; prints JSON.
 
 Usage: python tools/bench_simulator.py [--frames N] [--repeats R] [--full]
+       python tools/bench_simulator.py --stream-mcap [--sim-config YAML] [--route FILE] [--laps N]
   --full also generates the whole default demo traverse and reports its wall time and stats.
+  --stream-mcap writes a whole traverse to an MCAP log (in a temporary folder, deleted after)
+  and reports the resident memory at every tenth of the frames: a long route must stream at
+  bounded memory, so RSS may grow with the city (built once, along the route) but not with the
+  frames written.
 """
 
 from __future__ import annotations
@@ -18,6 +23,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from frontend.simulation import TraverseSimulator, default_demo_config  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _sim_options import add_simulation_options, simulation_config  # noqa: E402
+
 
 def _rate(fn, ks, repeats: int) -> tuple[float, float]:
     """(frames per wall-clock second, CPU milliseconds per frame), best of ``repeats`` runs
@@ -33,12 +41,71 @@ def _rate(fn, ks, repeats: int) -> tuple[float, float]:
     return len(ks) / best_wall, best_cpu / len(ks) * 1000
 
 
+def _rss_mb() -> float:
+    """Resident set size now (Linux /proc), in MB."""
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def stream_mcap(args: argparse.Namespace, parser: argparse.ArgumentParser) -> dict:
+    """Simulate a whole traverse into an MCAP log; RSS along the way."""
+    import resource
+    import tempfile
+
+    from frontend.sources import write_frames
+
+    overrides = {"route": {"laps": args.laps}} if args.laps else {}
+    config = simulation_config(parser, args, **overrides)
+    rss_start = _rss_mb()
+    t0 = time.perf_counter()
+    sim = TraverseSimulator(config)
+    setup_s = time.perf_counter() - t0
+    rss_after_setup = _rss_mb()
+    n = len(sim)
+    marks = {max(1, round(n * i / 10)) for i in range(1, 11)}
+    samples: list[dict[str, float]] = []
+
+    def frames():  # noqa: ANN202
+        for k, frame in enumerate(sim.frames(), start=1):
+            yield frame
+            if k in marks:
+                samples.append({"frames": k, "rss_mb": round(_rss_mb(), 1)})
+
+    with tempfile.TemporaryDirectory() as tmp:
+        log = Path(tmp) / "traverse.mcap"
+        t1 = time.perf_counter()
+        written = write_frames(frames(), log)
+        seconds = time.perf_counter() - t1
+        size_mb = log.stat().st_size / 1e6
+    stats = sim.stats()
+    rss = [s["rss_mb"] for s in samples]
+    return {
+        "route": config.route.preset,
+        "frames": written,
+        "path_m": round(float(stats["length_m"]), 1) if "length_m" in stats else None,
+        "setup_s": round(setup_s, 1),
+        "frames_per_second": round(written / seconds, 2),
+        "mcap_mb": round(size_mb, 1),
+        "rss_mb": {"start": round(rss_start, 1), "after_setup": round(rss_after_setup, 1), "by_frames": samples},
+        "rss_growth_second_half_mb": round(rss[-1] - rss[len(rss) // 2 - 1], 1) if len(rss) >= 2 else None,
+        "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+    }
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
-    ap.add_argument("--frames", type=int, default=40, help="frames timed per measurement")
     ap.add_argument("--repeats", type=int, default=3, help="best of this many timing runs")
     ap.add_argument("--full", action="store_true", help="also time the whole demo traverse")
+    ap.add_argument("--stream-mcap", action="store_true", help="write a whole traverse to MCAP; RSS along the way")
+    ap.add_argument("--laps", type=int, default=None, help="--stream-mcap: laps of a preset route")
+    add_simulation_options(ap, ("--sim-config",))
     args = ap.parse_args()
+    if args.stream_mcap:
+        print(json.dumps(stream_mcap(args, ap), indent=2))
+        return
+    args.frames = args.frames or 40
 
     t0 = time.perf_counter()
     sim = TraverseSimulator(default_demo_config())

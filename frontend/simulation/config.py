@@ -259,6 +259,10 @@ class LidarConfig(_Model):
         0.0, gt=-5.0, lt=5.0, description="error shared by all beams (KITTI's HDL-64 scans need about 0.22)"
     )
     range_bias_sigma_m: float = Field(0.02, ge=0.0, description="sigma of each beam's constant range offset")
+    beam_azimuth_error_deg: float = Field(
+        0.15, ge=0.0, lt=5.0,
+        description="sigma of each beam's azimuth (rotational) calibration error; it makes kiss-icp's heading drift",
+    )
     range_scale_error: float = Field(0.0, gt=-0.1, lt=0.1, description="relative range error of the unit")
     # Vegetation is porous: a beam may pass a crown or return from anywhere inside it.
     foliage_return_probability: float = Field(0.5, ge=0.0, le=1.0)

@@ -253,6 +253,9 @@ class LidarRenderer:
             + np.radians(config.beam_elevation_error_deg) * calib.standard_normal(config.beams)
         )
         self.range_bias = config.range_bias_sigma_m * calib.standard_normal(config.beams)
+        # each laser fires a little off the azimuth the unit reports (the rotational correction
+        # of a multi-laser unit's calibration): its points come out turned by that error
+        self.azimuth_error = np.radians(config.beam_azimuth_error_deg) * calib.standard_normal(config.beams)
         n = config.azimuths
         self.frac = (np.arange(n) + 0.5) / n
         self.az = -math.pi + 2.0 * math.pi * self.frac
@@ -340,6 +343,10 @@ class LidarRenderer:
         if cfg.range_noise_sigma_m > 0:
             r = r + rng.normal(0.0, cfg.range_noise_sigma_m, r.shape)
         pts = self.dirs.transpose(1, 0, 2)[okT] * r[:, None]
+        if cfg.beam_azimuth_error_deg > 0:  # hit along the true azimuth, reported along the nominal one
+            delta = self.azimuth_error[np.nonzero(okT)[1]]
+            c, s = np.cos(delta), np.sin(delta)
+            pts[:, 0], pts[:, 1] = c * pts[:, 0] + s * pts[:, 1], c * pts[:, 1] - s * pts[:, 0]
         times = np.broadcast_to(self.col_times[:, None], okT.shape)[okT]
         return pts, times.astype(np.float64)
 

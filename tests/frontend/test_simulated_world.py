@@ -184,3 +184,26 @@ def test_a_distorted_sweep_on_a_slope_is_one_static_world():
     assert np.abs(np.median(err)) < 0.01 and np.percentile(np.abs(err), 90) < 0.03, (np.median(err), climb)
     first = times[ground] < np.percentile(times, 25)  # the early columns are where the climb showed
     assert np.abs(np.median(err[first])) < 0.01
+
+
+def test_beam_azimuth_calibration_error_turns_each_beams_points():
+    """A laser firing off its reported azimuth sees the world along its true direction but
+    reports it along the nominal one: its points come out turned by its own error."""
+    quiet = {"range_noise_sigma_m": 0.0, "foliage_return_probability": 0.0,
+             "glass_pass_probability": 0.0, "glass_dropout_probability": 0.0}  # fmt: skip
+    base = {"camera": {"enabled": False}, "max_frames": 3}
+    perfect = TraverseSimulator(SimulationConfig.model_validate({**base, "lidar": quiet}))
+    faulty = TraverseSimulator(
+        SimulationConfig.model_validate({**base, "lidar": {**quiet, "beam_azimuth_error_deg": 1.0}})
+    )
+    p0, t0 = perfect.render_scan(2)
+    p1, t1 = faulty.render_scan(2)
+    assert p0.shape == p1.shape and np.array_equal(t0, t1)
+    errors = faulty.lidar.azimuth_error
+    assert 0.5 < np.degrees(errors.std()) < 1.5 and len(np.unique(errors)) == len(errors)
+    # the beam of each point: by elevation, as the unit orders them
+    beam = np.argmin(np.abs(np.arctan2(p0[:, 2], np.hypot(p0[:, 0], p0[:, 1]))[:, None] - perfect.lidar.elev[None]), axis=1)
+    turned = np.arctan2(p1[:, 1], p1[:, 0]) - np.arctan2(p0[:, 1], p0[:, 0])
+    turned = np.angle(np.exp(1j * turned))
+    assert np.allclose(turned, -errors[beam], atol=1e-6)
+    assert np.allclose(np.linalg.norm(p1, axis=1), np.linalg.norm(p0, axis=1))
