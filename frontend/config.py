@@ -184,7 +184,9 @@ class LoggedOdometryConfig(_Model):
 class OdometryConfig(_Model):
     """Which odometry :func:`~frontend.odometry.make_odometry` builds."""
 
-    kind: Literal["kiss_icp", "logged"] = "kiss_icp"
+    kind: Literal["auto", "kiss_icp", "logged"] = Field(
+        "auto", description="auto: kiss-icp when the log has LiDAR scans, else the logged poses"
+    )
     kiss_icp: KissIcpConfig = Field(default_factory=KissIcpConfig)
     logged: LoggedOdometryConfig = Field(default_factory=LoggedOdometryConfig)
 

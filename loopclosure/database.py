@@ -112,6 +112,17 @@ class PlaceDatabase:
         self.places.extend(infos)
         return list(range(first, len(self)))
 
+    def copy(self) -> "PlaceDatabase":
+        """An independent database holding the same places: a session grows its own copy of a
+        prior map, so the loaded map (and what is reported of it) stays as it was read."""
+        other = PlaceDatabase(self.codebooks, self.config)
+        if self._stage1 is not None and self._stage2 is not None:
+            other._stage1 = _GrowingArray(self._stage1.row_shape, self._stage1.view.dtype, self._stage1.view.copy())
+            other._stage2 = _GrowingArray(self._stage2.row_shape, self._stage2.view.dtype, self._stage2.view.copy())
+        other.places = list(self.places)
+        other.extra = dict(self.extra)
+        return other
+
     def _check_codes(self, codes: PlaceCodes) -> None:
         if codes.stage1.ndim != 3 or codes.stage1.shape[-1] != self.codebooks.stage1.dim:
             raise LoopClosureInputError(f"stage-I codes must be (B, n, {self.codebooks.stage1.dim}), got {codes.stage1.shape}")

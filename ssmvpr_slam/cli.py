@@ -179,7 +179,7 @@ def simulate(
 @friendly_errors
 def run(
     log: Annotated[Path, typer.Argument(help="MCAP log, KITTI sequence folder, or image folder with poses.")],
-    odometry: Annotated[Optional[str], typer.Option(help="kiss-icp | logged")] = None,
+    odometry: Annotated[Optional[str], typer.Option(help="auto (kiss-icp when the log has scans, else its logged poses) | kiss-icp | logged")] = None,
     map_dir: Annotated[Optional[Path], typer.Option("--map", help="Place database of an earlier run to close loops against.")] = None,
     no_lidar_loops: Annotated[bool, typer.Option("--no-lidar-loops", help="Ignore scans for loop registration (place prior).")] = False,
     inject_wrong_loops: Annotated[float, typer.Option(help="Test option: probability, per keyframe with a loop proposal, of adding a deliberately wrong loop factor.")] = 0.0,

@@ -129,7 +129,8 @@ class SlamPipeline:
         self.odometry = odometry
         self.selector = KeyframeSelector(config.frontend.keyframes)
         self.prior_map = prior_map
-        database = prior_map.database if prior_map is not None else None
+        # the session grows its own copy: the prior map stays as it was loaded
+        database = prior_map.database.copy() if prior_map is not None else None
         self.detector = LoopDetector(config.vpr, config.detector, Encoder(config.vpr, backbone), database)
         self.registrar = LoopRegistrar(config.backend.registration)
         self.graph = PoseGraph(config.backend.pose_graph.for_odometry(config.frontend.odometry.kind))

@@ -11,7 +11,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from frontend.errors import FrontendInputError
-from frontend.odometry import make_odometry
+from frontend.odometry import choose_odometry, make_odometry
 from frontend.sources import open_source
 from loopclosure.backbone import load_backbone
 from ssmvpr_slam.config import SlamConfig
@@ -32,6 +32,11 @@ def run_log(
     """Stream `log` through the pipeline; returns the results folder and its metrics."""
     console = console or Console()
     source = open_source(log, config.frontend.source, config.frontend.pose_files)
+    topics = source.topics
+    if "camera" not in topics:  # places are recognised in images: a run without them finds no loop
+        streams = ", ".join(sorted(topics)) or "none"
+        raise FrontendInputError(f"{log}: no camera images to recognise places in (streams: {streams})")
+    config.frontend.odometry = choose_odometry(config.frontend.odometry, topics, str(log))
     odometry = make_odometry(config.frontend.odometry, config.frontend.pose_files)
     database = PriorMap.load(prior_map, config.vpr) if prior_map is not None else None  # before the slow part
     backbone = load_backbone(config.vpr.backbone, progress=True)

@@ -3,16 +3,45 @@
 from __future__ import annotations
 
 from frontend.config import OdometryConfig, PoseFileConfig
+from frontend.errors import FrontendInputError
 from frontend.odometry.base import Odometry, OdometryStats
 from frontend.odometry.kiss_icp import KissIcpOdometry
 from frontend.odometry.logged import DriftModel, LoggedPoseOdometry
 
 
+def choose_odometry(config: OdometryConfig, topics: dict[str, str], log: str) -> OdometryConfig:
+    """The odometry config for a log with these streams (a Source's ``topics``): ``auto`` becomes
+    kiss-icp when there are scans and the logged poses otherwise. An odometry the log cannot
+    feed is refused here, naming the log, instead of running with a pose that never moves."""
+    streams = ", ".join(sorted(topics)) or "none"
+    pose_role = "gt_pose" if config.logged.pose_source == "gt" else "logged_pose"
+    kind = config.kind
+    if kind == "auto":
+        if "lidar" in topics:
+            kind = "kiss_icp"
+        elif pose_role in topics:
+            kind = "logged"
+        else:
+            raise FrontendInputError(
+                f"{log}: no LiDAR scans and no logged poses to take odometry from (streams: {streams})"
+            )
+    if kind == "kiss_icp" and "lidar" not in topics:
+        raise FrontendInputError(
+            f"{log}: kiss-icp odometry needs LiDAR scans and the log has none (streams: {streams}); "
+            "try --odometry logged"
+        )
+    if kind == "logged" and pose_role not in topics:
+        raise FrontendInputError(f"{log}: logged odometry needs a {pose_role} stream (streams: {streams})")
+    return config.model_copy(update={"kind": kind})
+
+
 def make_odometry(
     config: OdometryConfig | None = None, pose_config: PoseFileConfig | None = None
 ) -> Odometry:
-    """The odometry ``config.kind`` names."""
-    config = config or OdometryConfig()
+    """The odometry ``config.kind`` names (``auto`` must first be resolved by `choose_odometry`)."""
+    config = config or OdometryConfig(kind="kiss_icp")
+    if config.kind == "auto":
+        raise FrontendInputError("odometry kind 'auto' depends on the log: resolve it with choose_odometry first")
     if config.kind == "kiss_icp":
         return KissIcpOdometry(config.kiss_icp)
     return LoggedPoseOdometry(config.logged, pose_config)
@@ -24,5 +53,6 @@ __all__ = [
     "LoggedPoseOdometry",
     "Odometry",
     "OdometryStats",
+    "choose_odometry",
     "make_odometry",
 ]

@@ -290,3 +290,18 @@ def test_missing_codebooks_file(codebooks, tmp_path):
     (folder / "codebooks.npz").unlink()
     with pytest.raises(LoopClosureInputError, match="codebooks.npz"):
         PlaceDatabase.load(folder)
+
+
+def test_a_copy_grows_without_touching_the_original(codebooks):
+    prior = PlaceDatabase(codebooks)
+    prior.add(_codes(5), _infos(5))
+    stage1, stage2 = prior.stage1.copy(), prior.stage2.copy()
+    session = prior.copy()
+    session.add(_codes(3, seed=1), _infos(3, start=5))
+    assert len(prior) == 5 and len(session) == 8
+    assert np.array_equal(prior.stage1, stage1) and np.array_equal(prior.stage2, stage2)
+    assert np.array_equal(session.stage1[:5], stage1) and [p.frame_id for p in session.places] == [10 * i for i in range(8)]
+    session.stage1[0] += 1.0  # no shared buffers either
+    assert np.array_equal(prior.stage1, stage1)
+    empty = PlaceDatabase(codebooks).copy()
+    assert len(empty) == 0

@@ -115,6 +115,42 @@ def truncated_log(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, int]:
     return cut, 8
 
 
+@pytest.fixture(scope="module")
+def camera_only_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Camera and logged poses, no LiDAR (a car with wheel odometry)."""
+    log = tmp_path_factory.mktemp("logs") / "camera_only.mcap"
+    write_frames(TraverseSimulator(SimulationConfig(max_frames=6, lidar={"enabled": False})).frames(), log)
+    return log
+
+
+@pytest.fixture(scope="module")
+def lidar_only_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    log = tmp_path_factory.mktemp("logs") / "lidar_only.mcap"
+    write_frames(TraverseSimulator(SimulationConfig(max_frames=3, camera={"enabled": False})).frames(), log)
+    return log
+
+
+def test_run_picks_logged_odometry_for_a_log_without_scans(camera_only_log: Path, weights_path: Path, tmp_path: Path) -> None:
+    result = invoke("run", camera_only_log, "--weights", weights_path, "--device", "cpu", "--out", tmp_path / "out")
+    assert result.exit_code == 0, result.output
+    metrics = json.loads((_run_folders(tmp_path / "out")[0] / "metrics.json").read_text())
+    assert metrics["odometry_kind"] == "logged", metrics["odometry_kind"]
+    # the logged poses move (kiss-icp without scans would predict a standstill: one keyframe)
+    assert metrics["keyframes"] >= 2, (metrics["frames"], metrics["keyframes"])
+
+
+def test_run_refuses_an_odometry_the_log_cannot_feed(camera_only_log: Path, weights_path: Path, tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    result = invoke("run", camera_only_log, "--odometry", "kiss-icp", "--weights", weights_path, "--out", out)
+    assert_user_error(result, str(camera_only_log), "kiss-icp odometry needs LiDAR scans", "--odometry logged")
+    assert _run_folders(out) == []  # refused before any work: no results folder
+
+
+def test_run_refuses_a_log_without_camera_images(lidar_only_log: Path, weights_path: Path, tmp_path: Path) -> None:
+    result = invoke("run", lidar_only_log, "--weights", weights_path, "--out", tmp_path / "out")
+    assert_user_error(result, str(lidar_only_log), "no camera images", "lidar")
+
+
 def _run_folders(out: Path) -> list[Path]:
     return sorted(p for p in out.glob("run_*") if p.is_dir()) if out.exists() else []
 

@@ -403,6 +403,10 @@ def test_saved_map_holds_every_place_with_pose_and_ground_truth(clean: Run) -> N
 
 def test_a_second_session_closes_loops_against_the_prior_map(second_logged: Run) -> None:
     prior = second_logged.metrics["prior_map_loops"]
+    n = len(second_logged.pipeline.state.keyframes)
+    # the session grew its own copy: the loaded map, and what is reported of it, stay as read
+    assert prior["places"] == n and len(second_logged.pipeline.prior_map) == n
+    assert len(second_logged.pipeline.detector.database) == 2 * n
     assert prior["anchored"] and prior["loops_in_graph"] >= 20
     assert prior["precision"] == 1.0
     graph = [r for r in second_logged.pipeline.state.loops if r.proposal.prior_map and r.in_graph]
