@@ -95,7 +95,7 @@ def summary_table(metrics: dict[str, Any]) -> Table:
         table.add_row("loop precision / recall", f"{fmt(loops['precision'])} / {fmt(loops['recall'])}")
         if "recall_visible" in loops:  # what a camera could see: reverse revisits show the far side
             fwd, rev = loops["by_direction"]["forward"], loops["by_direction"]["reverse"]
-            table.add_row("recall: camera-visible / forward / reverse revisits",
+            table.add_row("recall of visible / forward / reverse revisits",
                           f"{fmt(loops['recall_visible'])} / {fmt(fwd['recall'])} / {fmt(rev['recall'])}")  # fmt: skip
     if "ground_truth_coverage" in metrics:  # evaluated on the keyframes with ground truth only
         covered, total = metrics["ground_truth_keyframes"], metrics["keyframes"]

@@ -20,4 +20,4 @@ def test_summary_reports_camera_visible_and_directional_recall() -> None:
     console.print(summary_table(metrics))
     text = console.export_text()
     assert "1.000 / 0.600" in text
-    assert "camera-visible / forward / reverse" in text and "0.900 / 0.900 / n/a" in text
+    assert "visible / forward / reverse revisits" in text and "0.900 / 0.900 / n/a" in text
