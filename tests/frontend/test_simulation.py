@@ -263,7 +263,7 @@ def _point_to_walls(city, pts_xy: np.ndarray) -> np.ndarray:
 
 def _ideal_lidar_sim(**overrides) -> TraverseSimulator:
     """The demo with a perfect LiDAR (no calibration error, opaque foliage) and no traffic."""
-    lidar = {"beam_elevation_error_deg": 0.0, "range_bias_sigma_m": 0.0, "foliage_return_probability": 1.0,
+    lidar = {"beam_elevation_error_deg": 0.0, "beam_azimuth_error_deg": 0.0, "range_bias_sigma_m": 0.0, "foliage_return_probability": 1.0,
              "foliage_depth_m": 0.0, "glass_pass_probability": 0.0, "glass_dropout_probability": 0.0,
              **overrides.pop("lidar", {})}
     city = {"verge_relief_m": 0.0, "kerb_height_m": 0.0, "road_camber": 0.0}
@@ -274,11 +274,12 @@ def _ideal_lidar_sim(**overrides) -> TraverseSimulator:
 def _world_points(sim: TraverseSimulator, k: int, pts: np.ndarray, times: np.ndarray) -> np.ndarray:
     """Each point in the world with the pose at its own measurement time (pitch of the frame)."""
     t_abs = sim.route_times[k] - sim.config.scan_period_s + times
-    x, y, yaw = sim.route.pose_at(sim.route.arc_length_at(t_abs))
-    z = sim.road_z[k] + sim.config.lidar.height_m
+    arc = sim.route.arc_length_at(t_abs)
+    x, y, yaw = sim.route.pose_at(arc)
+    z = sim.route.height_at(arc) + sim.config.lidar.height_m  # the vehicle climbs during a sweep
     out = np.empty_like(pts)
-    for i, (xi, yi, yi_aw) in enumerate(zip(x, y, yaw)):
-        out[i] = pose_matrix(xi, yi, z, yi_aw, float(sim.pitch[k]))[:3] @ np.append(pts[i], 1.0)
+    for i, (xi, yi, zi, yi_aw) in enumerate(zip(x, y, z, yaw)):
+        out[i] = pose_matrix(xi, yi, zi, yi_aw, float(sim.pitch[k]))[:3] @ np.append(pts[i], 1.0)
     return out
 
 
