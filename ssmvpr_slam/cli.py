@@ -296,10 +296,13 @@ def optimize(
     times: Annotated[Optional[Path], typer.Option(help="Vertex timestamps ('t' or 'id t' per line): also write TUM.")] = None,
     kernel: Annotated[str, typer.Option(help="Loop kernel: cauchy | huber | dcs | gm | tukey | none.")] = "dcs",
     gnc: Annotated[bool, typer.Option("--gnc/--no-gnc", help="GNC (TLS) pass after the kernel solve.")] = False,
+    refine: Annotated[bool, typer.Option("--refine/--no-refine", help="After the kernel solve, one batch solve at scale 1 (the default configuration, docs/backend_benchmarks.md).")] = True,
     batch: Annotated[bool, typer.Option("--batch", help="One batch solve instead of iSAM2 in vertex order.")] = False,
     out: Annotated[Path, typer.Option("--out", help="Output folder.")] = Path("optimized"),
 ) -> None:
     """Optimise a g2o / TORO pose graph robustly; write optimised.g2o, TUM and metrics.json."""
+    from dataclasses import replace
+
     import numpy as np
 
     from ssmvpr_slam.backend import g2o_io
@@ -316,7 +319,10 @@ def optimize(
         stamps = g2o_io.read_times(times, data) if times is not None else None
         gt_poses = g2o_io.read_ground_truth(gt, data, stamps) if gt is not None else None
         true_pairs = g2o_io.read_edge_pairs(gt_edges) if gt_edges is not None else None
-        result = optimize_graph(data, OptimizerSettings(kernel=kernel, gnc=gnc, batch=batch))
+        settings = OptimizerSettings(kernel=kernel, gnc=gnc, batch=batch)
+        if not refine:
+            settings = replace(settings, refine_scales=())
+        result = optimize_graph(data, settings)
         g2o_io.write_g2o(out / "optimised.g2o", data, result.poses)
         if stamps is not None:
             write_tum(out / "optimised.tum", stamps, result.poses)
@@ -325,7 +331,8 @@ def optimize(
             "graph": str(graph), "dimension": data.dim, "vertices": len(data.ids), "edges": len(data.edges),
             "odometry_edges": len(data.edges) - len(loops), "loop_candidates": len(loops),
             "initialised_from_odometry": result.initialised_from_odometry,
-            "solver": "batch" if batch else "isam2", "kernel": kernel, "gnc": gnc, "seconds": result.seconds,
+            "solver": "batch" if batch else "isam2", "kernel": kernel,
+            "refine_scales": list(settings.refine_scales) if kernel != "none" else [], "gnc": gnc, "seconds": result.seconds,
             "loops_inlier": int(result.loop_inlier.sum()), "loops_outlier": result.n_outliers,
             "classification": result.classification,
             "outlier_loops": [[e.i, e.j] for e, ok in zip(loops, result.loop_inlier) if not ok],

@@ -33,7 +33,7 @@ import math
 import os
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -43,6 +43,7 @@ sys.path.insert(0, str(REPO))
 
 from ssmvpr_slam.backend.g2o_io import GraphEdge, PoseGraphData, planar_pose, read_ground_truth, read_pose_graph  # noqa: E402
 from ssmvpr_slam.backend.graph_optimizer import (  # noqa: E402
+    DEFAULT_REFINE_SCALES,
     KERNEL_NAMES,
     OptimizerSettings,
     loop_classification_scores,
@@ -155,7 +156,7 @@ def _row(bench: Benchmark, kernel: str, gnc: bool, rate: float, kind: str, resul
 
 
 def run_benchmark(graphs, rates, kinds, kernels, gnc_modes=(False, True), batch=True, seed=0,
-                  kernels_by_graph=None, log=None) -> dict:  # noqa: ANN001
+                  kernels_by_graph=None, log=None, refine_scales=DEFAULT_REFINE_SCALES) -> dict:  # noqa: ANN001
     """Rows for every (graph, kernel, gnc, rate, kind); see the module docstring."""
     rows, references = [], {}
     for name in graphs:
@@ -172,12 +173,13 @@ def run_benchmark(graphs, rates, kinds, kernels, gnc_modes=(False, True), batch=
                 noisy, truth = inject_false_loops(bench.graph, rate, kind, seed_k)
                 n_false = int(truth.sum())
                 for kernel in graph_kernels:
-                    settings = OptimizerSettings(kernel=kernel, gnc=False, batch=batch)
+                    settings = OptimizerSettings(kernel=kernel, gnc=False, batch=batch,
+                                                 refine_scales=tuple(refine_scales))  # fmt: skip
                     base = optimize_graph(noisy, settings)
                     if False in gnc_modes:
                         rows.append(_row(bench, kernel, False, rate, kind, base, truth, reference, n_false))
                     if True in gnc_modes:
-                        refined = refine_with_gnc(noisy, base, OptimizerSettings(kernel=kernel, gnc=True, batch=batch))
+                        refined = refine_with_gnc(noisy, base, replace(settings, gnc=True))
                         rows.append(_row(bench, kernel, True, rate, kind, refined, truth, reference, n_false))
                     if log:
                         log(f"{name} rate={rate} {kind} {kernel}: " + ", ".join(
@@ -188,7 +190,7 @@ def run_benchmark(graphs, rates, kinds, kernels, gnc_modes=(False, True), batch=
     return {
         "protocol": {"rates": list(rates), "kinds": list(kinds), "kernels": list(kernels),
                      "kernels_by_graph": kernels_by_graph or {}, "gnc": list(gnc_modes),
-                     "mode": "batch" if batch else "isam2", "seed": seed, "group_size": GROUP_SIZE,
+                     "mode": "batch" if batch else "isam2", "refine_scales": list(refine_scales), "seed": seed, "group_size": GROUP_SIZE,
                      "local_span": LOCAL_SPAN},  # fmt: skip
         "references": references,
         "rows": rows,
@@ -259,6 +261,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="limit the kernels of one graph (e.g. city10000=cauchy,dcs)")
     parser.add_argument("--gnc", choices=("both", "on", "off"), default="both")
     parser.add_argument("--isam2", action="store_true", help="iSAM2 in vertex order instead of batch LM (slow)")
+    parser.add_argument("--refine-scales", nargs="*", type=float, default=list(DEFAULT_REFINE_SCALES),
+                        help="batch re-solves after the kernel solve (optimize's default: 1); none = off")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--output", type=Path, help="also write the JSON here")
     parser.add_argument("--markdown", nargs="?", const="-", metavar="RESULTS_JSON",
@@ -276,7 +280,8 @@ def main(argv: list[str] | None = None) -> int:
     gnc_modes = {"both": (False, True), "on": (True,), "off": (False,)}[args.gnc]
     log = None if args.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
     results = run_benchmark(args.graphs, args.rates, args.kinds, args.kernels, gnc_modes,
-                            batch=not args.isam2, seed=args.seed, kernels_by_graph=by_graph, log=log)  # fmt: skip
+                            batch=not args.isam2, seed=args.seed, kernels_by_graph=by_graph, log=log,
+                            refine_scales=args.refine_scales)  # fmt: skip
     results["summary"] = summary(results)
     text = json.dumps(results, indent=1)
     if args.output:

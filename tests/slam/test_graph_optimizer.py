@@ -73,3 +73,38 @@ def test_ring_from_shared_data(shared_dir: Path) -> None:
 def test_settings_refuse_unknown_kernel() -> None:
     with pytest.raises(ValueError, match="kernel"):
         OptimizerSettings(kernel="l2")
+
+
+def _drifting_circle_with_false_loops(dim: int) -> tuple[PoseGraphData, PoseGraphData, np.ndarray]:
+    """(outlier-free graph, the same with as many random false loops as true ones, ground truth):
+    noisy odometry drifts far enough that the loops' whitened errors at the odometry start are
+    large, as on ring / ringCity."""
+    rng = np.random.default_rng(7)
+    true_loops = [(0, 59), (5, 55), (10, 50), (15, 45), (20, 40), (2, 31), (28, 58), (12, 47)]
+    graph, gt = _circle(60, dim, true_loops, rng)
+    edges = list(graph.edges)
+    for n, e in enumerate(edges[:59]):  # a steady heading bias on the odometry
+        edges[n] = GraphEdge(e.i, e.j, e.measured @ make_pose(rot_z(0.01), (0.0, 0.0, 0.0)), e.information)
+    graph = graph.with_edges(edges)
+    info = graph.loops[0].information
+    false = []
+    while len(false) < len(true_loops):
+        i, j = sorted(int(v) for v in rng.integers(0, 60, 2))
+        if j - i > 1:
+            motion = planar_pose(*rng.normal(0, [0.3, 0.3, np.radians(10)]))
+            false.append(GraphEdge(i, j, motion, info))
+    return graph, graph.with_edges((*graph.edges, *false)), gt
+
+
+@pytest.mark.parametrize("dim", [2, 3])
+def test_default_configuration_holds_with_half_false_loops(dim: int) -> None:
+    """The default of `optimize` (iSAM2 with DCS 10, then batch DCS 1) stays within 10 % of the
+    outlier-free optimum with 50 % random false loops, from a drifted odometry start."""
+    clean, noisy, gt = _drifting_circle_with_false_loops(dim)
+    optimum = trajectory_ate(gt, optimize_graph(clean, OptimizerSettings(kernel="none", batch=True)).poses, dim)
+    plain = optimize_graph(noisy, OptimizerSettings(kernel="none", batch=True))
+    assert trajectory_ate(gt, plain.poses, dim).stats.rmse > 1.5 * optimum.stats.rmse  # the false loops hurt
+    result = optimize_graph(noisy)
+    assert trajectory_ate(gt, result.poses, dim).stats.rmse <= 1.1 * optimum.stats.rmse
+    false_indices = set(range(len(clean.edges), len(noisy.edges)))
+    assert set(result.loop_indices[~result.loop_inlier].tolist()) == false_indices
