@@ -156,9 +156,22 @@ def _row(bench: Benchmark, kernel: str, gnc: bool, rate: float, kind: str, resul
 
 
 def run_benchmark(graphs, rates, kinds, kernels, gnc_modes=(False, True), batch=True, seed=0,
-                  kernels_by_graph=None, log=None, refine_scales=DEFAULT_REFINE_SCALES) -> dict:  # noqa: ANN001
-    """Rows for every (graph, kernel, gnc, rate, kind); see the module docstring."""
+                  kernels_by_graph=None, log=None, refine_scales=DEFAULT_REFINE_SCALES,
+                  checkpoint=None) -> dict:  # noqa: ANN001
+    """Rows for every (graph, kernel, gnc, rate, kind); see the module docstring. `checkpoint`
+    (a callable) gets the results so far after every solve, so a run cut short keeps its rows."""
     rows, references = [], {}
+
+    def results() -> dict:
+        return {
+            "protocol": {"rates": list(rates), "kinds": list(kinds), "kernels": list(kernels),
+                         "kernels_by_graph": kernels_by_graph or {}, "gnc": list(gnc_modes),
+                         "mode": "batch" if batch else "isam2", "refine_scales": list(refine_scales),
+                         "seed": seed, "group_size": GROUP_SIZE, "local_span": LOCAL_SPAN},
+            "references": references,
+            "rows": rows,
+        }  # fmt: skip
+
     for name in graphs:
         t0 = time.perf_counter()
         bench = load_benchmark(name)
@@ -185,16 +198,11 @@ def run_benchmark(graphs, rates, kinds, kernels, gnc_modes=(False, True), batch=
                         log(f"{name} rate={rate} {kind} {kernel}: " + ", ".join(
                             f"gnc={r['gnc']} ratio={r['ate_ratio']:.3f} s={r['seconds']:.1f}"
                             for r in rows[-len(gnc_modes):]))  # fmt: skip
+                    if checkpoint:
+                        checkpoint(results())
         if log:
             log(f"{name}: done in {time.perf_counter() - t0:.0f} s")
-    return {
-        "protocol": {"rates": list(rates), "kinds": list(kinds), "kernels": list(kernels),
-                     "kernels_by_graph": kernels_by_graph or {}, "gnc": list(gnc_modes),
-                     "mode": "batch" if batch else "isam2", "refine_scales": list(refine_scales), "seed": seed, "group_size": GROUP_SIZE,
-                     "local_span": LOCAL_SPAN},  # fmt: skip
-        "references": references,
-        "rows": rows,
-    }
+    return results()
 
 
 RATES_INDEX = {r: k for k, r in enumerate(RATES)}
@@ -279,14 +287,17 @@ def main(argv: list[str] | None = None) -> int:
         by_graph[name] = [k for k in ks.split(",") if k]
     gnc_modes = {"both": (False, True), "on": (True,), "off": (False,)}[args.gnc]
     log = None if args.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
+    from loopclosure.atomic import atomic_write_text
+
+    checkpoint = None
+    if args.output:
+        checkpoint = lambda partial: atomic_write_text(args.output, json.dumps(partial, indent=1) + "\n")  # noqa: E731
     results = run_benchmark(args.graphs, args.rates, args.kinds, args.kernels, gnc_modes,
                             batch=not args.isam2, seed=args.seed, kernels_by_graph=by_graph, log=log,
-                            refine_scales=args.refine_scales)  # fmt: skip
+                            refine_scales=args.refine_scales, checkpoint=checkpoint)  # fmt: skip
     results["summary"] = summary(results)
     text = json.dumps(results, indent=1)
     if args.output:
-        from loopclosure.atomic import atomic_write_text
-
         atomic_write_text(args.output, text + "\n")
     print(markdown_tables(results) if args.markdown == "-" else text)
     return 0
