@@ -189,7 +189,7 @@ def test_a_distorted_sweep_on_a_slope_is_one_static_world():
 def test_beam_azimuth_calibration_error_turns_each_beams_points():
     """A laser firing off its reported azimuth sees the world along its true direction but
     reports it along the nominal one: its points come out turned by its own error."""
-    quiet = {"range_noise_sigma_m": 0.0, "foliage_return_probability": 0.0,
+    quiet = {"range_noise_sigma_m": 0.0, "foliage_return_probability": 0.0, "beam_azimuth_error_deg": 0.0,
              "glass_pass_probability": 0.0, "glass_dropout_probability": 0.0}  # fmt: skip
     base = {"camera": {"enabled": False}, "max_frames": 3}
     perfect = TraverseSimulator(SimulationConfig.model_validate({**base, "lidar": quiet}))
