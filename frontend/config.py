@@ -27,6 +27,8 @@ class McapWriterConfig(_Model):
 
     camera_topic: str = "/camera/image_raw"
     compressed_camera_topic: str = "/camera/image_raw/compressed"
+    rear_camera_topic: str = "/camera_rear/image_raw"
+    compressed_rear_camera_topic: str = "/camera_rear/image_raw/compressed"
     lidar_topic: str = "/lidar/points"
     odom_topic: str = "/odom"
     gt_topic: str = "/ground_truth"
@@ -36,6 +38,7 @@ class McapWriterConfig(_Model):
     world_frame_id: str = "map"
     body_frame_id: str = "base_link"
     camera_frame_id: str = "camera"
+    rear_camera_frame_id: str = "camera_rear"
     lidar_frame_id: str = "lidar"
     chunk_size: int = Field(1024 * 1024, gt=0, description="bytes per MCAP chunk")
     compression: Literal["zstd", "lz4", "none"] = "zstd"
@@ -51,6 +54,9 @@ class McapSourceConfig(_Model):
     """
 
     camera_topic: str | None = None
+    rear_camera_topic: str | None = Field(
+        None, description="backward-looking camera; None = the writer's rear topic names only (never by type)"
+    )
     lidar_topic: str | None = None
     odom_topic: str | None = None
     gt_topic: str | None = None

@@ -11,7 +11,9 @@ import numpy as np
 class Frame:
     """One synchronised instant of a traverse; every sensor field is optional.
 
-    image: HxWx3 uint8 RGB. points: Nx3 float64 in the sensor frame. point_times: N
+    image: HxWx3 uint8 RGB from the forward camera. rear_image: the same from a camera looking
+    backwards, when the vehicle has one (at a street driven the other way it sees what the
+    forward camera saw on the earlier visit). points: Nx3 float64 in the sensor frame. point_times: N
     per-point times (seconds, relative to the sweep) or None. Poses are 4x4 float64
     sensor-to-world transforms.
     """
@@ -19,6 +21,7 @@ class Frame:
     index: int
     timestamp: float
     image: np.ndarray | None = None
+    rear_image: np.ndarray | None = None
     points: np.ndarray | None = None
     point_times: np.ndarray | None = None
     logged_pose: np.ndarray | None = None

@@ -188,6 +188,20 @@ class SequenceGateConfig(_Strict):
     allow_reverse: bool = Field(default=True, description="Accept revisits travelled in the opposite direction.")
 
 
+class RearCameraConfig(_Strict):
+    """A backward-looking camera, queried against the forward camera's places (never added).
+
+    At a street driven the other way it looks where the forward camera looked on the earlier
+    visit, but from the other lane and with the near facades at other angles, so its stage-II
+    scores against the right places run lower than a forward revisit's: it has thresholds of its
+    own (chosen on the simulator's demo traverse, tools/bench_sequence_sim.py)."""
+
+    enabled: bool = Field(default=True, description="Query with the rear image when a keyframe has one.")
+    min_score: float = Field(default=0.2, ge=0.0, le=1.0, description="Rear sequence score below which nothing is proposed.")
+    accept_score: float = Field(default=0.27, ge=0.0, le=1.0, description="Rear sequence score from which a proposal is accepted.")
+    min_single_score: float = Field(default=0.2, ge=0.0, le=1.0, description="The rear image's own stage-II score needed to accept.")
+
+
 class DetectorConfig(_Strict):
     """Streaming loop-closure detection over keyframes."""
 
@@ -214,6 +228,7 @@ class DetectorConfig(_Strict):
     )
     codebooks: str | None = Field(default=None, description="Codebooks (.npz from fit-pca) to use from the first keyframe.")
     camera_hfov_deg: float = Field(default=90.0, gt=0.0, lt=180.0, description="Turns a grid column shift into a yaw guess.")
+    rear: RearCameraConfig = RearCameraConfig()
 
     @property
     def accept_threshold(self) -> float:

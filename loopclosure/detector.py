@@ -4,7 +4,9 @@ Per keyframe: one backbone pass; stage I against the database minus an exclusion
 (the most recent keyframes and the last metres travelled, which always look alike); stage
 II re-ranking of the candidates plus the places that continue the recent best sequences;
 sequence matching over the last L keyframes (`SequenceMatcher`), whose score decides; the
-optional top-1 `SequenceGate` on top; then the keyframe joins the database. Without codebooks
+optional top-1 `SequenceGate` on top; then the keyframe joins the database. A keyframe's rear
+image, when it has one, runs the same stages against the same places with thresholds of its
+own (`RearCameraConfig`) and its own sequence history; it is never added as a place. Without codebooks
 the first keyframes are buffered, PCA is fitted on them, and querying starts afterwards.
 """
 
@@ -23,7 +25,8 @@ from loopclosure.config import DetectorConfig, VPRConfig, feature_side, grid_sid
 from loopclosure.database import PlaceDatabase, PlaceInfo
 from loopclosure.encoder import Encoder, PlaceCodes, RawCubes
 from loopclosure.errors import LoopClosureInputError
-from loopclosure.recognizer import Recognizer
+from loopclosure.filtering import Candidates
+from loopclosure.recognizer import Recognition, Recognizer
 from loopclosure.sequence_gate import SequenceGate
 from loopclosure.sequence_matcher import SequenceMatch, SequenceMatcher
 from loopclosure.spatial import spatial_scores
@@ -46,6 +49,7 @@ class LoopProposal:
     prior_map: bool = False  # the match comes from a database loaded from an earlier session
     sequence_score: float | None = None  # the decision score: stage-II scores averaged along the sequence
     sequence_terms: int = 0  # keyframes of the sequence that could be compared (at most L)
+    camera: Literal["front", "rear"] = "front"  # which of the keyframe's images matched the place
 
 
 @dataclass
@@ -73,6 +77,7 @@ class LoopDetector:
         self._recognizer = Recognizer(vpr, database) if database is not None else None
         self.gate = SequenceGate(config.gate)
         self.sequence = SequenceMatcher(config.sequence, self._score_places)
+        self.rear_sequence = SequenceMatcher(config.sequence, self._score_places)  # the rear images' own stream
         self.timings = DetectorTimings()
         # distance travelled when each session place was added, in order; it never decreases,
         # so the places too near to the query are always a suffix of the session
@@ -89,23 +94,38 @@ class LoopDetector:
         return self.database is not None
 
     def process(
-        self, image: np.ndarray, keyframe_id: int, position: np.ndarray | None = None, timestamp: float = float("nan")
+        self,
+        image: np.ndarray,
+        keyframe_id: int,
+        position: np.ndarray | None = None,
+        timestamp: float = float("nan"),
+        rear_image: np.ndarray | None = None,
     ) -> LoopProposal | None:
-        """Recognise keyframe `keyframe_id` against earlier places, then add it as a place."""
+        """Recognise keyframe `keyframe_id` against earlier places, then add it as a place.
+
+        A rear image (optional) is matched against the same places, never added: it is what
+        recognises a street driven the other way. Both images go through one backbone pass."""
         self.timings = DetectorTimings()
         self._advance(position)
         start = time.perf_counter()
-        prepared = self.encoder.prepare(image, f"keyframe {keyframe_id} image")
-        raw = self.encoder.raw_cubes([prepared])
+        images = [self.encoder.prepare(image, f"keyframe {keyframe_id} image")]
+        use_rear = rear_image is not None and self.config.rear.enabled
+        if use_rear:
+            images.append(self.encoder.prepare(rear_image, f"keyframe {keyframe_id} rear image"))
+        raw = self.encoder.raw_cubes(images)
         info = PlaceInfo(frame_id=keyframe_id, timestamp=timestamp, extra={"session": "current"})
         if self.database is None:
             self.timings.backbone = time.perf_counter() - start
-            self._warm_up(raw, info)
+            self._warm_up(RawCubes(raw.stage1[:1], raw.stage2[:1]), info)
             return None
         codes = self.encoder.project(raw)
         self.timings.backbone = time.perf_counter() - start
-        proposal = self._query(codes, keyframe_id)
-        self._add(codes, info)
+        proposal = self._query(codes[0], keyframe_id)
+        if use_rear:
+            proposal = _preferred(proposal, self._query(codes[1], keyframe_id, rear=True))
+        elif self.config.rear.enabled:
+            self.rear_sequence.reset()  # a keyframe without its rear image breaks the rear sequence
+        self._add(codes[0], info)
         return proposal
 
     def _advance(self, position: np.ndarray | None) -> None:
@@ -155,48 +175,72 @@ class LoopDetector:
         assert self.database is not None
         return spatial_scores(grid, self.database.stage2[places], self.vpr.spatial.chunk_candidates).scores
 
-    def _query(self, codes: PlaceCodes, keyframe_id: int) -> LoopProposal | None:
+    def _query(self, codes: PlaceCodes, keyframe_id: int, rear: bool = False) -> LoopProposal | None:
+        """Stage I, stage II and sequence matching of one image of the keyframe."""
         assert self.database is not None
+        timings = self.timings
         start = time.perf_counter()
         filtering = self.vpr.filtering
         excluded = self._excluded()
         # places [0, limit) may be matched: the exclusion window is always a suffix
         limit = int(excluded[0]) if len(excluded) else len(self.database)
         candidates = self.database.filter(codes.stage1[0], filtering.k_neighbours, filtering.num_candidates, excluded)
-        self.timings.database_query = time.perf_counter() - start
+        timings.database_query += time.perf_counter() - start
+        sequence = self.rear_sequence if rear else self.sequence
         # one BLAS thread for the many small products of stage II: right after the backbone pass
         # torch's threads hold the cores, and two BLAS threads were measured several times slower
         with threadpool_limits(limits=1, user_api="blas"):
             start = time.perf_counter()
-            continued = self.sequence.continuations(limit)
+            continued = sequence.continuations(limit)
             recognition = self._recognizer.rerank(codes, candidates, extra=continued)
-            self.timings.spatial_matching = time.perf_counter() - start
+            timings.spatial_matching += time.perf_counter() - start
 
             start = time.perf_counter()
             spatial = dict(zip(recognition.ranked_places.tolist(), recognition.spatial_scores.tolist()))
-            match = self.sequence.step(
+            match = sequence.step(
                 codes.stage2[0], candidates.places, np.array([spatial[p] for p in candidates.places.tolist()], np.float32),
                 limit, continued, np.array([spatial[p] for p in continued.tolist()], np.float32),
             )  # fmt: skip
-            self.timings.sequence_matching = time.perf_counter() - start
+            timings.sequence_matching += time.perf_counter() - start
+        if rear:
+            return self._rear_proposal(match, recognition, candidates, keyframe_id)
 
         start = time.perf_counter()
         query_place = len(self.database)  # the gate works in place indices: unique across sessions
         top1 = recognition.best_place if recognition.best_score >= self.config.min_score else None
         if match.place is None or match.score < self.config.min_score:
             self.gate.observe(query_place, top1)
-            self.timings.gate = time.perf_counter() - start
+            timings.gate = time.perf_counter() - start
             return None
-        best = match.place
-        accepted, reason = self._decide(match)
+        accepted, reason = self._decide(match, self.config.accept_threshold, self.config.min_single_score)
         if accepted and self.config.gate.enabled:  # the top-1 consistency check, on request
-            decision = self.gate.decide(query_place, best)
+            decision = self.gate.decide(query_place, match.place)
             accepted = decision.accepted
             reason = f"{reason}; top-1 gate: {decision.reason}" if accepted else f"top-1 gate rejects: {decision.reason}; {reason}"
         self.gate.observe(query_place, top1)  # the gate judges each keyframe's own top-1 recognition
-        self.timings.gate = time.perf_counter() - start
+        timings.gate = time.perf_counter() - start
+        return self._proposal(match, recognition, candidates, keyframe_id, accepted, reason)
+
+    def _rear_proposal(
+        self, match: SequenceMatch, recognition: Recognition, candidates: Candidates, keyframe_id: int
+    ) -> LoopProposal | None:
+        rear = self.config.rear
+        if match.place is None or match.score < rear.min_score:
+            return None
+        accepted, reason = self._decide(match, rear.accept_score, rear.min_single_score)
+        return self._proposal(match, recognition, candidates, keyframe_id, accepted, f"rear camera {reason}", "rear")
+
+    def _proposal(
+        self, match: SequenceMatch, recognition: Recognition, candidates: Candidates, keyframe_id: int,
+        accepted: bool, reason: str, camera: Literal["front", "rear"] = "front",
+    ) -> LoopProposal:  # fmt: skip
+        assert self.database is not None and match.place is not None
+        best = match.place
         ranked = int(np.flatnonzero(recognition.ranked_places == best)[0])
         shift = int(recognition.ranked_shifts[ranked][1])
+        yaw = shift * self._yaw_per_column
+        if camera == "rear":  # the rear camera looks along -x: the body is turned half a circle from it
+            yaw = math.remainder(yaw + math.pi, 2.0 * math.pi)
         in_stage1 = candidates.places == best
         return LoopProposal(
             query_id=keyframe_id,
@@ -205,24 +249,34 @@ class LoopDetector:
             score=match.single_score,
             stage1_score=float(candidates.scores[in_stage1][0]) if np.any(in_stage1) else 0.0,
             column_shift=shift,
-            yaw_guess=shift * self._yaw_per_column,
+            yaw_guess=yaw,
             accepted=accepted,
             reason=reason,
             direction=match.direction,
             prior_map=best < self.prior_places,
             sequence_score=match.score,
             sequence_terms=match.terms,
+            camera=camera,
         )
 
-    def _decide(self, match: SequenceMatch) -> tuple[bool, str]:
+    def _decide(self, match: SequenceMatch, threshold: float, min_single: float) -> tuple[bool, str]:
         """Accept on the sequence score; the reason says what was compared."""
-        threshold = self.config.accept_threshold
         speed = f", speed {match.speed:g}" if len(self.config.sequence.speeds) > 1 else ""
         detail = (f"({match.terms}/{self.config.sequence.length} keyframes, {match.direction}{speed}); "
                   f"single frame {match.single_score:.3f}")  # fmt: skip
         if match.score < threshold:
             return False, f"sequence score {match.score:.3f} < {threshold:.3f} {detail}"
-        if match.single_score < self.config.min_single_score:
-            return False, (f"single frame {match.single_score:.3f} < {self.config.min_single_score:.3f}: "
+        if match.single_score < min_single:
+            return False, (f"single frame {match.single_score:.3f} < {min_single:.3f}: "
                            f"sequence score {match.score:.3f} {detail.split(';')[0]}")  # fmt: skip
         return True, f"accepted: sequence score {match.score:.3f} >= {threshold:.3f} {detail}"
+
+
+def _preferred(front: LoopProposal | None, rear: LoopProposal | None) -> LoopProposal | None:
+    """One proposal per keyframe: an accepted one before a rejected one, then the forward camera
+    (its scores are the more telling: a forward revisit sees the place from the same lane)."""
+    if rear is None:
+        return front
+    if front is None:
+        return rear
+    return rear if rear.accepted and not front.accepted else front

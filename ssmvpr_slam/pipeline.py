@@ -9,6 +9,7 @@ written.
 from __future__ import annotations
 
 import logging
+import math
 import signal
 import threading
 import time
@@ -47,6 +48,7 @@ class Keyframe:
     gt_pose: np.ndarray | None
     scan: np.ndarray | None
     image: np.ndarray | None
+    rear_image: np.ndarray | None = None  # kept only where a loop may need two-view geometry (no scan)
 
 
 @dataclass
@@ -85,6 +87,7 @@ class RunState:
     loops: list[LoopRecord] = field(default_factory=list)
     frames_seen: int = 0
     frames_skipped: Counter = field(default_factory=Counter)
+    rear_keyframes: int = 0  # keyframes queried with a rear image too
     interrupted: bool = False
     source_error: str | None = None  # why the source ended early (truncated log, ...)
     step_error: Exception | None = None  # an unexpected failure while processing a frame
@@ -191,10 +194,14 @@ class SlamPipeline:
             scan=self._keep_scan(self._scan_of(frame)) if self.config.pipeline.use_lidar_for_loops else None,
             image=frame.image,
         )
+        if kf.scan is None:
+            kf.rear_image = frame.rear_image
+        if frame.rear_image is not None and self.config.detector.rear.enabled:
+            self.state.rear_keyframes += 1
         self.state.keyframes.append(kf)
         t0 = time.perf_counter()
         self.graph.add_keyframe(kf.id, kf.odom_pose)
-        proposal = self.detector.process(frame.image, kf.id, kf.odom_pose[:3, 3], frame.timestamp)
+        proposal = self.detector.process(frame.image, kf.id, kf.odom_pose[:3, 3], frame.timestamp, frame.rear_image)
         t_reg = t_graph = 0.0
         if proposal is not None:
             record = LoopRecord(proposal)
@@ -251,6 +258,10 @@ class SlamPipeline:
                 self.config.backend.registration.lidar.max_range,
             )  # fmt: skip
             return self.registrar.register_scans(kf.scan, local_map, proposal.yaw_guess)
+        if proposal.camera == "rear":  # the rear image saw what the match's forward camera saw
+            if kf.rear_image is None:
+                return self.registrar.yaw_prior(proposal.yaw_guess, "rear camera match: no rear image kept")
+            return self.registrar.register_images(kf.rear_image, match.image, proposal.yaw_guess, query_yaw_offset=math.pi)
         return self.registrar.register_images(kf.image, match.image, proposal.yaw_guess)
 
     def _register_to_map(self, kf: Keyframe, proposal: LoopProposal) -> LoopRegistration:

@@ -24,7 +24,7 @@ from ssmvpr_slam.results import write_json
 
 LOOP_COLUMNS = [
     "query_kf", "match_kf", "score", "stage1_score", "column_shift", "yaw_guess_rad", "gate_accepted",
-    "gate_reason", "direction", "sequence_score", "sequence_terms", "registration", "registration_accepted",
+    "gate_reason", "camera", "direction", "sequence_score", "sequence_terms", "registration", "registration_accepted",
     "registration_reason",
     "inlier_ratio", "rmse", "in_graph", "prior_map", "injected", "gt_distance_m",
 ]  # fmt: skip
@@ -39,7 +39,7 @@ def write_loop_csv(path: Path, loops: list[LoopRecord], gt_distance: list[float 
         p, reg = record.proposal, record.registration
         writer.writerow([
             p.query_id, p.match_id, f"{p.score:.4f}", f"{p.stage1_score:.4f}", p.column_shift, f"{p.yaw_guess:.4f}",
-            int(p.accepted), p.reason, p.direction or "",
+            int(p.accepted), p.reason, p.camera, p.direction or "",
             "" if p.sequence_score is None else f"{p.sequence_score:.4f}", p.sequence_terms,
             reg.method if reg else "", int(reg.accepted) if reg else "",
             reg.reason if reg else "", f"{reg.inlier_ratio:.3f}" if reg else "", f"{reg.rmse:.3f}" if reg else "",
@@ -136,7 +136,8 @@ def evaluate_run(pipeline: SlamPipeline, odom: np.ndarray, optimised: np.ndarray
             loops.append(r)
         elif p.query_id in index and p.match_id in index:
             loops.append(replace(r, proposal=replace(p, query_id=index[p.query_id], match_id=index[p.match_id])))
-    view = SimpleNamespace(state=SimpleNamespace(keyframes=[kfs[i] for i in keep], loops=loops))
+    view = SimpleNamespace(state=SimpleNamespace(keyframes=[kfs[i] for i in keep], loops=loops,
+                                                 rear_keyframes=pipeline.state.rear_keyframes))
     out = _evaluate_covered(view, odom[keep], optimised[keep], config)  # type: ignore[arg-type]
     # the aligned poses and per-pose errors cover only some keyframes: the plots use the full run
     out.pop("_aligned", None)
@@ -178,7 +179,7 @@ def _evaluate_covered(pipeline: SlamPipeline, odom: np.ndarray, optimised: np.nd
     # score 0 overwrite the real proposal of the same keyframe in the PR-AUC, skews the metrics
     session = [r for r in pipeline.state.loops if not r.proposal.prior_map and not r.injected]
     in_graph = [(r.proposal.query_id, r.proposal.match_id) for r in session if r.in_graph]
-    evaluation = evaluate_loops(gt, in_graph, loops_cfg)
+    evaluation = evaluate_loops(gt, in_graph, loops_cfg, rear_camera=pipeline.state.rear_keyframes > 0)
     out["loops"] = evaluation.to_dict()
     out["_loop_evaluation"] = evaluation
     out["loops"]["proposed"] = len(session)
@@ -208,6 +209,8 @@ def _evaluate_covered(pipeline: SlamPipeline, odom: np.ndarray, optimised: np.nd
     in_graph_records = [r for r in session if r.in_graph]
     for name, counts in out["loops"]["by_direction"].items():
         counts["loops_in_graph_by_sequence_direction"] = sum(r.proposal.direction == name for r in in_graph_records)
+    out["loops"]["rear_camera_keyframes"] = pipeline.state.rear_keyframes
+    out["loops"]["in_graph_by_camera"] = {c: sum(r.proposal.camera == c for r in in_graph_records) for c in ("front", "rear")}
     return out
 
 

@@ -97,6 +97,9 @@ def summary_table(metrics: dict[str, Any]) -> Table:
             fwd, rev = loops["by_direction"]["forward"], loops["by_direction"]["reverse"]
             table.add_row("recall of visible / forward / reverse revisits",
                           f"{fmt(loops['recall_visible'])} / {fmt(fwd['recall'])} / {fmt(rev['recall'])}")  # fmt: skip
+        if loops.get("rear_camera_keyframes"):  # the rear camera is what recognises reverse revisits
+            by_camera = loops["in_graph_by_camera"]
+            table.add_row("loops in graph: front / rear camera", f"{by_camera['front']} / {by_camera['rear']}")
     if "ground_truth_coverage" in metrics:  # evaluated on the keyframes with ground truth only
         covered, total = metrics["ground_truth_keyframes"], metrics["keyframes"]
         table.add_row("ground truth coverage", f"{covered} / {total} keyframes ({100 * metrics['ground_truth_coverage']:.0f}%)")

@@ -2,6 +2,10 @@
 
 Prints ONE JSON object to stdout (progress goes to stderr).
 
+With the simulator's rear camera (on by default), the rear images are queried against the
+forward camera's places as the detector does: their own sequences, an accept-score sweep,
+and the detector's decision over both cameras (forward first, then rear).
+
 Usage:
   python tools/bench_sequence_sim.py [--weights PATH] [--lengths 1,2,3,5] [--direction both]
                                      [--save-codes FILE | --codes FILE]
@@ -63,16 +67,26 @@ def run_traverse(weights: str | None) -> dict[str, np.ndarray]:
         pipeline.run(TraverseSimulator(cfg.simulation).frames())
     det = pipeline.detector
     log(f"{len(pipeline.state.keyframes)} keyframes in {time.perf_counter() - t0:.0f} s")
-    return {
+    out = {
         "stage1": np.asarray(det.database.stage1), "stage2": np.asarray(det.database.stage2),
         "travelled": np.asarray(det._session_travelled), "gt": np.array([k.gt_pose for k in pipeline.state.keyframes]),
         "warmup": np.array(cfg.detector.pca_warmup_keyframes),
     }  # fmt: skip
+    if cfg.simulation.camera.rear:  # the rear images are queries only: encode them again, as the detector did
+        simulator = TraverseSimulator(cfg.simulation)
+        rear = [det.encoder.project(det.encoder.raw_cubes([det.encoder.prepare(simulator.render_image(k.frame_index, rear=True))]))
+                for k in pipeline.state.keyframes]  # fmt: skip
+        out["rear_stage1"] = np.concatenate([c.stage1 for c in rear])
+        out["rear_stage2"] = np.concatenate([c.stage2 for c in rear])
+        log(f"rear images encoded ({time.perf_counter() - t0:.0f} s)")
+    return out
 
 
-def queries(codes: dict[str, np.ndarray], exclusion_keyframes: int, exclusion_distance: float, n_cand: int):
+def queries(codes: dict[str, np.ndarray], exclusion_keyframes: int, exclusion_distance: float, n_cand: int,
+            camera: str = ""):  # fmt: skip
     """Per keyframe after the warm-up, as LoopDetector sees it: the limit (first excluded
-    place), the stage-I candidates and the stage-II scores against every earlier place."""
+    place), the stage-I candidates and the stage-II scores against every earlier place.
+    camera "rear_": the rear images' codes queried against the forward camera's places."""
     from threadpoolctl import threadpool_limits
 
     from loopclosure.filtering import vote
@@ -88,8 +102,8 @@ def queries(codes: dict[str, np.ndarray], exclusion_keyframes: int, exclusion_di
             first_recent = q - min(exclusion_keyframes, q)
             first_near = bisect.bisect_right(travelled[:q], travelled[q] - exclusion_distance)
             limits[i] = min(first_recent, first_near)
-            scores[i, :q] = spatial_scores(s2[q], s2[:q]).scores
-            cands.append(vote(s1[q], s1[:q], n_cand, n_cand, np.arange(limits[i], q)).places)
+            scores[i, :q] = spatial_scores(codes[camera + "stage2"][q], s2[:q]).scores
+            cands.append(vote(codes[camera + "stage1"][q], s1[:q], n_cand, n_cand, np.arange(limits[i], q)).places)
     return scores, limits, cands
 
 
@@ -163,17 +177,38 @@ def main(argv: list[str] | None = None) -> dict:
         "revisits": {k: sum(v == k for v in kinds.values()) for k in ("forward", "reverse")},
         "direction": args.direction, "results": {},
     }  # fmt: skip
+    rear = None
+    if "rear_stage1" in codes and det.rear.enabled:
+        rear = queries(codes, det.exclusion_keyframes, det.exclusion_distance, cfg.vpr.filtering.num_candidates, "rear_")
+        out["rear_thresholds"] = det.rear.model_dump()
     for length in [int(v) for v in args.lengths.split(",") if v.strip()]:
-        matches = match_sequences(scores, det.sequence.model_copy(update={"length": length, "direction": args.direction}),
-                                  cands, limits)  # fmt: skip
+        seq_cfg = det.sequence.model_copy(update={"length": length, "direction": args.direction})
+        matches = match_sequences(scores, seq_cfg, cands, limits)
         places = np.array([-1 if m.place is None else m.place for m in matches])
         values = np.array([-np.inf if m.place is None else m.score for m in matches])
-        out["results"][str(length)] = evaluate(places, values)
-        out["results"][str(length)]["detector_decision"] = decided([
-            (int(q), m.place) for q, m in zip(qs, matches)
-            if m.place is not None and m.score >= det.accept_threshold and m.single_score >= det.min_single_score
-        ])  # fmt: skip
-        log(f"L={length}: {out['results'][str(length)]}")
+        result = out["results"][str(length)] = evaluate(places, values)
+        front = {int(q): m.place for q, m in zip(qs, matches)
+                 if m.place is not None and m.score >= det.accept_threshold and m.single_score >= det.min_single_score}  # fmt: skip
+        result["detector_decision"] = decided(sorted(front.items()))
+        if rear is not None:  # the rear images' own sequences, and the detector's choice of the two
+            rear_matches = match_sequences(rear[0], seq_cfg, rear[2], rear[1])
+            r_places = np.array([-1 if m.place is None else m.place for m in rear_matches])
+            r_values = np.array([-np.inf if m.place is None else m.score for m in rear_matches])
+            result["rear"] = evaluate(r_places, r_values)
+            sweep = {}
+            for threshold in (0.24, 0.25, 0.26, 0.27, 0.28, 0.30, 0.32):
+                sweep[f"{threshold:.2f}"] = decided([
+                    (int(q), m.place) for q, m in zip(qs, rear_matches)
+                    if m.place is not None and m.score >= threshold and m.single_score >= det.rear.min_single_score
+                ])  # fmt: skip
+            result["rear"]["accept_score_sweep"] = sweep
+            both = dict(front)
+            for q, m in zip(qs, rear_matches):
+                if int(q) not in both and m.place is not None and m.score >= det.rear.accept_score \
+                        and m.single_score >= det.rear.min_single_score:  # fmt: skip
+                    both[int(q)] = m.place
+            result["detector_decision_front_and_rear"] = decided(sorted(both.items()))
+        log(f"L={length}: {result}")
     # single frames as the recogniser alone ranks them (stage II over the stage-I candidates)
     single = np.array([c[np.argmax(scores[i, c])] if len(c) else -1 for i, c in enumerate(cands)])
     single_scores = np.array([scores[i, p] if p >= 0 else -np.inf for i, p in enumerate(single)])

@@ -224,9 +224,14 @@ class RouteConfig(_Model):
 
 
 class CameraConfig(_Model):
-    """Forward pinhole camera on the vehicle's vertical axis, looking along body x."""
+    """Forward pinhole camera on the vehicle's vertical axis, looking along body x, and an
+    optional identical one looking backwards (along -x)."""
 
     enabled: bool = True
+    rear: bool = Field(
+        True, description="also render a rear camera: at a street driven the other way it sees what the "
+        "forward camera saw, so reverse revisits can be recognised",
+    )
     width: int = Field(320, ge=8)
     height: int = Field(240, ge=8)
     hfov_deg: float = Field(90.0, gt=1.0, lt=170.0)

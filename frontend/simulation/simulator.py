@@ -1,6 +1,6 @@
 """Deterministic simulated traverses: ``simulate_traverse(config)`` streams ``Frame`` objects.
 
-Each frame carries a rendered camera image, a motion-distorted LiDAR sweep with per-point times,
+Each frame carries rendered camera images (forward, and rear unless switched off), a motion-distorted LiDAR sweep with per-point times,
 the ground-truth pose (LiDAR/body frame, x forward, y left, z up, at the end of the sweep; the
 vehicle pitches with the road) and a drifting "wheel odometry" pose. Parked cars, traffic and
 foliage change with time, so two visits of a place differ for both sensors. Everything is a pure function of the config (and its seed):
@@ -143,15 +143,18 @@ class TraverseSimulator:
         t = float(self.route_times[k])
         return Scene.of(self.city, self.city.active_segments(t), self.traffic.scene_part(t, self.xy_yaw[k, :2]))
 
-    def render_image(self, k: int, scene: Scene | None = None) -> np.ndarray | None:
-        if self.camera is None:
+    def render_image(self, k: int, scene: Scene | None = None, rear: bool = False) -> np.ndarray | None:
+        """The forward camera's image of frame k, or the rear camera's (None when it has none)."""
+        if self.camera is None or (rear and not self.config.camera.rear):
             return None
         x, y, yaw = self.xy_yaw[k]
         app = self.config.appearances[self.appearance_name(k)]
-        rng = np.random.default_rng([self.config.seed, _STREAM_IMAGE, k])
+        # the rear camera's noise is its own stream, so adding it leaves the forward images as they were
+        rng = np.random.default_rng([self.config.seed, _STREAM_IMAGE, k, 1] if rear else [self.config.seed, _STREAM_IMAGE, k])
+        sign = -1.0 if rear else 1.0  # looking backwards, the road ahead of the lens falls as the car climbs
         return self.camera.render(
-            x, y, yaw, app, rng,
-            road_z=float(self.road_z[k]), pitch=float(self.pitch[k]), grade=float(self.grade[k]),
+            x, y, yaw + (math.pi if rear else 0.0), app, rng,
+            road_z=float(self.road_z[k]), pitch=sign * float(self.pitch[k]), grade=sign * float(self.grade[k]),
             scene=scene or self.scene(k), visit=int(self.route_times[k] // _FOLIAGE_EPOCH_S),
         )
 
@@ -189,6 +192,7 @@ class TraverseSimulator:
             index=k,
             timestamp=float(self.config.start_time_s + self.times[k]),
             image=self.render_image(k, scene),
+            rear_image=self.render_image(k, scene, rear=True),
             points=points,
             point_times=times,
             logged_pose=self.logged_pose(k),

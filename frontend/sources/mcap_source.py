@@ -46,6 +46,7 @@ log = logging.getLogger("frontend.sources.mcap")
 
 POSE_WITH_COVARIANCE_STAMPED = "geometry_msgs/msg/PoseWithCovarianceStamped"
 _POSE_TYPES = (ODOMETRY, POSE_STAMPED, POSE_WITH_COVARIANCE_STAMPED)
+_CAMERA_ROLES = ("camera", "rear_camera")
 # role -> (types accepted when the topic is named, types auto-detected, default topic names)
 _WRITER = McapWriterConfig()
 ROLES: dict[str, tuple[tuple[str, ...], tuple[str, ...], tuple[str, ...]]] = {
@@ -54,12 +55,19 @@ ROLES: dict[str, tuple[tuple[str, ...], tuple[str, ...], tuple[str, ...]]] = {
         (IMAGE, COMPRESSED_IMAGE),
         (_WRITER.camera_topic, _WRITER.compressed_camera_topic),
     ),
+    # a second camera is never guessed from its type: only the writer's rear names or a named topic
+    "rear_camera": (
+        (IMAGE, COMPRESSED_IMAGE),
+        (IMAGE, COMPRESSED_IMAGE),
+        (_WRITER.rear_camera_topic, _WRITER.compressed_rear_camera_topic),
+    ),
     "lidar": ((POINT_CLOUD2,), (POINT_CLOUD2,), (_WRITER.lidar_topic,)),
     "logged_pose": (_POSE_TYPES, (ODOMETRY,), (_WRITER.odom_topic,)),
     "gt_pose": (_POSE_TYPES, (POSE_STAMPED,), (_WRITER.gt_topic,)),
 }
 ROLE_CONFIG_FIELD = {
     "camera": "camera_topic",
+    "rear_camera": "rear_camera_topic",
     "lidar": "lidar_topic",
     "logged_pose": "odom_topic",
     "gt_pose": "gt_topic",
@@ -165,7 +173,14 @@ class McapSource(Source):
                     )
                 chosen[role] = _Topic(role, requested, present[requested])
                 continue
-            candidates = [t for t in present if present[t] in auto_types]
+            taken = {t.name for t in chosen.values()} | {
+                getattr(self.config, f) for f in ROLE_CONFIG_FIELD.values() if getattr(self.config, f)
+            }
+            candidates = [t for t in present if present[t] in auto_types and t not in taken]
+            if role == "rear_camera":
+                candidates = [t for t in candidates if t in defaults]
+            elif role == "camera":
+                candidates = [t for t in candidates if t not in ROLES["rear_camera"][2]]
             if not candidates:
                 continue
             # Prefer our writer's names, then type order (raw before compressed), then name.
@@ -325,9 +340,9 @@ class McapSource(Source):
                 return ros_convert.decode_point_cloud(decoded, where)
             pose = ros_convert.decode_pose(decoded, where)
         except FrontendInputError as error:
-            if topic.role == "camera" and not self.config.skip_undecodable_images:
+            if topic.role in _CAMERA_ROLES and not self.config.skip_undecodable_images:
                 raise
-            reason = "undecodable_image" if topic.role == "camera" else f"bad_{topic.role}"
+            reason = "undecodable_image" if topic.role in _CAMERA_ROLES else f"bad_{topic.role}"
             self.stats.skip(reason, f"{error}; message skipped")
             return None
         problem = pose_problem(pose, self._rotation_tolerance)
@@ -345,6 +360,7 @@ class McapSource(Source):
                 index=self.stats.frames_yielded,
                 timestamp=item.time,
                 image=parts.get("camera"),
+                rear_image=parts.get("rear_camera"),
                 points=points,
                 point_times=times,
                 logged_pose=parts.get("logged_pose"),

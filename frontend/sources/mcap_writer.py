@@ -138,7 +138,9 @@ class McapFrameWriter:
         self._last_time = t
 
         if frame.image is not None:
-            self._write_image(frame, t, ns)
+            self._write_image(frame, frame.image, t, ns, rear=False)
+        if frame.rear_image is not None:
+            self._write_image(frame, frame.rear_image, t, ns, rear=True)
         if frame.points is not None:
             points = np.asarray(frame.points, dtype=np.float64)
             if points.ndim != 2 or points.shape[1] != 3:
@@ -165,24 +167,25 @@ class McapFrameWriter:
         if problem is not None:
             raise self._fail(frame, f"{name}: {problem}")
 
-    def _write_image(self, frame: Frame, t: float, ns: int) -> None:
+    def _write_image(self, frame: Frame, image: np.ndarray, t: float, ns: int, rear: bool) -> None:
         cfg = self.config
-        image = np.asarray(frame.image)
+        image = np.asarray(image)
+        name = "rear_image" if rear else "image"
         if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
-            raise self._fail(frame, f"image is {image.dtype} {image.shape}, expected HxWx3 uint8")
+            raise self._fail(frame, f"{name} is {image.dtype} {image.shape}, expected HxWx3 uint8")
+        frame_id = cfg.rear_camera_frame_id if rear else cfg.camera_frame_id
         if cfg.image_format == "raw":
-            msg = ros_convert.image_message(image, t, cfg.camera_frame_id)
-            self._put(cfg.camera_topic, ros_msgdefs.IMAGE, msg, ns)
+            msg = ros_convert.image_message(image, t, frame_id)
+            self._put(cfg.rear_camera_topic if rear else cfg.camera_topic, ros_msgdefs.IMAGE, msg, ns)
             return
         params = (
             [cv2.IMWRITE_JPEG_QUALITY, cfg.jpeg_quality]
             if cfg.image_format == "jpeg"
             else [cv2.IMWRITE_PNG_COMPRESSION, cfg.png_compression]
         )
-        msg = ros_convert.compressed_image_message(
-            image, t, cfg.camera_frame_id, cfg.image_format, params
-        )
-        self._put(cfg.compressed_camera_topic, ros_msgdefs.COMPRESSED_IMAGE, msg, ns)
+        msg = ros_convert.compressed_image_message(image, t, frame_id, cfg.image_format, params)
+        topic = cfg.compressed_rear_camera_topic if rear else cfg.compressed_camera_topic
+        self._put(topic, ros_msgdefs.COMPRESSED_IMAGE, msg, ns)
 
 
 def write_frames(

@@ -166,9 +166,12 @@ class LoopRegistrar:
 
     # ------------------------------------------------------------------ images
     def register_images(
-        self, query_image: np.ndarray, match_image: np.ndarray, yaw_guess: float = 0.0
+        self, query_image: np.ndarray, match_image: np.ndarray, yaw_guess: float = 0.0, query_yaw_offset: float = 0.0
     ) -> LoopRegistration:
-        """Place prior from the two keyframes' camera images (see the module docstring)."""
+        """Place prior from the two keyframes' camera images (see the module docstring).
+
+        query_yaw_offset: yaw of the query's camera in its body frame (pi for a rear camera
+        matched against the place's forward camera)."""
         cfg = self.config.two_view
         yaw_guess = _finite_yaw(yaw_guess)
         est = estimate_rotation(match_image, query_image, cfg)
@@ -176,7 +179,7 @@ class LoopRegistrar:
             ratio = est.n_inliers / est.n_matches if est.n_matches else 0.0
             return self.yaw_prior(yaw_guess, est.reason, ratio)
         body_from_cam = project_to_so3(np.asarray(cfg.body_from_camera, dtype=np.float64))
-        rot = project_to_so3(body_from_cam @ est.rotation_mq @ body_from_cam.T)
+        rot = project_to_so3(body_from_cam @ est.rotation_mq @ body_from_cam.T @ rot_z(-_finite_yaw(query_yaw_offset)))
         return LoopRegistration(
             T_mq=make_pose(rot, np.zeros(3)),
             accepted=True,

@@ -9,8 +9,9 @@
 * recall = revisit keyframes with at least one correct accepted loop / revisit keyframes.
 * A revisit is forward when it is driven the way its nearest earlier visit was, reverse
   otherwise; it is camera-visible when some earlier visit within the radius was driven within
-  ``view_angle_deg`` of its heading. A forward camera cannot see a place driven the other way
-  (or crossed at right angles), so ``recall_visible`` counts only what a camera could recognise.
+  ``view_angle_deg`` of its heading (or, with a rear camera, of the opposite heading). A forward
+  camera cannot see a place driven the other way (or crossed at right angles), so
+  ``recall_visible`` counts only what the cameras could recognise.
 Undefined ratios (no accepted loops, no revisits) are None, which metrics.json stores as null.
 """
 
@@ -92,12 +93,19 @@ class RevisitKinds:
 
 
 def classify_revisits(
-    gt: np.ndarray, revisits: np.ndarray, radius: float, min_frame_gap: int, view_angle_deg: float
+    gt: np.ndarray,
+    revisits: np.ndarray,
+    radius: float,
+    min_frame_gap: int,
+    view_angle_deg: float,
+    rear_camera: bool = False,
 ) -> RevisitKinds:
     """Direction and camera visibility of each revisit, from ground-truth positions alone.
 
     Headings come from the direction of travel (a central difference of positions), so the
-    ground truth may be in any sensor frame; a vehicle's camera looks along its travel.
+    ground truth may be in any sensor frame; a vehicle's camera looks along its travel. With a
+    rear camera, a revisit is also visible when an earlier visit was driven the other way
+    (within the view angle of the reversed heading): the rear camera looks where it looked.
     """
     pos = gt_positions("gt", gt)
     ids = np.asarray(revisits, dtype=int)
@@ -115,7 +123,8 @@ def classify_revisits(
             continue
         nearest = near[np.argmin(np.linalg.norm(pos[near] - pos[q], axis=1))]
         forward[k] = float(heading[q] @ heading[nearest]) > 0.0
-        visible[k] = bool(np.any(heading[near] @ heading[q] >= cos_view))
+        alignment = heading[near] @ heading[q]
+        visible[k] = bool(np.any(alignment >= cos_view) or (rear_camera and np.any(-alignment >= cos_view)))
     return RevisitKinds(ids, forward, visible)
 
 
@@ -123,8 +132,11 @@ def evaluate_loops(
     gt: np.ndarray,
     loops: Sequence[tuple[int, int]],
     config: LoopMetricsConfig | None = None,
+    rear_camera: bool = False,
 ) -> LoopEvaluation:
-    """Precision / recall of accepted loops (query q, matched m), keyframe indices into `gt`."""
+    """Precision / recall of accepted loops (query q, matched m), keyframe indices into `gt`.
+
+    rear_camera: the keyframes also had a rear image, so reverse revisits count as visible."""
     cfg = config or LoopMetricsConfig()
     pos = gt_positions("gt", gt)
     correct_radius = cfg.correct_radius
@@ -143,7 +155,7 @@ def evaluate_loops(
     revisit_set = set(revisits.tolist())
     recalled_ids = {q for q, flags in per_query.items() if q in revisit_set and any(flags)}
     recalled = len(recalled_ids)
-    kinds = classify_revisits(pos, revisits, cfg.revisit_radius, cfg.min_frame_gap, cfg.view_angle_deg)
+    kinds = classify_revisits(pos, revisits, cfg.revisit_radius, cfg.min_frame_gap, cfg.view_angle_deg, rear_camera)
     hit = np.array([q in recalled_ids for q in kinds.ids.tolist()], bool)
     n_visible = int(kinds.visible.sum())
     return LoopEvaluation(

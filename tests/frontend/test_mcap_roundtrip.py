@@ -291,3 +291,51 @@ def test_organised_cloud_with_row_padding(tmp_path: Path, caplog: pytest.LogCapt
     frames, source, warnings = _skip_warnings(path, caplog)
     assert frames == [] and source.stats.skipped["bad_lidar"] == 1
     assert any(re.search(r"/os/points at t=2\.000000: PointCloud2 3x2 .* only", w) for w in warnings)
+
+
+@pytest.mark.parametrize("image_format", ["raw", "png"])
+def test_rear_camera_round_trip(tmp_path: Path, image_format: str) -> None:
+    rng = np.random.default_rng(5)
+    frames = _frames(4, rng)
+    for frame in frames:
+        frame.rear_image = rng.integers(0, 256, (24, 32, 3), dtype=np.uint8)
+    frames[2].rear_image = None  # a rear image that never arrived
+    path = tmp_path / "rear.mcap"
+    write_frames(frames, path, McapWriterConfig(image_format=image_format))
+    source = McapSource(path)
+    assert set(source.topics) == {"camera", "rear_camera", "lidar", "logged_pose", "gt_pose"}
+    assert source.driver == "camera"
+    out = list(source)
+    assert len(out) == 4
+    for want, got in zip(frames, out):
+        assert np.array_equal(got.image, want.image)  # the forward camera is never mistaken for the rear one
+        if want.rear_image is None:
+            assert got.rear_image is None
+        else:
+            assert np.array_equal(got.rear_image, want.rear_image)
+
+
+def test_a_second_camera_is_never_guessed_from_its_type(tmp_path: Path) -> None:
+    """Only the writer's rear names (or a named topic) make a rear camera; an unknown second
+    Image topic is not used as one, and a log whose only camera is a rear one has no front camera."""
+    rng = np.random.default_rng(6)
+    frames = _frames(3, rng)
+    for frame in frames:
+        frame.rear_image = rng.integers(0, 256, (24, 32, 3), dtype=np.uint8)
+    other = tmp_path / "other_names.mcap"
+    write_frames(frames, other, McapWriterConfig(rear_camera_topic="/left/image_raw"))
+    source = McapSource(other)
+    assert "rear_camera" not in source.topics and source.topics["camera"].startswith("/camera/image_raw")
+    assert all(f.rear_image is None for f in source)
+
+    named = McapSource(other, McapSourceConfig(rear_camera_topic="/left/image_raw"))
+    out = list(named)
+    assert all(np.array_equal(f.rear_image, w.rear_image) for f, w in zip(out, frames))
+
+    for frame in frames:
+        frame.image = None
+    rear_only = tmp_path / "rear_only.mcap"
+    write_frames(frames, rear_only)
+    source = McapSource(rear_only)
+    assert "camera" not in source.topics and source.topics["rear_camera"].startswith("/camera_rear/")
+    assert source.driver == "lidar"

@@ -228,6 +228,34 @@ def test_revisited_places_look_more_alike_than_other_places(sim):
     assert np.mean(np.array(same) > np.array(other)) >= 0.8
 
 
+def test_rear_camera_sees_what_the_forward_camera_saw_on_a_street_driven_the_other_way(sim):
+    xy = sim.gt_positions()
+    yaw = sim.xy_yaw[:, 2]
+    # reverse revisits: an earlier frame nearby, driven the other way (the other lane: ~3 m off)
+    rev = ground_truth_revisits(xy, 6.0, sim.default_min_gap())
+    turned = np.abs(np.angle(np.exp(1j * (yaw - yaw[rev])))) > 7 * math.pi / 8
+    later = np.nonzero((rev >= 0) & turned)[0][::10][:8]
+    assert len(later) >= 6
+    rear_vs_then, front_vs_then = [], []
+    for k in later:
+        then = sim.render_image(int(rev[k]))
+        rear_vs_then.append(_ncc(sim.render_image(int(k), rear=True), then))
+        front_vs_then.append(_ncc(sim.render_image(int(k)), then))
+    # grey thumbnails of any street share sky and road; the facades make the difference
+    assert np.mean(rear_vs_then) > np.mean(front_vs_then) + 0.1, (rear_vs_then, front_vs_then)
+    assert np.mean(np.array(rear_vs_then) > np.array(front_vs_then)) >= 0.75, (rear_vs_then, front_vs_then)
+
+
+def test_rear_camera_can_be_switched_off_and_leaves_the_forward_images_alone():
+    with_rear = TraverseSimulator(default_demo_config(max_frames=2, lidar={"enabled": False}))
+    without = TraverseSimulator(default_demo_config(max_frames=2, lidar={"enabled": False}, camera={"rear": False}))
+    a, b = with_rear.frame(1), without.frame(1)
+    assert a.rear_image is not None and a.rear_image.shape == a.image.shape
+    assert b.rear_image is None
+    assert np.array_equal(a.image, b.image)
+    assert not np.array_equal(a.rear_image, a.image)
+
+
 def test_appearance_changes_image_statistics():
     base = dict(max_frames=3, lidar={"enabled": False})
     day = TraverseSimulator(default_demo_config(appearance_schedule=["day"], **base)).frame(2).image

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from threadpoolctl import threadpool_limits
 
-from loopclosure.config import DetectorConfig, SequenceGateConfig, SequenceMatchConfig, VPRConfig
+from loopclosure.config import DetectorConfig, RearCameraConfig, SequenceGateConfig, SequenceMatchConfig, VPRConfig
 from loopclosure.database import PlaceDatabase
 from loopclosure.detector import LoopDetector, LoopProposal
 from loopclosure.encoder import Encoder
@@ -71,6 +71,7 @@ def detector(
     codebooks: str | None = None,
     direction: str = "both",
     accept: float = 0.9,
+    rear: bool = True,
     **gate: object,
 ) -> LoopDetector:
     # identical images score 1 and unrelated ones about 0: a sequence of L = 3 scores about
@@ -85,6 +86,7 @@ def detector(
         codebooks=codebooks,
         sequence=SequenceMatchConfig(length=3, direction=direction),
         gate=SequenceGateConfig(**{"length": 3, "tolerance": 1, **gate}),
+        rear=RearCameraConfig(enabled=rear, min_score=0.2, accept_score=accept, min_single_score=0.5),
     )
     return LoopDetector(VPR, config, Encoder(VPR, FakeBackbone()), database)  # type: ignore[arg-type]
 
@@ -344,3 +346,58 @@ def test_session_places_after_a_prior_map_are_not_flagged(tmp_path: Path, codebo
     proposal = det.process(scene(50), 4)
     assert proposal is not None
     assert proposal.match_place == 10 and proposal.match_id == 0 and not proposal.prior_map
+
+
+# ------------------------------------------------------------------------------ rear camera
+
+
+def drive_back(det: LoopDetector, first_id: int, fronts: list[int], rears: list[int | None]) -> list[LoopProposal | None]:
+    """Keyframes whose forward images are new places and whose rear images are `rears`."""
+    return [
+        det.process(scene(f), first_id + k, rear_image=None if r is None else scene(r))
+        for k, (f, r) in enumerate(zip(fronts, rears))
+    ]
+
+
+def test_rear_images_recognise_a_street_driven_the_other_way(codebooks: str) -> None:
+    det = detector(codebooks=codebooks, keyframes=5)
+    feed(det, list(range(20)), 0)
+    backbone = det.encoder.backbone
+    before = backbone.images
+    # driving back down places 14..11 (15..19 are inside the first query's exclusion window):
+    # the forward camera sees new things, the rear one what the forward camera saw on the way out
+    proposals = drive_back(det, 20, [200, 201, 202, 203], [14, 13, 12, 11])
+    assert backbone.images - before == 8  # both images of every keyframe
+    assert len(det.database) == 24  # rear images are queries only, never places
+    assert [p.frame_id for p in det.database.places][20:] == [20, 21, 22, 23]
+    accepted = [p for p in proposals if p is not None and p.accepted]
+    assert [p.match_id for p in accepted] == [12, 11]  # once the rear sequence has three terms
+    for p in accepted:
+        assert p.camera == "rear" and p.direction == "reverse" and p.sequence_terms == 3
+        assert p.yaw_guess == pytest.approx(np.pi) and p.reason.startswith("rear camera accepted")
+    first = proposals[0]
+    assert first is not None and first.camera == "rear" and not first.accepted and first.match_id == 14
+
+
+def test_the_forward_camera_wins_when_both_are_accepted(codebooks: str) -> None:
+    det = detector(codebooks=codebooks, keyframes=5)
+    feed(det, list(range(20)), 0)
+    # forward images repeat places 3..6, rear images repeat 14..11: both sequences accept
+    proposals = drive_back(det, 20, [3, 4, 5, 6], [14, 13, 12, 11])
+    assert [(p.camera, p.match_id) for p in proposals[2:]] == [("front", 5), ("front", 6)]
+
+
+def test_rear_camera_switched_off_or_missing(codebooks: str) -> None:
+    off = detector(codebooks=codebooks, keyframes=5, rear=False)
+    feed(off, list(range(20)), 0)
+    before = off.encoder.backbone.images
+    assert drive_back(off, 20, [200, 201, 202, 203], [14, 13, 12, 11]) == [None] * 4
+    assert off.encoder.backbone.images - before == 4  # the rear images are not even encoded
+
+    gap = detector(codebooks=codebooks, keyframes=5)
+    feed(gap, list(range(20)), 0)
+    # a keyframe without its rear image breaks the rear sequence: it must build up again
+    proposals = drive_back(gap, 20, [200, 201, 202, 203, 204], [14, 13, None, 11, 10])
+    assert [p.match_id for p in proposals if p is not None and p.accepted] == []
+    more = drive_back(gap, 25, [205], [9])
+    assert more[0] is not None and more[0].accepted and more[0].match_id == 9

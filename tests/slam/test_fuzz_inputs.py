@@ -554,7 +554,7 @@ def _state(gt: list[np.ndarray | None], loops: list[tuple[int, int]]) -> SimpleN
     kfs = [Keyframe(k, k, float(k), odom[k], g, None, None) for k, g in enumerate(gt)]
     records = [LoopRecord(LoopProposal(q, m, m, 0.9, 0.5, 0, 0.0, True, "accepted", "reverse"), factor_handle=i)
                for i, (q, m) in enumerate(loops)]  # fmt: skip
-    return SimpleNamespace(state=SimpleNamespace(keyframes=kfs, loops=records), odom=odom, optimised=true.copy())
+    return SimpleNamespace(state=SimpleNamespace(keyframes=kfs, loops=records, rear_keyframes=0), odom=odom, optimised=true.copy())
 
 
 PARTIAL_GT_CASES = {

@@ -210,6 +210,20 @@ def test_essential_matrix_yaw_with_baseline(camera, yaw_deg, t_mq_cam):
     assert np.degrees(yaw_of(reg.T_mq[:3, :3])) == pytest.approx(yaw_deg, abs=2.5)
 
 
+@pytest.mark.parametrize("yaw_deg", [8.0, -12.0])
+def test_rear_camera_images_give_the_body_rotation_turned_half_a_circle(camera, yaw_deg):
+    """The query's rear camera saw the place the match's forward camera saw, turned by yaw_deg:
+    the body is turned by yaw_deg + 180 deg."""
+    cfg, body_from_cam, k, img_m = camera
+    h = k @ cam_rotation_qm(body_from_cam, yaw_deg) @ np.linalg.inv(k)
+    img_rear = cv2.warpPerspective(img_m, h, (W_PX, H_PX))
+    reg = LoopRegistrar(cfg).register_images(img_rear, img_m, yaw_guess=np.pi, query_yaw_offset=np.pi)
+    assert reg.accepted and reg.method == "two_view_homography", reg.reason
+    yaw = np.degrees(yaw_of(reg.T_mq[:3, :3]))
+    assert np.degrees(np.angle(np.exp(1j * np.radians(yaw - yaw_deg - 180.0)))) == pytest.approx(0.0, abs=1.0)
+    np.testing.assert_allclose(reg.T_mq[:3, :3] @ reg.T_mq[:3, :3].T, np.eye(3), atol=1e-9)
+
+
 def test_featureless_images_fall_back_to_the_yaw_guess(camera):
     cfg, _, _, img_m = camera
     blank = np.zeros((H_PX, W_PX, 3), np.uint8)

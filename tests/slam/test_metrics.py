@@ -206,3 +206,12 @@ def test_revisits_split_by_direction_and_camera_visibility():
     assert fwd["recalled"] == len(loops) and rev["recalled"] == 0
     assert rev["visible"] == 0 and rev["recall_visible"] is None
     assert fwd["revisits"] + rev["revisits"] == ev.n_revisits
+
+    # with a rear camera the westward leg becomes visible too; the crossing never is
+    rear = classify_revisits(gt, revisits, cfg.revisit_radius, cfg.min_frame_gap, cfg.view_angle_deg, rear_camera=True)
+    westward = west & (kinds.ids < 210)  # (the crossing leg passes y = 2 once, heading south)
+    assert rear.visible[westward].all() and rear.visible[second_east].all() and not rear.visible[crossing].any()
+    assert np.array_equal(rear.forward, kinds.forward)
+    ev_rear = evaluate_loops(gt, loops, cfg, rear_camera=True)
+    assert ev_rear.n_visible_revisits > ev.n_visible_revisits
+    assert ev_rear.by_direction["reverse"]["visible"] >= westward.sum()
