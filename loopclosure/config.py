@@ -32,6 +32,19 @@ class BackboneConfig(_Strict):
     stage2_layer: Literal["conv3_3", "conv4_1", "conv4_2", "conv4_3"] = "conv4_2"
     batch_size: int = Field(default=8, ge=1)
     num_threads: int | None = Field(default=None, ge=1, description="torch CPU threads; None keeps torch's default.")
+    # fp32 stays the default: bf16 moved Corridor's single-frame PR-AUC by 0.010 (one query of 111),
+    # more than the 0.005 allowed, though its sequence (L=3) PR-AUC moved by 0.0002 (README "Speed").
+    precision: Literal["auto", "fp32", "bf16", "int8"] = Field(
+        default="fp32",
+        description="fp32: torch fp32, the reference (reproducible results). auto: bf16 on a CPU with "
+        "AVX512-BF16 or AMX (/proc/cpuinfo flags), bf16 (else fp16) on CUDA, fp32 otherwise. int8: ONNX "
+        "Runtime (extra 'int8') calibrated on int8_calibration. Outputs are float32 maps in every case.",
+    )
+    int8_calibration: str | None = Field(
+        default=None,
+        description="Folder of reference images (e.g. those PCA is fitted on) that calibrate precision int8.",
+    )
+    int8_calibration_images: int = Field(default=32, ge=1, description="Images taken evenly from int8_calibration.")
 
 
 class CubeConfig(_Strict):

@@ -1,5 +1,8 @@
 """loopclosure.backbone: VGG16 maps checked against an independent functional VGG16 oracle.
 
+The oracle comparisons run the torch fp32 reference (precision="fp32"); the reduced precisions
+are checked against it in test_backbone_precision.py.
+
 The real-weight tests run at a small input size (the network is fully convolutional, so the
 oracle comparison means the same at 64 px as at 224) and share one loaded state dict.
 """
@@ -93,8 +96,9 @@ def test_default_layers_have_paper_shapes_at_224():
 def test_pre_relu_has_negatives_and_post_relu_is_its_positive_part():
     sd = _random_sd()
     images = np.random.default_rng(1).integers(0, 256, (1, 64, 64, 3), dtype=np.uint8)
-    pre = Backbone(BackboneConfig(weights="x", device="cpu", input_size=64, pre_relu=True), sd)(images)
-    post = Backbone(BackboneConfig(weights="x", device="cpu", input_size=64, pre_relu=False), sd)(images)
+    cfg = BackboneConfig(weights="x", device="cpu", input_size=64, precision="fp32")
+    pre = Backbone(cfg.model_copy(update={"pre_relu": True}), sd)(images)
+    post = Backbone(cfg.model_copy(update={"pre_relu": False}), sd)(images)
     for a, b in zip(pre, post):
         assert (a < 0).any()
         assert (b >= 0).all()
@@ -114,7 +118,7 @@ def test_random_weights_need_no_files():
 def test_first_conv_on_constant_image_matches_manual_dot_product(real_sd):
     """A constant image makes conv1_1 at an interior pixel bias + sum_c x_c * sum(w[o, c]);
     at the corner only the 2x2 lower-right part of the kernel sees the image (zero padding)."""
-    backbone = Backbone(BackboneConfig(weights="x", device="cpu", input_size=32), real_sd)
+    backbone = Backbone(BackboneConfig(weights="x", device="cpu", input_size=32, precision="fp32"), real_sd)
     rgb = np.array([200, 100, 50], np.uint8)
     image = np.broadcast_to(rgb, (1, 32, 32, 3)).copy()
     x = _preprocess(image, "torchvision")
@@ -156,7 +160,7 @@ def backbone_maps(real_sd, small_images):
         if key not in cache:
             config = BackboneConfig(
                 weights="x", device="cpu", input_size=64, preprocessing=preprocessing, pre_relu=pre_relu,
-                stage1_layer=stage1, stage2_layer=stage2,
+                stage1_layer=stage1, stage2_layer=stage2, precision="fp32",
             )  # fmt: skip
             cache[key] = Backbone(config, real_sd)(small_images)
         return cache[key]
@@ -193,7 +197,8 @@ def test_caffe_and_torchvision_preprocessing_differ(backbone_maps):
 
 
 def test_load_backbone_from_explicit_path(weights_path, real_sd):
-    backbone = load_backbone(BackboneConfig(weights=str(weights_path), device="cpu", input_size=32))
+    config = BackboneConfig(weights=str(weights_path), device="cpu", input_size=32, precision="fp32")
+    backbone = load_backbone(config)
     loaded = backbone.net.state_dict()
     assert set(loaded) == {f"features.{i}.{p}" for i in (0, 2, 5, 7, 10, 12, 14, 17, 19, 21, 24, 26) for p in ("weight", "bias")}
     for key, value in loaded.items():

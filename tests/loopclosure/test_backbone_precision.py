@@ -1,0 +1,167 @@
+"""Backbone precisions: each agrees with the torch fp32 reference, `auto` resolves as documented.
+
+Tolerances (cosine similarity of each image's conv map with fp32's, real weights, real photos):
+bf16 >= 0.999 (measured 0.99995 at 224 px), int8 >= 0.995 (measured 0.9991-0.9997). int8 is
+calibrated on Gardens Point's reference images and checked on its query images.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from loopclosure import backbone as backbone_module
+from loopclosure.backbone import Backbone, resolve_precision
+from loopclosure.config import BackboneConfig
+from loopclosure.errors import LoopClosureInputError
+from loopclosure.images import list_images, read_image, resize_square
+
+SIZE = 96  # fully convolutional: agreement at 96 px means the same as at 224, in a third of the time
+MIN_COSINE = {"bf16": 0.999, "int8": 0.995}
+
+
+def _cosines(ref: np.ndarray, got: np.ndarray) -> np.ndarray:
+    a, b = ref.reshape(len(ref), -1).astype(np.float64), got.reshape(len(got), -1).astype(np.float64)
+    return (a * b).sum(1) / (np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1))
+
+
+@pytest.fixture(scope="module")
+def real_sd(weights_path):
+    from loopclosure.weights import load_state_dict
+
+    return load_state_dict(weights_path)
+
+
+@pytest.fixture(scope="module")
+def queries(gardens_dir) -> np.ndarray:
+    files = list_images(gardens_dir / "query")[:3]
+    return np.stack([resize_square(read_image(f), SIZE) for f in files])
+
+
+@pytest.fixture(scope="module")
+def reference_maps(real_sd, queries) -> tuple[np.ndarray, np.ndarray]:
+    return Backbone(_config("fp32"), real_sd)(queries)
+
+
+def _config(precision: str, **kw) -> BackboneConfig:
+    return BackboneConfig(weights="x", device="cpu", input_size=SIZE, precision=precision, **kw)
+
+
+def _check_agreement(got: tuple[np.ndarray, np.ndarray], ref: tuple[np.ndarray, np.ndarray], precision: str) -> None:
+    for g, r in zip(got, ref):
+        assert g.dtype == np.float32 and g.flags.c_contiguous and g.shape == r.shape
+        assert _cosines(r, g).min() >= MIN_COSINE[precision]
+        assert (g < 0).any()  # pre-ReLU maps keep their negative part
+
+
+# ---- auto ----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "flags, expected",
+    [
+        ({"avx512f", "avx512_bf16"}, "bf16"),  # Zen 4/5, Cooper Lake
+        ({"avx512f", "amx_bf16", "amx_tile"}, "bf16"),  # Sapphire Rapids
+        ({"avx512f", "avx512_vnni"}, "fp32"),  # Skylake-X / Cascade Lake: no bf16 products
+        ({"avx2", "fma"}, "fp32"),
+    ],
+)
+def test_auto_on_cpu_follows_the_cpuinfo_flags(monkeypatch, flags, expected):
+    monkeypatch.setattr(backbone_module, "cpu_flags", lambda: frozenset(flags))
+    assert resolve_precision("auto", torch.device("cpu")) == expected
+    # an explicit choice is never overridden
+    assert resolve_precision("fp32", torch.device("cpu")) == "fp32"
+    assert resolve_precision("bf16", torch.device("cpu")) == "bf16"
+
+
+@pytest.mark.parametrize("avx512_bf16, amx, expected", [(True, False, "bf16"), (False, True, "bf16"), (False, False, "fp32")])
+def test_auto_without_proc_cpuinfo_asks_torch(monkeypatch, avx512_bf16, amx, expected):
+    monkeypatch.setattr(backbone_module, "cpu_flags", lambda: None)
+    monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda: avx512_bf16, raising=False)
+    monkeypatch.setattr(torch.cpu, "_is_amx_tile_supported", lambda: amx, raising=False)
+    assert resolve_precision("auto", torch.device("cpu")) == expected
+
+
+@pytest.mark.parametrize("bf16_ok, expected", [(True, "bf16"), (False, "fp16")])
+def test_auto_on_cuda(monkeypatch, bf16_ok, expected):
+    monkeypatch.setattr(torch.cuda, "is_bf16_supported", lambda *a, **k: bf16_ok)
+    assert resolve_precision("auto", torch.device("cuda")) == expected
+
+
+def test_int8_is_refused_on_cuda():
+    with pytest.raises(LoopClosureInputError, match="int8.*device='cpu'"):
+        resolve_precision("int8", torch.device("cuda"))
+
+
+def test_auto_backbone_runs_what_it_resolved(monkeypatch):
+    monkeypatch.setattr(backbone_module, "cpu_flags", lambda: frozenset({"avx2"}))
+    backbone = Backbone(BackboneConfig(weights="random", device="cpu", input_size=32, precision="auto"), None)
+    assert backbone.precision == "fp32"
+    assert all(p.dtype == torch.float32 for p in backbone.net.parameters())
+
+
+def test_the_default_is_the_fp32_reference():
+    assert BackboneConfig().precision == "fp32"
+
+
+def test_precision_from_the_environment(monkeypatch):
+    from ssmvpr_slam.config import load_config
+
+    monkeypatch.setenv("SSMVPR_VPR__BACKBONE__PRECISION", "bf16")
+    assert load_config().vpr.backbone.precision == "bf16"
+    monkeypatch.setenv("SSMVPR_VPR__BACKBONE__PRECISION", "fp64")
+    with pytest.raises(Exception, match="precision"):
+        load_config()
+
+
+# ---- bf16 ----------------------------------------------------------------------------------
+
+
+def test_bf16_agrees_with_fp32(real_sd, queries, reference_maps):
+    backbone = Backbone(_config("bf16"), real_sd)
+    assert backbone.precision == "bf16"
+    assert backbone.net.features[2].weight.dtype == torch.bfloat16  # conv1_1 (index 0) stays fp32
+    _check_agreement(backbone(queries), reference_maps, "bf16")
+
+
+# ---- int8 ----------------------------------------------------------------------------------
+
+
+def test_int8_without_the_extra_is_one_clear_line(monkeypatch, real_sd):
+    monkeypatch.setitem(sys.modules, "onnxruntime", None)  # import fails as if not installed
+    with pytest.raises(LoopClosureInputError, match=r'pip install "ssmvpr-slam\[int8\]"'):
+        Backbone(_config("int8", int8_calibration="/nonexistent"), real_sd)
+
+
+def test_int8_needs_a_calibration_folder(real_sd):
+    pytest.importorskip("onnxruntime")
+    with pytest.raises(LoopClosureInputError, match="int8_calibration"):
+        Backbone(_config("int8"), real_sd)
+
+
+def test_int8_calibrated_on_references_agrees_with_fp32(monkeypatch, tmp_path, real_sd, queries, reference_maps, gardens_dir):
+    pytest.importorskip("onnxruntime")
+    from loopclosure import int8_runtime
+
+    monkeypatch.setenv("SSMVPR_CACHE", str(tmp_path))
+    config = _config("int8", int8_calibration=str(gardens_dir / "ref"), int8_calibration_images=6)
+    backbone = Backbone(config, real_sd)
+    assert backbone.precision == "int8"
+    _check_agreement(backbone(queries), reference_maps, "int8")
+    assert len(list((tmp_path / "int8").glob("*.onnx"))) == 1
+
+    # the same setting reopens the cached model without calibrating again ...
+    def no_quantize(*args, **kwargs):
+        raise AssertionError("quantised again despite the cache")
+
+    monkeypatch.setattr(int8_runtime, "quantize", no_quantize)
+    again = Backbone(config, real_sd)(queries)
+    np.testing.assert_array_equal(again[0], backbone(queries)[0])
+    # ... and other calibration images make another model
+    monkeypatch.undo()
+    monkeypatch.setenv("SSMVPR_CACHE", str(tmp_path))
+    Backbone(config, real_sd, calibration_images=queries)
+    assert len(list((tmp_path / "int8").glob("*.onnx"))) == 2
