@@ -4,11 +4,14 @@ Prints ONE JSON object to stdout (progress goes to stderr).
 
 Usage:
   python tools/bench_vpr.py [--weights PATH|random] [--images DIR] [--device auto|cpu|cuda]
+                            [--precision auto|fp32|bf16|int8]
                             [--sizes 1000,10000,100000] [--repeats N] [--quick]
 
 What is measured (all through the library's own code paths):
   cnn_encode           Backbone (VGG16 to conv5_2) + cube extraction + PCA projection on real
-                       images (Corridor ref by default), batch 1 and batch 8. The PCA codebooks
+                       images (Corridor ref by default), batch 1 and batch 8, at --precision
+                       (int8 is calibrated on the timed images; tools/bench_backbone.py compares
+                       the precisions side by side). The PCA codebooks
                        are random projections of the real shapes: projection speed does not depend
                        on their values. Real weights when found, else random weights (said so).
   filtering_query_ms   `loopclosure.filtering.vote(query, db.stage1, k=50, num_candidates=50,
@@ -277,9 +280,10 @@ def bench_encode(args, config: VPRConfig, repeats: dict[int, int]) -> dict:
 
     state, weights_info = pick_weights(args.weights, args.allow_download)
     backbone_cfg = config.backbone.model_copy(update={"weights": "random" if state is None else None})
-    backbone = Backbone(backbone_cfg, state)
-    del state
     images, images_info = load_images(Path(args.images), args.max_images, config.backbone.input_size)
+    calibration = np.stack(images) if backbone_cfg.precision == "int8" else None
+    backbone = Backbone(backbone_cfg, state, calibration_images=calibration)
+    del state
 
     # Codebook shapes from the net; values are random (projection cost is value-independent).
     cube_dims = {
@@ -311,6 +315,7 @@ def bench_encode(args, config: VPRConfig, repeats: dict[int, int]) -> dict:
 
     out: dict = {
         "weights": weights_info,
+        "precision": {"requested": backbone_cfg.precision, "resolved": backbone.precision},
         "pca_codebooks": "random projections of the real shapes (speed does not depend on values)",
         "input_size": config.backbone.input_size,
         "layers": [config.backbone.stage1_layer, config.backbone.stage2_layer],
@@ -662,6 +667,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--max-images", type=int, default=32, help="images read from --images")
     ap.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
     ap.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
+    ap.add_argument("--precision", choices=("auto", "fp32", "bf16", "int8"), default=None,
+                    help="backbone precision (default: the config's, auto)")
     ap.add_argument("--sizes", default=None, help="database sizes for filtering (default 1000,10000,100000)")
     ap.add_argument("--candidates", default="5,15,50", help="N for spatial matching")
     ap.add_argument("--batch-sizes", default="1,8", help="CNN batch sizes")
@@ -706,7 +713,8 @@ def main(argv: list[str] | None = None) -> dict:
 
     if args.threads:
         torch.set_num_threads(args.threads)
-    config = VPRConfig(backbone=BackboneConfig(device=args.device, allow_download=args.allow_download))
+    backbone_kw = {"precision": args.precision} if args.precision else {}
+    config = VPRConfig(backbone=BackboneConfig(device=args.device, allow_download=args.allow_download, **backbone_kw))
     t_start = time.perf_counter()
     machine = machine_info(str(resolve_device(args.device)))
     result: dict = {"tool": "bench_vpr", "quick": bool(args.quick), "machine": machine}
@@ -719,6 +727,7 @@ def main(argv: list[str] | None = None) -> dict:
         "batch_sizes": batch_sizes,
         "blas_threads": args.blas_threads,
         "exclude_recent": args.exclude_recent,
+        "precision": config.backbone.precision,
     }
     with blas_limit(args.blas_threads):
         if args.skip_encode:

@@ -7,7 +7,11 @@ calibrated on Gardens Point's reference images and checked on its query images.
 
 from __future__ import annotations
 
+import json
+import os
+import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,6 +21,7 @@ from loopclosure import backbone as backbone_module
 from loopclosure.backbone import Backbone, resolve_precision
 from loopclosure.config import BackboneConfig
 from loopclosure.errors import LoopClosureInputError
+from loopclosure.int8_runtime import int8_available
 from loopclosure.images import list_images, read_image, resize_square
 
 SIZE = 96  # fully convolutional: agreement at 96 px means the same as at 224, in a third of the time
@@ -165,3 +170,26 @@ def test_int8_calibrated_on_references_agrees_with_fp32(monkeypatch, tmp_path, r
     monkeypatch.setenv("SSMVPR_CACHE", str(tmp_path))
     Backbone(config, real_sd, calibration_images=queries)
     assert len(list((tmp_path / "int8").glob("*.onnx"))) == 2
+
+
+# ---- the benchmark -------------------------------------------------------------------------
+
+
+@pytest.mark.slow
+def test_bench_backbone_prints_one_json(tmp_path):
+    """tools/bench_backbone.py end to end at tiny settings (random weights, 64 px)."""
+    script = Path(__file__).resolve().parents[2] / "tools" / "bench_backbone.py"
+    precisions = "fp32,bf16,int8"
+    cmd = [sys.executable, str(script), "--weights", "random", "--input-size", "64", "--batch-sizes", "1,2",
+           "--repeats", "1", "--no-gemm", "--precisions", precisions, "--calibration-images", "2"]  # fmt: skip
+    env = {**os.environ, "SSMVPR_CACHE": str(tmp_path)}
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=180, check=False, env=env)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    out = json.loads(proc.stdout)
+    assert out["gflop_per_image"] > 0 and out["machine"]["loadavg_start"] is not None
+    assert out["isa_peak_gflops"]["bf16"] > out["isa_peak_gflops"]["fp32"] > 0
+    fp32 = out["precisions"]["fp32"]
+    assert fp32["agreement_with_fp32"]["stage1"]["cosine_min"] > 0.99999
+    assert fp32["batch_2"]["ms_per_image"] > 0 and fp32["physical_limit_ms_per_image"] > 0
+    int8 = out["precisions"]["int8"]
+    assert ("skipped" in int8) != int8_available()
