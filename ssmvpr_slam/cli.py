@@ -295,9 +295,10 @@ def optimize(
     gt_edges: Annotated[Optional[Path], typer.Option("--gt-edges", help="The true edges (i j ... per line): loops not listed are false.")] = None,
     times: Annotated[Optional[Path], typer.Option(help="Vertex timestamps ('t' or 'id t' per line): also write TUM.")] = None,
     kernel: Annotated[str, typer.Option(help="Loop kernel: cauchy | huber | dcs | gm | tukey | none.")] = "dcs",
-    gnc: Annotated[bool, typer.Option("--gnc/--no-gnc", help="GNC (TLS) pass after the kernel solve.")] = False,
-    refine: Annotated[bool, typer.Option("--refine/--no-refine", help="After the kernel solve, one batch solve at scale 1 (the default configuration, docs/backend_benchmarks.md).")] = True,
-    batch: Annotated[bool, typer.Option("--batch", help="One batch solve instead of iSAM2 in vertex order.")] = False,
+    gnc: Annotated[bool, typer.Option("--gnc/--no-gnc", help="GNC (TLS, odometry as known inliers) after the kernel solve (default on; docs/backend_benchmarks.md).")] = True,
+    check: Annotated[bool, typer.Option("--check/--no-check", help="With GNC: leave-one-out check of the loops GNC keeps (default on).")] = True,
+    refine: Annotated[bool, typer.Option("--refine/--no-refine", help="After the first kernel solve, one batch solve at scale 1.")] = True,
+    batch: Annotated[bool, typer.Option("--batch/--isam2", help="Kernel solve: one batch solve (default) or iSAM2 in vertex order, as a stream would.")] = True,
     out: Annotated[Path, typer.Option("--out", help="Output folder.")] = Path("optimized"),
 ) -> None:
     """Optimise a g2o / TORO pose graph robustly; write optimised.g2o, TUM and metrics.json."""
@@ -319,7 +320,7 @@ def optimize(
         stamps = g2o_io.read_times(times, data) if times is not None else None
         gt_poses = g2o_io.read_ground_truth(gt, data, stamps) if gt is not None else None
         true_pairs = g2o_io.read_edge_pairs(gt_edges) if gt_edges is not None else None
-        settings = OptimizerSettings(kernel=kernel, gnc=gnc, batch=batch)
+        settings = OptimizerSettings(kernel=kernel, gnc=gnc, batch=batch, verify=check)
         if not refine:
             settings = replace(settings, refine_scales=())
         result = optimize_graph(data, settings)
@@ -332,7 +333,9 @@ def optimize(
             "odometry_edges": len(data.edges) - len(loops), "loop_candidates": len(loops),
             "initialised_from_odometry": result.initialised_from_odometry,
             "solver": "batch" if batch else "isam2", "kernel": kernel,
-            "refine_scales": list(settings.refine_scales) if kernel != "none" else [], "gnc": gnc, "seconds": result.seconds,
+            "refine_scales": list(settings.refine_scales) if kernel != "none" else [], "gnc": gnc,
+            "check": gnc and check, "check_removed": result.check_removed, "check_readmitted": result.check_readmitted,
+            "seconds": result.seconds,
             "loops_inlier": int(result.loop_inlier.sum()), "loops_outlier": result.n_outliers,
             "classification": result.classification,
             "outlier_loops": [[e.i, e.j] for e, ok in zip(loops, result.loop_inlier) if not ok],

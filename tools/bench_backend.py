@@ -143,23 +143,57 @@ def inject_false_loops(graph: PoseGraphData, rate: float, kind: str, seed: int) 
 
 
 def _row(bench: Benchmark, kernel: str, gnc: bool, rate: float, kind: str, result, truth: np.ndarray,
-         reference_ate: float, n_false: int) -> dict:  # noqa: ANN001
+         reference_ate: float, n_false: int, optimum: np.ndarray) -> dict:  # noqa: ANN001
     ate = trajectory_ate(bench.gt, result.poses, bench.graph.dim).stats.rmse
     scores = loop_classification_scores(~result.loop_inlier, truth[result.loop_indices])
     return {
         "graph": bench.name, "kernel": kernel, "gnc": gnc, "rate": rate, "kind": kind,
         "true_loops": len(bench.graph.loops), "false_loops": n_false,
         "ate_rmse": ate, "ate_reference": reference_ate, "ate_ratio": ate / reference_ate,
+        "ate_to_optimum": trajectory_ate(optimum, result.poses, bench.graph.dim).stats.rmse,
         "outlier_precision": scores["outlier_precision"], "outlier_recall": scores["outlier_recall"],
         "flagged_outliers": scores["flagged_outliers"], "seconds": result.seconds,
+        "check_removed": result.check_removed, "check_readmitted": result.check_readmitted,
     }  # fmt: skip
+
+
+def _cell_seed(seed: int, name: str, rate: float, kind: str) -> int:
+    return seed + 1000 * RATES_INDEX.get(rate, 9) + 100 * KINDS.index(kind) + GRAPHS.index(name)
+
+
+def _solve_cell(name: str, rate: float, kind: str, kernel: str, gnc_modes: tuple[bool, ...], batch: bool, seed: int,
+                refine_scales: tuple[float, ...], reference: float, optimum: np.ndarray) -> list[dict]:
+    """Rows of one (graph, rate, kind, kernel): the kernel solve, and GNC (with the leave-one-out
+    check, the default) started from it. Runs in a worker process with --jobs."""
+    bench = _load_cached(name)
+    noisy, truth = inject_false_loops(bench.graph, rate, kind, _cell_seed(seed, name, rate, kind))
+    n_false = int(truth.sum())
+    settings = OptimizerSettings(kernel=kernel, gnc=False, batch=batch, refine_scales=tuple(refine_scales))
+    base = optimize_graph(noisy, settings)
+    rows = []
+    if False in gnc_modes:
+        rows.append(_row(bench, kernel, False, rate, kind, base, truth, reference, n_false, optimum))
+    if True in gnc_modes:
+        refined = refine_with_gnc(noisy, base, replace(settings, gnc=True))
+        rows.append(_row(bench, kernel, True, rate, kind, refined, truth, reference, n_false, optimum))
+    return rows
+
+
+_LOADED: dict[str, Benchmark] = {}
+
+
+def _load_cached(name: str) -> Benchmark:
+    if name not in _LOADED:
+        _LOADED[name] = load_benchmark(name)
+    return _LOADED[name]
 
 
 def run_benchmark(graphs, rates, kinds, kernels, gnc_modes=(False, True), batch=True, seed=0,
                   kernels_by_graph=None, log=None, refine_scales=DEFAULT_REFINE_SCALES,
-                  checkpoint=None) -> dict:  # noqa: ANN001
+                  checkpoint=None, jobs=1) -> dict:  # noqa: ANN001
     """Rows for every (graph, kernel, gnc, rate, kind); see the module docstring. `checkpoint`
-    (a callable) gets the results so far after every solve, so a run cut short keeps its rows."""
+    (a callable) gets the results so far after every finished cell, so a run cut short keeps its
+    rows. `jobs` > 1 solves cells in that many worker processes (GTSAM solves on one core)."""
     rows, references = [], {}
 
     def results() -> dict:
@@ -167,42 +201,50 @@ def run_benchmark(graphs, rates, kinds, kernels, gnc_modes=(False, True), batch=
             "protocol": {"rates": list(rates), "kinds": list(kinds), "kernels": list(kernels),
                          "kernels_by_graph": kernels_by_graph or {}, "gnc": list(gnc_modes),
                          "mode": "batch" if batch else "isam2", "refine_scales": list(refine_scales),
-                         "seed": seed, "group_size": GROUP_SIZE, "local_span": LOCAL_SPAN},
+                         "seed": seed, "group_size": GROUP_SIZE, "local_span": LOCAL_SPAN,
+                         "gnc_check": True},
             "references": references,
-            "rows": rows,
+            "rows": sorted(rows, key=_row_order),
         }  # fmt: skip
 
+    cells, optima = [], {}
     for name in graphs:
-        t0 = time.perf_counter()
-        bench = load_benchmark(name)
+        bench = _load_cached(name)
         clean = optimize_graph(bench.graph, OptimizerSettings(kernel="none", gnc=False, batch=True))
         reference = trajectory_ate(bench.gt, clean.poses, bench.graph.dim).stats.rmse
         references[name] = {"ate_rmse": reference, "vertices": len(bench.graph.ids),
                             "true_loops": len(bench.graph.loops), "seconds": clean.seconds}  # fmt: skip
-        graph_kernels = (kernels_by_graph or {}).get(name, kernels)
+        optima[name] = clean.poses
         for rate in rates:
             for kind in kinds:
-                seed_k = seed + 1000 * RATES_INDEX.get(rate, 9) + 100 * KINDS.index(kind) + GRAPHS.index(name)
-                noisy, truth = inject_false_loops(bench.graph, rate, kind, seed_k)
-                n_false = int(truth.sum())
-                for kernel in graph_kernels:
-                    settings = OptimizerSettings(kernel=kernel, gnc=False, batch=batch,
-                                                 refine_scales=tuple(refine_scales))  # fmt: skip
-                    base = optimize_graph(noisy, settings)
-                    if False in gnc_modes:
-                        rows.append(_row(bench, kernel, False, rate, kind, base, truth, reference, n_false))
-                    if True in gnc_modes:
-                        refined = refine_with_gnc(noisy, base, replace(settings, gnc=True))
-                        rows.append(_row(bench, kernel, True, rate, kind, refined, truth, reference, n_false))
-                    if log:
-                        log(f"{name} rate={rate} {kind} {kernel}: " + ", ".join(
-                            f"gnc={r['gnc']} ratio={r['ate_ratio']:.3f} s={r['seconds']:.1f}"
-                            for r in rows[-len(gnc_modes):]))  # fmt: skip
-                    if checkpoint:
-                        checkpoint(results())
-        if log:
-            log(f"{name}: done in {time.perf_counter() - t0:.0f} s")
+                for kernel in (kernels_by_graph or {}).get(name, kernels):
+                    cells.append((name, rate, kind, kernel, tuple(gnc_modes), batch, seed, tuple(refine_scales),
+                                  reference, optima[name]))  # fmt: skip
+
+    def done(cell_rows: list[dict]) -> None:
+        rows.extend(cell_rows)
+        if log and cell_rows:
+            r0 = cell_rows[0]
+            log(f"{r0['graph']} rate={r0['rate']} {r0['kind']} {r0['kernel']}: " + ", ".join(
+                f"gnc={r['gnc']} ratio={r['ate_ratio']:.3f} s={r['seconds']:.1f}" for r in cell_rows))  # fmt: skip
+        if checkpoint:
+            checkpoint(results())
+
+    if jobs <= 1:
+        for cell in cells:
+            done(_solve_cell(*cell))
+    else:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor, as_completed
+
+        with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("fork")) as pool:
+            for future in as_completed([pool.submit(_solve_cell, *cell) for cell in cells]):
+                done(future.result())
     return results()
+
+
+def _row_order(r: dict) -> tuple:
+    return (GRAPHS.index(r["graph"]), r["kernel"], r["rate"], KINDS.index(r["kind"]), r["gnc"])
 
 
 RATES_INDEX = {r: k for k, r in enumerate(RATES)}
@@ -272,6 +314,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--refine-scales", nargs="*", type=float, default=list(DEFAULT_REFINE_SCALES),
                         help="batch re-solves after the kernel solve (optimize's default: 1); none = off")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--jobs", type=int, default=1, help="cells solved in parallel worker processes")
     parser.add_argument("--output", type=Path, help="also write the JSON here")
     parser.add_argument("--markdown", nargs="?", const="-", metavar="RESULTS_JSON",
                         help="print markdown tables: of a saved JSON, or (no value) of this run instead of JSON")
@@ -294,7 +337,7 @@ def main(argv: list[str] | None = None) -> int:
         checkpoint = lambda partial: atomic_write_text(args.output, json.dumps(partial, indent=1) + "\n")  # noqa: E731
     results = run_benchmark(args.graphs, args.rates, args.kinds, args.kernels, gnc_modes,
                             batch=not args.isam2, seed=args.seed, kernels_by_graph=by_graph, log=log,
-                            refine_scales=args.refine_scales, checkpoint=checkpoint)  # fmt: skip
+                            refine_scales=args.refine_scales, checkpoint=checkpoint, jobs=args.jobs)  # fmt: skip
     results["summary"] = summary(results)
     text = json.dumps(results, indent=1)
     if args.output:

@@ -1,5 +1,6 @@
-"""Optimise a pose graph read from a file (g2o / TORO): iSAM2 in vertex order or one batch
-solve, robust loop factors, optional GNC, loop inlier/outlier classification, ATE.
+"""Optimise a pose graph read from a file (g2o / TORO): robust kernel solve (one batch solve or
+iSAM2 in vertex order), GNC, a leave-one-out check of the loops GNC keeps, loop inlier/outlier
+classification, ATE.
 
 No file I/O here: `optimize_graph` takes a :class:`~ssmvpr_slam.backend.g2o_io.PoseGraphData`
 and returns a frozen :class:`OptimizationResult`; the command line writes the outputs.
@@ -14,12 +15,26 @@ and returns a frozen :class:`OptimizationResult`; the command line writes the ou
   (iSAM2 or batch) uses the generous scale so that true loops closing a long drift are kept;
   one batch solve per further scale then starts from that solution. With a good start, the
   tight scale drops the false loops the generous one still averaged in.
-* GNC (``gnc=True``): after the kernel solve, GTSAM's ``GncLMOptimizer`` (truncated least
-  squares) runs over the whole graph from the kernel solution, odometry and prior as known
-  inliers (``backend.gnc.run_gnc``, the same pass `PoseGraph.batch_gnc` uses).
-* Classification of loops: with GNC, a loop is an outlier when its final GNC weight is < 0.5;
-  without GNC, when its whitened (Mahalanobis) residual squared after optimisation exceeds the
-  chi2 quantile `outlier_quantile` (0.99) with 3 degrees of freedom for 2-D graphs, 6 for 3-D.
+* GNC (``gnc=True``, the default): after the kernel solve, GTSAM's ``GncLMOptimizer``
+  (truncated least squares, GTSAM's linear mu schedule) runs over the whole graph from the kernel
+  solution, odometry and prior as known inliers. Its inlier threshold is the chi2 quantile for
+  the graph's real degrees of freedom: 3 for a lifted 2-D graph (the out-of-plane residuals are
+  zero), 6 for 3-D; GTSAM's own `setInlierCostThresholdsAtProbability` would use the factor's 6.
+* Leave-one-out check (``verify=True``, with GNC): GNC, like every local method, can end in a
+  minimum where a false loop is kept and the map is bent to satisfy it. On ringCity a single
+  false loop across a loop-free stretch costs only 25-150 (GTSAM error units) of odometry strain,
+  far above the TLS price of rejecting it (0.5 chi2 quantile = 5.7) but nothing a local solver
+  climbs out of. So after GNC the loops it kept are solved by least squares; those that almost
+  nothing else in the graph measures (leverage >= `verify_leverage`, from GTSAM's Marginals), or
+  whose linearised leave-one-out innovation exceeds the chi2 quantile, are each removed in turn:
+  if the rest of the graph then gets cheaper by more than the TLS rejection price, the loop is an
+  outlier (the move that lowers the TLS objective). Loops whose residual is below the quantile
+  at the checked solution are kept again, and a last least-squares solve over odometry and the
+  kept loops gives the poses.
+* Classification of loops: with GNC, the kept set above (GNC weight >= 0.5, minus the loops the
+  check removed, plus those it re-admitted); without GNC, a loop is an outlier when its whitened
+  (Mahalanobis) residual squared after optimisation exceeds the chi2 quantile `outlier_quantile`
+  (0.99) with 3 degrees of freedom for 2-D graphs, 6 for 3-D.
 """
 
 from __future__ import annotations
@@ -48,12 +63,18 @@ KERNEL_NAMES: dict[str, str] = {
 """Command-line kernel name -> `RobustKernelConfig.kind`."""
 
 DEFAULT_KERNEL = "dcs"
-DEFAULT_GNC = False
+DEFAULT_GNC = True
+"""Default of `optimize` (docs/backend_benchmarks.md): the kernel solve below, then GNC and the
+leave-one-out check. Without GNC, DCS alone ends at 17.7x the optimum on ringCity with 50 %
+random false loops (two false loops kept bend the map and 302 true loops are lost)."""
+DEFAULT_BATCH = True
+"""Batch kernel solve by default: GNC is a batch pass anyway, and the iSAM2 first stage did not
+finish on manhattan with 50 % false loops within 480 s."""
 DEFAULT_REFINE_SCALES: tuple[float, ...] = (1.0,)
-"""Default of `optimize` (docs/backend_benchmarks.md): DCS at scale 10 (Phi, on the squared
-whitened error), then one batch DCS solve at Phi = 1 from that solution. Phi = 1 alone rejects
-every true loop of ring/ringCity from their drifted odometry start (ATE 5.8x / 3.45x the optimum
-without any false loop); Phi = 10 alone lets false loops pull manhattan (2.03x at 50 %)."""
+"""DCS at scale 10 (Phi, on the squared whitened error), then one batch DCS solve at Phi = 1
+from that solution. Phi = 1 alone rejects every true loop of ring/ringCity from their drifted
+odometry start (ATE 5.8x / 3.45x the optimum without any false loop); Phi = 10 alone lets false
+loops pull manhattan (2.03x at 50 %)."""
 
 _PRIOR_SIGMA = 1e-6
 
@@ -71,9 +92,20 @@ class OptimizerSettings:
     """After the first solve, one batch solve per scale with the same kernel, each from the
     previous solution (graduated scale: a generous scale closes loops after long drift, a tight
     one then drops the false loops it averaged in). Empty: no refinement; ignored for 'none'."""
-    batch: bool = False
-    """One Levenberg-Marquardt solve instead of iSAM2 in vertex order."""
+    batch: bool = DEFAULT_BATCH
+    """Kernel solve: one Levenberg-Marquardt solve (True) or iSAM2 in vertex order (False)."""
     gnc_config: GncConfig = field(default_factory=lambda: GncConfig(enabled=True, init="current"))
+    """init 'current': GNC starts from the kernel solution ('odometry': from the initial values).
+    From the odometry start GNC kept the wrong side of ring's 30 % / 50 % grouped false loops
+    (5.9x); from the kernel solution it held (1.000)."""
+    verify: bool = True
+    """Leave-one-out check of the loops GNC kept (module docstring); only with GNC."""
+    verify_leverage: float = 0.9
+    """Loops whose leverage (mean eigenvalue of the hat matrix block) is at least this are checked."""
+    verify_rounds: int = 10
+    """At most this many loops are removed by the check (one per round)."""
+    verify_max_suspects: int = 50
+    """Leave-one-out solves per round at most: high-leverage loops first, then by innovation."""
     outlier_quantile: float = 0.99
     isam2: ISAM2Config = field(default_factory=ISAM2Config)
     final_isam2_updates: int = 5
@@ -90,6 +122,11 @@ class OptimizerSettings:
             raise ValueError(f"refine_scales: every scale must be > 0, got {list(self.refine_scales)}")
         if not 0.0 < self.outlier_quantile < 1.0:
             raise ValueError(f"outlier_quantile: must be in (0, 1), got {self.outlier_quantile}")
+        if not 0.0 < self.verify_leverage <= 1.0:
+            raise ValueError(f"verify_leverage: must be in (0, 1], got {self.verify_leverage}")
+        if self.verify_rounds < 1 or self.verify_max_suspects < 1:
+            raise ValueError(f"verify_rounds, verify_max_suspects: must be >= 1, got {self.verify_rounds}, "
+                             f"{self.verify_max_suspects}")  # fmt: skip
 
     @property
     def mode(self) -> Literal["isam2", "batch"]:
@@ -115,6 +152,10 @@ class OptimizationResult:
     classification: str
     before_gnc: OptimizationResult | None = None
     """With GNC: the kernel solution GNC started from."""
+    check_removed: int = 0
+    """With GNC and the check: loops GNC kept that the leave-one-out check removed."""
+    check_readmitted: int = 0
+    """With GNC and the check: loops GNC rejected that fit the checked solution (kept again)."""
 
     @property
     def n_loops(self) -> int:
@@ -263,8 +304,7 @@ def optimize_graph(graph: PoseGraphData, settings: OptimizerSettings | None = No
             kernel = make_loop_kernel(settings, scale)
             factors = _Factors(graph, initial, kernel)
             poses = _solve_batch(factors, poses, settings)
-    dof = 3 if graph.dim == 2 else 6
-    threshold = float(chi2_dist.ppf(settings.outlier_quantile, dof))
+    dof, threshold = chi2_threshold(graph, settings.outlier_quantile)
     chi2 = _loop_chi2(factors, poses)
     weights = np.array([1.0 if kernel is None else float(kernel.weight(np.sqrt(c))) for c in chi2])
     kernel_result = OptimizationResult(
@@ -280,6 +320,13 @@ def optimize_graph(graph: PoseGraphData, settings: OptimizerSettings | None = No
     return refine_with_gnc(graph, kernel_result, settings, factors, start)
 
 
+def chi2_threshold(graph: PoseGraphData, quantile: float) -> tuple[int, float]:
+    """(degrees of freedom, chi2 quantile) of one loop residual: 3 for a lifted 2-D graph (its
+    out-of-plane residuals are zero), 6 for a 3-D one."""
+    dof = 3 if graph.dim == 2 else 6
+    return dof, float(chi2_dist.ppf(quantile, dof))
+
+
 def refine_with_gnc(
     graph: PoseGraphData,
     kernel_result: OptimizationResult,
@@ -288,9 +335,10 @@ def refine_with_gnc(
     start: float | None = None,
 ) -> OptimizationResult:
     """GNC (GTSAM's GncLMOptimizer, truncated least squares) over the whole graph from the
-    kernel solution, odometry and prior as known inliers; then one Levenberg-Marquardt polish
-    on the known inliers plus the loops GNC kept (inner LM solves are capped at
-    `gnc_inner_iterations`, so the polish gives the converged optimum)."""
+    kernel solution, odometry and prior as known inliers, then (``settings.verify``) the
+    leave-one-out check and a least-squares solve over the known inliers plus the kept loops
+    (inner LM solves are capped at `gnc_inner_iterations`, so that solve gives the converged
+    optimum)."""
     start = time.perf_counter() - kernel_result.seconds if start is None else start
     if factors is None:
         initial, _ = initial_poses(graph)
@@ -298,10 +346,8 @@ def refine_with_gnc(
     cfg = settings.gnc_config
     init = kernel_result.poses if cfg.init == "current" else initial_poses(graph)[0]
     n = len(graph.ids)
-    known = gtsam.NonlinearFactorGraph()
-    known.add(factors.prior)
-    for _, f in factors.odometry:
-        known.add(f)
+    _, threshold = chi2_threshold(graph, cfg.inlier_probability)
+    known = _known_graph(factors)
     n_known = known.size()
     full = gtsam.NonlinearFactorGraph(known)
     for _, _, plain in factors.loops:
@@ -314,26 +360,133 @@ def refine_with_gnc(
         params.setMaxIterations(cfg.max_iterations)
     params.setKnownInliers(list(range(n_known)))
     optimizer = gtsam.GncLMOptimizer(full, _values(init), params)
-    optimizer.setInlierCostThresholdsAtProbability(cfg.inlier_probability)
+    # GTSAM's error is 0.5 * whitened residual^2; known inliers ignore the threshold
+    optimizer.setInlierCostThresholds(0.5 * threshold)
     values = optimizer.optimize()
     weights = np.asarray(optimizer.getWeights())[n_known:]
     keep = weights >= cfg.weight_threshold
-    polish = gtsam.NonlinearFactorGraph(known)
-    for k, (_, _, plain) in enumerate(factors.loops):
-        if keep[k]:
-            polish.add(plain)
-    lm_final = gtsam.LevenbergMarquardtParams()
-    lm_final.setMaxIterations(settings.lm_max_iterations)
-    values = gtsam.LevenbergMarquardtOptimizer(polish, values, lm_final).optimize()
+    values = _least_squares(factors, keep, values, settings.lm_max_iterations)
+    removed = readmitted = 0
+    if settings.verify and factors.loops:
+        values, checked = _leave_one_out_check(factors, keep, values, threshold, settings)
+        removed = int(np.sum(keep & ~checked))
+        fits = _loop_chi2(factors, _poses(values, n)) <= threshold
+        readmitted = int(np.sum(fits & ~checked))
+        keep = checked | fits
+        if readmitted:
+            values = _least_squares(factors, keep, values, settings.lm_max_iterations)
     poses = _poses(values, n)
     return OptimizationResult(
         ids=graph.ids, poses=poses, loop_indices=kernel_result.loop_indices,
         loop_inlier=keep, loop_weight=weights, loop_chi2=_loop_chi2(factors, poses),
         initialised_from_odometry=kernel_result.initialised_from_odometry,
         seconds=time.perf_counter() - start, settings=replace(settings, gnc=True),
-        classification=f"outlier if GNC ({cfg.loss}) weight < {cfg.weight_threshold}",
-        before_gnc=kernel_result,
+        classification=f"outlier if GNC ({cfg.loss}) weight < {cfg.weight_threshold}"
+                       + (", then the leave-one-out check" if settings.verify else ""),
+        before_gnc=kernel_result, check_removed=removed, check_readmitted=readmitted,
     )  # fmt: skip
+
+
+def check_kept_loops(
+    graph: PoseGraphData, poses: np.ndarray, keep: np.ndarray, settings: OptimizerSettings | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """The leave-one-out check alone (module docstring) on the loops `keep` marks (one flag per
+    loop candidate, in edge order) from `poses`: returns (least-squares poses over odometry and
+    the loops that pass, the loops that pass). No re-admission here."""
+    settings = settings or OptimizerSettings()
+    initial, _ = initial_poses(graph)
+    factors = _Factors(graph, initial, None)
+    _, threshold = chi2_threshold(graph, settings.gnc_config.inlier_probability)
+    keep = np.asarray(keep, dtype=bool)
+    if keep.shape != (len(factors.loops),):
+        raise ValueError(f"keep: expected {len(factors.loops)} flags (one per loop), got shape {keep.shape}")
+    values = _least_squares(factors, keep, _values(poses), settings.lm_max_iterations)
+    values, passed = _leave_one_out_check(factors, keep, values, threshold, settings)
+    return _poses(values, len(graph.ids)), passed
+
+
+def _known_graph(factors: _Factors) -> gtsam.NonlinearFactorGraph:
+    """Prior and odometry: the factors GNC treats as known inliers."""
+    known = gtsam.NonlinearFactorGraph()
+    known.add(factors.prior)
+    for _, f in factors.odometry:
+        known.add(f)
+    return known
+
+
+def _inlier_graph(factors: _Factors, keep: np.ndarray, skip: int | None = None) -> tuple[gtsam.NonlinearFactorGraph, dict[int, int]]:
+    """Least-squares graph of the known inliers and the kept loops (but `skip`); loop -> slot."""
+    graph = _known_graph(factors)
+    slots: dict[int, int] = {}
+    for k, (_, _, plain) in enumerate(factors.loops):
+        if keep[k] and k != skip:
+            slots[k] = graph.size()
+            graph.add(plain)
+    return graph, slots
+
+
+def _least_squares(factors: _Factors, keep: np.ndarray, values: gtsam.Values, iterations: int) -> gtsam.Values:
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(iterations)
+    return gtsam.LevenbergMarquardtOptimizer(_inlier_graph(factors, keep)[0], values, params).optimize()
+
+
+def _leverage_and_innovation(graph: gtsam.NonlinearFactorGraph, slots: dict[int, int], values: gtsam.Values) -> dict[int, tuple[float, float]]:
+    """Per loop: leverage (mean eigenvalue of the whitened hat-matrix block H = A Sigma A^T, with
+    Sigma the joint marginal covariance of its two poses) and the linearised leave-one-out
+    innovation e^T (I - H)^-1 e. Leverage near 1: nothing else in the graph measures this
+    relative pose, so its own residual says nothing about whether it is true."""
+    marginals = gtsam.Marginals(graph, values)
+    out: dict[int, tuple[float, float]] = {}
+    for k, slot in slots.items():
+        factor = graph.at(slot)
+        jacobian, rhs = factor.linearize(values).jacobian()  # whitened; rhs = -whitened error
+        keys = gtsam.KeyVector()
+        for key in factor.keys():
+            keys.append(key)
+        hat = jacobian @ marginals.jointMarginalCovariance(keys).fullMatrix() @ jacobian.T
+        rest = np.eye(len(rhs)) - hat
+        try:
+            innovation = float(rhs @ np.linalg.solve(rest, rhs))
+        except np.linalg.LinAlgError:
+            innovation = float("inf")
+        out[k] = (float(np.trace(hat)) / len(rhs), innovation)
+    return out
+
+
+def _leave_one_out_check(
+    factors: _Factors, keep: np.ndarray, values: gtsam.Values, threshold: float, settings: OptimizerSettings
+) -> tuple[gtsam.Values, np.ndarray]:
+    """Greedy TLS descent over the kept loops (module docstring): each round, every suspect is
+    removed in turn and the one whose removal saves the most is dropped if that saving exceeds
+    the TLS rejection price; one loop per round, because while a false loop bends the map the
+    true loops around it look strained too. Returns (least-squares values over the loops that
+    pass, the loops that pass)."""
+    keep = keep.copy()
+    price = 0.5 * threshold  # TLS cost of rejecting a loop, in GTSAM's 0.5 * chi2 units
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(settings.lm_max_iterations)
+    for _ in range(settings.verify_rounds):
+        graph, slots = _inlier_graph(factors, keep)
+        if not slots:
+            break
+        stats = _leverage_and_innovation(graph, slots, values)
+        levered = sorted((k for k, (lev, _) in stats.items() if lev >= settings.verify_leverage), key=lambda k: -stats[k][0])
+        strained = sorted((k for k, (lev, inn) in stats.items() if lev < settings.verify_leverage and inn > threshold),
+                          key=lambda k: -stats[k][1])  # fmt: skip
+        suspects = (levered + strained)[: settings.verify_max_suspects]
+        cost = graph.error(values)
+        best, best_saving = None, price
+        for k in suspects:
+            without, _ = _inlier_graph(factors, keep, skip=k)
+            saving = cost - without.error(gtsam.LevenbergMarquardtOptimizer(without, values, params).optimize())
+            if saving > best_saving:
+                best, best_saving = k, saving
+        if best is None:
+            break
+        keep[best] = False
+        values = _least_squares(factors, keep, values, settings.lm_max_iterations)
+    return values, keep
 
 
 # --------------------------------------------------------------------------- evaluation

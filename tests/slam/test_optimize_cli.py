@@ -29,7 +29,8 @@ def test_optimize_ring_writes_outputs(tmp_path: Path, shared_dir: Path) -> None:
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["vertices"] == 434 and metrics["loop_candidates"] == 26 and metrics["loops_outlier"] == 0
     assert metrics["ate"]["rmse"] < 0.5 * metrics["ate_initial"]["rmse"]
-    assert metrics["solver"] == "isam2" and metrics["gnc"] is False and metrics["kernel"] == "dcs"
+    assert metrics["solver"] == "batch" and metrics["gnc"] is True and metrics["kernel"] == "dcs"  # the default
+    assert metrics["check"] is True and metrics["check_removed"] == 0
     graph = read_pose_graph(out / "optimised.g2o")
     assert graph.ids == tuple(range(434)) and len(graph.edges) == 459
     stamps, poses = read_tum(out / "optimised.tum")
