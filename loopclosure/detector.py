@@ -128,6 +128,47 @@ class LoopDetector:
         self._add(codes[0], info)
         return proposal
 
+    # ---- state, for checkpoints: the database is saved on its own, the rest as plain arrays --
+    def state_arrays(self) -> dict[str, np.ndarray]:
+        """Everything besides the place database that the next `process` call depends on: the
+        travelled distance per place, the gate's and both sequence matchers' recent queries.
+
+        Only once the detector is `ready`: the PCA warm-up's raw cubes are megabytes per keyframe
+        and are not saved, so a checkpoint waits until they have become codes."""
+        if not self.ready or self._warmup:
+            raise RuntimeError("LoopDetector.state_arrays: still in the PCA warm-up (nothing to resume from)")
+        out = {
+            "prior_places": np.array(self.prior_places, np.int64),
+            "session_travelled": np.array(self._session_travelled, np.float64),
+            "travelled": np.array(self._travelled, np.float64),
+            "last_position": np.full(3, np.nan) if self._last_position is None else self._last_position.copy(),
+            **self.gate.state_arrays(),
+            **self.sequence.state_arrays("sequence_"),
+            **self.rear_sequence.state_arrays("rear_sequence_"),
+        }
+        return out
+
+    def load_state_arrays(self, arrays: dict[str, np.ndarray], database: PlaceDatabase) -> None:
+        """Continue from `state_arrays` with `database` (the places saved with it, in order)."""
+        prior = int(arrays["prior_places"])
+        travelled = arrays["session_travelled"].tolist()
+        if len(database) != prior + len(travelled):
+            raise LoopClosureInputError(
+                f"detector state for {prior} prior + {len(travelled)} session places, database holds {len(database)}"
+            )
+        self.database = database
+        self.encoder.codebooks = database.codebooks
+        self.prior_places = prior
+        self._recognizer = Recognizer(self.vpr, database)
+        self._session_travelled = travelled
+        self._travelled = float(arrays["travelled"])
+        last = np.asarray(arrays["last_position"], np.float64)
+        self._last_position = last.copy() if np.isfinite(last).all() else None
+        self._warmup.clear()
+        self.gate.load_state_arrays(arrays)
+        self.sequence.load_state_arrays(arrays, "sequence_")
+        self.rear_sequence.load_state_arrays(arrays, "rear_sequence_")
+
     def _advance(self, position: np.ndarray | None) -> None:
         if position is None:
             return

@@ -12,6 +12,8 @@ from collections import deque
 from dataclasses import dataclass
 from typing import Literal
 
+import numpy as np
+
 from loopclosure.config import SequenceGateConfig
 
 
@@ -55,3 +57,16 @@ class SequenceGate:
 
     def reset(self) -> None:
         self._recent.clear()
+
+    def state_arrays(self) -> dict[str, np.ndarray]:
+        """The recent recognitions as arrays (-1: recognised nothing), for checkpoints."""
+        recent = list(self._recent)
+        return {
+            "gate_queries": np.array([q for q, _ in recent], np.int64),
+            "gate_matches": np.array([-1 if m is None else m for _, m in recent], np.int64),
+        }
+
+    def load_state_arrays(self, arrays: dict[str, np.ndarray]) -> None:
+        self.reset()
+        for query, match in zip(arrays["gate_queries"].tolist(), arrays["gate_matches"].tolist()):
+            self._recent.append((query, None if match < 0 else match))

@@ -324,3 +324,30 @@ class SequenceMatcher:
         """Forget the recent queries: the next one starts a new sequence."""
         self._recent.clear()
         self._previous = None
+
+    # ---- state, for checkpoints: plain arrays (no pickle), restored exactly -----------------
+    def state_arrays(self, prefix: str = "") -> dict[str, np.ndarray]:
+        """The recent queries (tokens must be arrays), their limits and score caches, and the
+        previous query's best sequences, as named arrays that `load_state_arrays` restores."""
+        out: dict[str, np.ndarray] = {f"{prefix}recent": np.array(len(self._recent), np.int64)}
+        for i, query in enumerate(self._recent):
+            places = np.fromiter(query.cache.keys(), np.int64, len(query.cache))
+            out[f"{prefix}q{i}_token"] = np.asarray(query.token)
+            out[f"{prefix}q{i}_limit"] = np.array(query.limit, np.int64)
+            out[f"{prefix}q{i}_places"] = places
+            out[f"{prefix}q{i}_scores"] = np.array([query.cache[p] for p in places.tolist()], np.float64)
+        if self._previous is not None:
+            for direction, ranked in self._previous.items():
+                out[f"{prefix}previous_{direction}"] = np.asarray(ranked, np.int64)
+        return out
+
+    def load_state_arrays(self, arrays: dict[str, np.ndarray], prefix: str = "") -> None:
+        """Restore what `state_arrays` saved (into a matcher of the same configuration)."""
+        self.reset()
+        for i in range(int(arrays[f"{prefix}recent"])):
+            places = arrays[f"{prefix}q{i}_places"].tolist()
+            cache = dict(zip(places, arrays[f"{prefix}q{i}_scores"].tolist()))
+            self._recent.append(_Query(np.array(arrays[f"{prefix}q{i}_token"]), int(arrays[f"{prefix}q{i}_limit"]), cache))
+        previous = {name.removeprefix(f"{prefix}previous_"): np.array(value, np.int64)
+                    for name, value in arrays.items() if name.startswith(f"{prefix}previous_")}  # fmt: skip
+        self._previous = previous or None

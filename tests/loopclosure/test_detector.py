@@ -401,3 +401,43 @@ def test_rear_camera_switched_off_or_missing(codebooks: str) -> None:
     assert [p.match_id for p in proposals if p is not None and p.accepted] == []
     more = drive_back(gap, 25, [205], [9])
     assert more[0] is not None and more[0].accepted and more[0].match_id == 9
+
+
+# ------------------------------------------------------------------------- state for checkpoints
+
+
+def test_a_detector_restored_from_its_state_continues_exactly(tmp_path: Path, codebooks: str) -> None:
+    """state_arrays + the saved database -> a new detector proposes what the first would have."""
+    import io
+
+    fronts = list(range(20)) + [3, 4, 5, 200, 201, 202, 203, 204, 6, 7]
+    rears: list[int | None] = [None] * 20 + [None, None, None, 14, 13, 12, 11, None, None, None]
+    positions = [float(k) for k in range(len(fronts))]
+
+    def drive(det: LoopDetector, ks: range) -> list[LoopProposal | None]:
+        return [det.process(scene(fronts[k]), k, at(positions[k]), float(k), None if rears[k] is None else scene(rears[k]))
+                for k in ks]  # fmt: skip
+
+    whole = drive(detector(codebooks=codebooks, keyframes=5, distance=2.0), range(len(fronts)))
+    accepted = [(k, p.camera) for k, p in enumerate(whole) if p is not None and p.accepted]
+    assert accepted == [(22, "front"), (25, "rear"), (26, "rear")]  # each needs its sequence's history
+
+    for cut in (21, 24):  # inside the forward revisit, and inside the rear one
+        first = detector(codebooks=codebooks, keyframes=5, distance=2.0)
+        assert drive(first, range(cut)) == whole[:cut]
+        buffer = io.BytesIO()
+        np.savez(buffer, **first.state_arrays())
+        first.database.save(tmp_path / f"db{cut}")
+        buffer.seek(0)
+        with np.load(buffer, allow_pickle=False) as data:
+            state = {name: data[name] for name in data.files}
+        second = detector(keyframes=5, distance=2.0)  # no codebooks: they come with the database
+        second.load_state_arrays(state, PlaceDatabase.load(tmp_path / f"db{cut}"))
+        assert drive(second, range(cut, len(fronts))) == whole[cut:]
+
+
+def test_no_state_during_the_warmup() -> None:
+    det = detector()
+    feed(det, [0, 1], 0)
+    with pytest.raises(RuntimeError, match="warm-up"):
+        det.state_arrays()
