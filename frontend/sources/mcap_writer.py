@@ -123,6 +123,12 @@ class McapFrameWriter:
     def _fail(self, frame: Frame, why: str) -> FrontendInputError:
         return FrontendInputError(f"{self.path}: frame {frame.index} not written: {why}")
 
+    def write_message(self, topic: str, datatype: str, message: dict[str, Any], seconds: float) -> None:
+        """Append one message of a type `ros_msgdefs.MSGDEFS` defines (results, not frames)."""
+        if self._writer is None:
+            raise RuntimeError("McapFrameWriter.write_message called outside 'with' (or after close)")
+        self._put(topic, datatype, message, ros_convert.seconds_to_nanoseconds(seconds))
+
     def write(self, frame: Frame) -> None:
         """Append one frame; timestamps must be non-negative and increasing."""
         if self._writer is None:

@@ -143,6 +143,53 @@ def pose_stamped_message(pose: np.ndarray, seconds: float, world_frame: str) -> 
     return {"header": header_dict(seconds, world_frame), "pose": pose_dict(pose)}
 
 
+def path_message(poses: np.ndarray, stamps: np.ndarray, world_frame: str) -> dict[str, Any]:
+    """nav_msgs/Path of (N, 4, 4) poses with their times; the header takes the last time."""
+    last = float(stamps[-1]) if len(stamps) else 0.0
+    return {
+        "header": header_dict(last, world_frame),
+        "poses": [pose_stamped_message(p, float(t), world_frame) for p, t in zip(poses, stamps)],
+    }
+
+
+LINE_LIST = 5  # visualization_msgs/Marker.LINE_LIST
+
+
+def line_list_marker(
+    segments: list[tuple[np.ndarray, np.ndarray]],
+    seconds: float,
+    world_frame: str,
+    namespace: str,
+    marker_id: int,
+    rgba: tuple[float, float, float, float],
+    width: float,
+) -> dict[str, Any]:
+    """visualization_msgs/Marker LINE_LIST: one line per (start, end) xyz pair."""
+    points = [{"x": float(p[0]), "y": float(p[1]), "z": float(p[2])} for pair in segments for p in pair]
+    r, g, b, a = (float(v) for v in rgba)
+    return {
+        "header": header_dict(seconds, world_frame),
+        "ns": namespace,
+        "id": marker_id,
+        "type": LINE_LIST,
+        "action": 0,
+        "pose": pose_dict(np.eye(4)),
+        "scale": {"x": width, "y": 0.0, "z": 0.0},
+        "color": {"r": r, "g": g, "b": b, "a": a},
+        "lifetime": {"sec": 0, "nanosec": 0},
+        "frame_locked": False,
+        "points": points,
+        "colors": [],
+        "texture_resource": "",
+        "texture": {"header": header_dict(seconds, world_frame), "format": "", "data": b""},
+        "uv_coordinates": [],
+        "text": "",
+        "mesh_resource": "",
+        "mesh_file": {"filename": "", "data": b""},
+        "mesh_use_embedded_materials": False,
+    }
+
+
 # --------------------------------------------------------------------------- decoding
 
 

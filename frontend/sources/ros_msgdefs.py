@@ -53,11 +53,60 @@ uint32 count
 """,
 )
 
+_COLOR = ("std_msgs/ColorRGBA", "float32 r\nfloat32 g\nfloat32 b\nfloat32 a")
+_DURATION = ("builtin_interfaces/Duration", "int32 sec\nuint32 nanosec")
+_POSE_STAMPED = ("geometry_msgs/PoseStamped", "std_msgs/Header header\ngeometry_msgs/Pose pose")
+_COMPRESSED_IMAGE = ("sensor_msgs/CompressedImage", "std_msgs/Header header\nstring format\nuint8[] data")
+_UV = ("visualization_msgs/UVCoordinate", "float32 u\nfloat32 v")
+_MESH_FILE = ("visualization_msgs/MeshFile", "string filename\nuint8[] data")
+_MARKER = (
+    "visualization_msgs/Marker",
+    """
+int32 ARROW=0
+int32 CUBE=1
+int32 SPHERE=2
+int32 CYLINDER=3
+int32 LINE_STRIP=4
+int32 LINE_LIST=5
+int32 CUBE_LIST=6
+int32 SPHERE_LIST=7
+int32 POINTS=8
+int32 TEXT_VIEW_FACING=9
+int32 MESH_RESOURCE=10
+int32 TRIANGLE_LIST=11
+int32 ADD=0
+int32 MODIFY=0
+int32 DELETE=2
+int32 DELETEALL=3
+std_msgs/Header header
+string ns
+int32 id
+int32 type
+int32 action
+geometry_msgs/Pose pose
+geometry_msgs/Vector3 scale
+std_msgs/ColorRGBA color
+builtin_interfaces/Duration lifetime
+bool frame_locked
+geometry_msgs/Point[] points
+std_msgs/ColorRGBA[] colors
+string texture_resource
+sensor_msgs/CompressedImage texture
+visualization_msgs/UVCoordinate[] uv_coordinates
+string text
+string mesh_resource
+visualization_msgs/MeshFile mesh_file
+bool mesh_use_embedded_materials
+""",
+)
+
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
 POINT_CLOUD2 = "sensor_msgs/msg/PointCloud2"
 ODOMETRY = "nav_msgs/msg/Odometry"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
+PATH = "nav_msgs/msg/Path"
+MARKER_ARRAY = "visualization_msgs/msg/MarkerArray"
 
 MSGDEFS: dict[str, str] = {
     IMAGE: _compose(
@@ -116,6 +165,30 @@ geometry_msgs/TwistWithCovariance twist
         _POSE,
         _POINT,
         _QUATERNION,
+    ),
+    PATH: _compose(
+        "std_msgs/Header header\ngeometry_msgs/PoseStamped[] poses",
+        _HEADER,
+        _TIME,
+        _POSE_STAMPED,
+        _POSE,
+        _POINT,
+        _QUATERNION,
+    ),
+    MARKER_ARRAY: _compose(
+        "visualization_msgs/Marker[] markers",
+        _MARKER,
+        _HEADER,
+        _TIME,
+        _POSE,
+        _POINT,
+        _QUATERNION,
+        _VECTOR3,
+        _COLOR,
+        _DURATION,
+        _COMPRESSED_IMAGE,
+        _UV,
+        _MESH_FILE,
     ),
 }
 

@@ -1,0 +1,139 @@
+"""What a SLAM run produced, as plain frozen records: the input of evaluation and the writers.
+
+`SlamSystem.finish()` builds one `RunResult`; nothing downstream changes it. Evaluation
+(`ssmvpr_slam.report.evaluate`) turns it into a `RunReport`, and the writers
+(`ssmvpr_slam.writers`) turn both into files. Keeping the result immutable is what lets a
+writer run twice, or a checkpoint be written while the run goes on, without side effects.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from loopclosure.detector import LoopProposal
+from ssmvpr_slam.backend.loop_registration import LoopRegistration
+
+if TYPE_CHECKING:  # only for annotations: the result module stays light to import
+    from loopclosure.database import PlaceDatabase
+    from ssmvpr_slam.backend.g2o_io import PoseGraphData
+    from ssmvpr_slam.prior_map import PriorMap
+
+
+@dataclass(frozen=True)
+class Keyframe:
+    """What the back end and the evaluation keep of a keyframe (scans voxel-downsampled)."""
+
+    id: int
+    frame_index: int
+    timestamp: float
+    odom_pose: np.ndarray
+    gt_pose: np.ndarray | None
+    scan: np.ndarray | None
+    image: np.ndarray | None
+    rear_image: np.ndarray | None = None  # kept only where a loop may need two-view geometry (no scan)
+
+
+@dataclass(frozen=True)
+class LoopRecord:
+    """One proposal as reported in loop_closures.csv, with what became of it.
+
+    factor_handle: the pose graph's handle when a factor was added; dropped: a final GNC pass
+    took that factor out again (set only in a finished run's result)."""
+
+    proposal: LoopProposal
+    registration: LoopRegistration | None = None
+    factor_handle: int | None = None
+    dropped: bool = False
+
+    @property
+    def in_graph(self) -> bool:
+        return self.factor_handle is not None and not self.dropped
+
+
+@dataclass
+class StageTimes:
+    """Seconds per keyframe and stage; the benchmark reads medians from here."""
+
+    rows: list[dict[str, float]] = field(default_factory=list)
+
+    def summary(self) -> dict[str, dict[str, float]]:
+        return latency_summary(self.rows)
+
+
+def latency_summary(rows: Sequence[Mapping[str, float]]) -> dict[str, dict[str, float]]:
+    """Median and 90th percentile of each stage over the keyframes."""
+    if not rows:
+        return {}
+    keys = rows[0].keys()
+    return {
+        k: {"median_s": float(np.median([r[k] for r in rows])), "p90_s": float(np.percentile([r[k] for r in rows], 90))}
+        for k in keys
+    }
+
+
+@dataclass(frozen=True)
+class StreamEnd:
+    """How the stream of frames ended, as the loop that fed the system saw it."""
+
+    interrupted: bool = False  # a stop request (Ctrl-C, SIGTERM) ended it early
+    source_error: str | None = None  # why the source ended early (truncated log, ...)
+    error: str | None = None  # an unexpected failure while processing a frame ("Type: message")
+    seconds: float = 0.0  # wall time of the loop
+
+
+@dataclass(frozen=True)
+class RunResult:
+    """A finished run: keyframes, trajectories, loops with their final status, counters.
+
+    odometry / optimised: (N, 4, 4) keyframe poses in keyframe order; in_map_frame: the
+    optimised poses in the map frame (the session's own frame without a prior map, the prior
+    map's once a map loop anchored it, None if it never was)."""
+
+    keyframes: tuple[Keyframe, ...]
+    loops: tuple[LoopRecord, ...]
+    stamps: np.ndarray
+    odometry: np.ndarray
+    optimised: np.ndarray
+    in_map_frame: np.ndarray | None = None
+    anchored: bool = False
+    frames_seen: int = 0
+    frames_skipped: Mapping[str, int] = field(default_factory=dict)
+    rear_keyframes: int = 0  # keyframes queried with a rear image too
+    timings: tuple[Mapping[str, float], ...] = ()
+    odometry_stats: Mapping[str, Any] = field(default_factory=dict)
+    ending: StreamEnd = StreamEnd()
+    pose_graph: PoseGraphData | None = None  # odometry and session loop factors, for g2o
+    database: PlaceDatabase | None = None  # the session's place database (prior places first)
+    session_places: Mapping[int, int] = field(default_factory=dict)  # keyframe id -> database place
+    prior_map: PriorMap | None = None  # as loaded; never changed by the run
+
+    @property
+    def session_loops(self) -> tuple[LoopRecord, ...]:
+        """Loops between keyframes of this session (not to the prior map)."""
+        return tuple(r for r in self.loops if not r.proposal.prior_map)
+
+    def latency(self) -> dict[str, dict[str, float]]:
+        return latency_summary(self.timings)
+
+
+def frozen_array(values: Any, dtype: Any = np.float64) -> np.ndarray:
+    """A read-only copy: a result's arrays cannot be changed behind its back."""
+    array = np.array(values, dtype=dtype)
+    array.setflags(write=False)
+    return array
+
+
+def keyframe_poses(keyframes: Sequence[Keyframe]) -> tuple[np.ndarray, np.ndarray]:
+    """(timestamps (N,), odometry poses (N, 4, 4)) of keyframes."""
+    stamps = frozen_array([k.timestamp for k in keyframes])
+    odom = frozen_array(np.array([k.odom_pose for k in keyframes]).reshape(-1, 4, 4))
+    return stamps, odom
+
+
+def has_ground_truth(keyframes: Sequence[Keyframe]) -> np.ndarray:
+    """Which keyframes carry a usable ground-truth pose (not None, all finite)."""
+    return np.array([k.gt_pose is not None and bool(np.isfinite(k.gt_pose).all()) for k in keyframes], bool)
