@@ -40,11 +40,11 @@ def _user_errors() -> tuple[type[BaseException], ...]:
     from frontend.errors import FrontendInputError
     from loopclosure.errors import LoopClosureInputError, WeightsNotFoundError
     from ssmvpr_slam.backend.g2o_io import PoseGraphFileError
-    from ssmvpr_slam.config import ConfigError
-    from ssmvpr_slam.results import OutputError
+    from ssmvpr_slam.errors import SlamError
 
-    return (FrontendInputError, LoopClosureInputError, WeightsNotFoundError, ConfigError, FileNotFoundError,
-            PoseGraphFileError, OutputError)  # fmt: skip
+    # SlamError: ConfigError, OutputError, CheckpointError
+    return (FrontendInputError, LoopClosureInputError, WeightsNotFoundError, SlamError, FileNotFoundError,
+            PoseGraphFileError)  # fmt: skip
 
 
 def _print_error(message: str) -> None:
@@ -182,7 +182,7 @@ def run(
     odometry: Annotated[Optional[str], typer.Option(help="auto (kiss-icp when the log has scans, else its logged poses) | kiss-icp | logged")] = None,
     map_dir: Annotated[Optional[Path], typer.Option("--map", help="Place database of an earlier run to close loops against.")] = None,
     no_lidar_loops: Annotated[bool, typer.Option("--no-lidar-loops", help="Ignore scans for loop registration (place prior).")] = False,
-    inject_wrong_loops: Annotated[float, typer.Option(help="Test option: probability, per keyframe with a loop proposal, of adding a deliberately wrong loop factor.")] = 0.0,
+    resume: Annotated[Optional[Path], typer.Option("--resume", help="Results folder of a run that was cut short: continue from its last checkpoint, with its settings.")] = None,
     config: ConfigOpt = None,
     weights: WeightsOpt = None,
     device: DeviceOpt = None,
@@ -192,13 +192,33 @@ def run(
     from ssmvpr_slam.results import output_dir
     from ssmvpr_slam.runner import run_log
 
+    if resume is not None:
+        _resume(log, resume, weights, device, {"--config": config, "--odometry": odometry, "--map": map_dir,
+                                                "--no-lidar-loops": no_lidar_loops or None, "--out": out})  # fmt: skip
+        return
     cfg = _config(config, weights, device, out)
     if odometry is not None:
         cfg.frontend.odometry.kind = _odometry_kind(odometry)  # type: ignore[assignment]
     if no_lidar_loops:
         cfg.pipeline.use_lidar_for_loops = False
     with output_dir(cfg.results.out_dir, _out_option(out)):
-        run_log(log, cfg, map_dir, inject_wrong_loops, console)
+        run_log(log, cfg, map_dir, console)
+
+
+def _resume(log: Path, folder: Path, weights: Path | None, device: str | None, refused: dict[str, Any]) -> None:
+    """`run LOG --resume DIR`: the checkpoint's own settings, prior map and results folder; only
+    where the weights are and which device runs them may change."""
+    from ssmvpr_slam.checkpoint import CheckpointError, load_checkpoint
+    from ssmvpr_slam.runner import run_log
+
+    given = [name for name, value in refused.items() if value is not None]
+    if given:
+        raise CheckpointError(f"--resume {folder}: {', '.join(given)} cannot be combined with it "
+                              "(a resumed run keeps the settings of its checkpoint)")  # fmt: skip
+    checkpoint = load_checkpoint(folder)
+    cfg = _config(str(checkpoint.config_path), weights, device, checkpoint.run_folder.parent)
+    prior_map = Path(checkpoint.meta.prior_map) if checkpoint.meta.prior_map else None
+    run_log(log, cfg, prior_map, console, name=checkpoint.meta.name, resume=checkpoint)
 
 
 @app.command("demo")

@@ -21,6 +21,7 @@ from frontend.config import FrontendConfig
 from frontend.simulation.config import SimulationConfig
 from loopclosure.config import DetectorConfig, SequenceMatchConfig, VPRConfig
 from ssmvpr_slam.backend.config import BackendConfig
+from ssmvpr_slam.errors import SlamError
 from ssmvpr_slam.evaluation.config import EvaluationConfig
 
 def _presets_dir() -> Path:
@@ -34,7 +35,7 @@ def _presets_dir() -> Path:
 PRESETS_DIR = _presets_dir()
 
 
-class ConfigError(ValueError):
+class ConfigError(SlamError, ValueError):
     """A preset or config file that cannot be used; the message names it."""
 
 
@@ -61,6 +62,14 @@ class ResultsConfig(BaseModel):
     out_dir: str = "results"
     save_database: bool = True
     plots: bool = True
+    mcap: bool = Field(default=True, description="Write trajectory.mcap (trajectories, loop edges, thumbnails) for Foxglove.")
+    mcap_thumbnail_width: int = Field(default=160, ge=8, description="Width in pixels of the keyframe thumbnails in trajectory.mcap.")
+    checkpoint_every_keyframes: int | None = Field(
+        default=100, ge=1, description="Write a checkpoint after this many new keyframes (None: not by count)."
+    )
+    checkpoint_every_s: float | None = Field(
+        default=300.0, gt=0, description="Write a checkpoint when this many seconds passed since the last (None: not by time)."
+    )
 
 
 class PipelineConfig(BaseModel):

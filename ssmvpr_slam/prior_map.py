@@ -9,11 +9,12 @@ size or cube layout are not comparable and would match nonsense.
 
 from __future__ import annotations
 
+import copy
 import io
 import logging
 import zipfile
 import zlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -106,17 +107,23 @@ def save_map(
     """Write the database with each place's map pose (and ground truth) and the scans.
 
     Scans go first and the database's manifest last, so an interrupted save leaves either the
-    previous map or the new one readable.
+    previous map or the new one readable. The poses go into the saved place records only: the
+    caller's database (a live run's, which keeps growing) is not changed.
     """
     folder.mkdir(parents=True, exist_ok=True)
     buffer = io.BytesIO()
     np.savez_compressed(buffer, **{f"p{place}": np.asarray(scan, np.float32) for place, scan in scans.items()})
     atomic_write_bytes(folder / SCANS_FILE, buffer.getvalue())
+    places = []
     for index, info in enumerate(database.places):
+        extra = dict(info.extra)
         for key, source in (("map_pose", poses), ("gt_pose", gt_poses)):
             if index in source:  # a place without one keeps what its own session saved
-                info.extra[key] = np.asarray(source[index], dtype=np.float64).ravel().tolist()
-    database.save(folder, extra={"encoder": encoder_signature(vpr)})
+                extra[key] = np.asarray(source[index], dtype=np.float64).ravel().tolist()
+        places.append(replace(info, extra=extra))
+    view = copy.copy(database)  # shares the code arrays (saving only reads them), not the place list
+    view.places = places
+    view.save(folder, extra={"encoder": encoder_signature(vpr)})
 
 
 def _pose_of(value: Any, path: Path, index: int, key: str) -> np.ndarray:

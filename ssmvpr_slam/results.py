@@ -22,13 +22,14 @@ from pathlib import Path
 from typing import Any
 
 from loopclosure.atomic import atomic_write_text
+from ssmvpr_slam.errors import SlamError
 
 log = logging.getLogger(__name__)
 
 LATEST = "latest"
 
 
-class OutputError(ValueError):
+class OutputError(SlamError, ValueError):
     """An output path that cannot be written (a file where a folder is wanted, no permission...)."""
 
 
@@ -110,12 +111,16 @@ def output_file(path: str | Path, option: str = "--out") -> Iterator[Path]:
 
 
 class StagedResults:
-    """A results folder under construction: write into `path`, then `publish()`."""
+    """A results folder under construction: write into `path`, then `publish()`.
 
-    def __init__(self, base: str | Path, name: str) -> None:
+    target: the folder to publish as (a run's folder that holds only its checkpoints so far);
+    default a new `name_<stamp>` folder."""
+
+    def __init__(self, base: str | Path, name: str, target: Path | None = None) -> None:
         self.base = Path(base)
         self.name = name
         self.stamp = datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
+        self.target = target
         self.base.mkdir(parents=True, exist_ok=True)
         # hidden, so globs for finished folders (run_*) never see a partial one
         self.path = Path(tempfile.mkdtemp(prefix=f".{name}_{self.stamp}.", suffix=".partial", dir=self.base))
@@ -124,6 +129,10 @@ class StagedResults:
     def publish(self) -> Path:
         """Rename the complete folder into place, then point `latest` at it."""
         os.chmod(self.path, _default_dir_mode())  # mkdtemp makes 0700
+        if self.target is not None:
+            self.final = _replace_folder(self.path, self.target)
+            point_latest(self.base, self.final.name)
+            return self.final
         suffix = 0
         while True:
             final = self.base / (f"{self.name}_{self.stamp}" + (f"_{suffix}" if suffix else ""))
@@ -143,6 +152,49 @@ class StagedResults:
         shutil.rmtree(self.path, ignore_errors=True)
 
 
+def _replace_folder(complete: Path, target: Path) -> Path:
+    """Move `complete` to `target`, replacing what is there (a run's checkpoints). The old
+    folder is renamed aside first and removed last: a crash in between leaves it, whole,
+    under a hidden name beside the target."""
+    if not target.exists():
+        os.rename(complete, target)
+        return target
+    aside = Path(tempfile.mkdtemp(prefix=f".{target.name}.", suffix=".replaced", dir=target.parent))
+    aside.rmdir()
+    os.rename(target, aside)
+    os.rename(complete, target)
+    shutil.rmtree(aside, ignore_errors=True)
+    return target
+
+
+class RunFolder:
+    """The folder a run's checkpoints go to, named (`name_<stamp>`) and made at the first one;
+    the final results then replace it under the same name. Given `existing` (a resumed run),
+    that folder is used."""
+
+    def __init__(self, base: str | Path, name: str, existing: Path | None = None) -> None:
+        self.base = Path(base) if existing is None else existing.parent
+        self.name = name
+        self.stamp = datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
+        self.path: Path | None = existing
+
+    def ensure(self) -> Path:
+        """The folder, made now if it does not exist yet (never one another run made)."""
+        if self.path is not None:
+            return self.path
+        self.base.mkdir(parents=True, exist_ok=True)
+        suffix = 0
+        while True:
+            path = self.base / (f"{self.name}_{self.stamp}" + (f"_{suffix}" if suffix else ""))
+            try:
+                path.mkdir()
+            except FileExistsError:
+                suffix += 1
+                continue
+            self.path = path
+            return path
+
+
 def _default_dir_mode() -> int:
     """Permissions a plain ``mkdir`` would give."""
     umask = os.umask(0)
@@ -156,7 +208,13 @@ def point_latest(base: Path, name: str) -> None:
     if link.exists() and not link.is_symlink():
         log.warning("%s is not a link; left as it is (results are in %s)", link, base / name)
         return
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{LATEST}.", dir=base)
+    switch_link(link, name)
+
+
+def switch_link(link: Path, name: str) -> None:
+    """Point the symlink `link` at `name` (relative, in its folder) atomically."""
+    base = link.parent
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{link.name}.", dir=base)
     os.close(fd)
     tmp_link = Path(tmp_name)
     tmp_link.unlink()
@@ -194,12 +252,12 @@ def _interrupts_deferred() -> Iterator[None]:
 
 
 @contextmanager
-def staged_results_dir(base: str | Path, name: str) -> Iterator[StagedResults]:
+def staged_results_dir(base: str | Path, name: str, target: Path | None = None) -> Iterator[StagedResults]:
     """Write a results folder as one unit: `staged.path` inside the block, `staged.final` after.
 
     Any exception (or a second interrupt) in the block drops the staging folder and leaves the
-    previous `latest` as it was."""
-    staged = StagedResults(base, name)
+    previous `latest` (and `target`, if given) as it was."""
+    staged = StagedResults(base, name, target)
     with _interrupts_deferred():
         try:
             yield staged

@@ -1,7 +1,14 @@
-"""`run` and `demo`: wire a source, odometry, weights and a prior map into the pipeline."""
+"""`run` and `demo`: the thin runner around `SlamSystem` that owns the files, progress and signals.
+
+`run_log` reads top to bottom as the steps of a run: open the log, load the prior map, build
+the system (or restore it from a checkpoint), stream the frames with progress and
+checkpoints, finish, evaluate, publish the results folder, print the summary.
+"""
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -11,68 +18,142 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from frontend.errors import FrontendInputError
+from frontend.frame import Frame
 from frontend.odometry import choose_odometry, make_odometry
-from frontend.sources import open_source
+from frontend.sources import Source, open_source
 from loopclosure.backbone import load_backbone
+from ssmvpr_slam.checkpoint import Checkpoint, CheckpointMeta, Checkpointer, check_log, log_fingerprint
 from ssmvpr_slam.config import SlamConfig
-from ssmvpr_slam.pipeline import RunState, SlamPipeline
+from ssmvpr_slam.pipeline import SlamPipeline
 from ssmvpr_slam.prior_map import PriorMap
-from ssmvpr_slam.results import staged_results_dir
-from ssmvpr_slam.run_results import write_run_results
+from ssmvpr_slam.report import RunReport, evaluate
+from ssmvpr_slam.result import RunResult, StreamEnd
+from ssmvpr_slam.results import RunFolder, staged_results_dir
+from ssmvpr_slam.system import RunState, SlamSystem
+from ssmvpr_slam.writers import write_results
 
 
 def run_log(
     log: Path,
     config: SlamConfig,
     prior_map: Path | None = None,
-    inject_wrong_loops: float = 0.0,
     console: Console | None = None,
     name: str = "run",
+    resume: Checkpoint | None = None,
 ) -> tuple[Path, dict[str, Any]]:
-    """Stream `log` through the pipeline; returns the results folder and its metrics."""
+    """Stream `log` through SLAM (from `resume`'s checkpoint if given); returns the results
+    folder and its metrics."""
     console = console or Console()
+    source = open_camera_source(log, config)
+    if resume is not None:
+        check_log(resume, log)  # before the slow part
+    prior = PriorMap.load(prior_map, config.vpr) if prior_map is not None else None  # before the slow part
+    system = SlamSystem(config, make_odometry(config.frontend.odometry, config.frontend.pose_files),
+                        load_backbone(config.vpr.backbone, progress=True), prior)  # fmt: skip
+    frames = iter(source)
+    pipeline = SlamPipeline.around(system)
+    if resume is not None:
+        restore_from_checkpoint(pipeline, resume, log, frames, console)
+    run_folder = RunFolder(config.results.out_dir, name, resume.run_folder if resume else None)
+    meta = CheckpointMeta(str(log), log_fingerprint(log), None if prior_map is None else str(prior_map), name)
+    checkpoints = Checkpointer(run_folder, config, meta, system, pipeline.ending.seconds)
+    with progress_bar(console, source) as show:
+        pipeline.run(frames, lambda state: show(state) or checkpoints.maybe())
+    result = pipeline.finish()
+    report = evaluate(result, config.evaluation)
+    extra = run_description(log, source, config, prior_map, resume)
+    folder, metrics = publish_results(run_folder, result, report, config, extra, name)
+    print_summary(console, metrics, result, folder)
+    raise_if_failed(pipeline, folder)
+    return folder, metrics
+
+
+def open_camera_source(log: Path, config: SlamConfig) -> Source:
+    """The log's source, refused without camera images; `auto` odometry resolved for it."""
     source = open_source(log, config.frontend.source, config.frontend.pose_files)
     topics = source.topics
     if "camera" not in topics:  # places are recognised in images: a run without them finds no loop
         streams = ", ".join(sorted(topics)) or "none"
         raise FrontendInputError(f"{log}: no camera images to recognise places in (streams: {streams})")
     config.frontend.odometry = choose_odometry(config.frontend.odometry, topics, str(log))
-    odometry = make_odometry(config.frontend.odometry, config.frontend.pose_files)
-    database = PriorMap.load(prior_map, config.vpr) if prior_map is not None else None  # before the slow part
-    backbone = load_backbone(config.vpr.backbone, progress=True)
-    pipeline = SlamPipeline(config, odometry, backbone, database, inject_wrong_loops)
-    frames = iter(source)
+    return source
 
+
+def restore_from_checkpoint(pipeline: SlamPipeline, checkpoint: Checkpoint, log: Path, frames: Iterator[Frame],
+                            console: Console) -> None:  # fmt: skip
+    """Put the system back where the checkpoint left it: its state from the files, the odometry
+    by replaying the frames it had seen (see `ssmvpr_slam.checkpoint` for why)."""
+    system = pipeline.system
+    system.restore(checkpoint.result, checkpoint.detector_state)
+    seen = checkpoint.result.frames_seen
+    with Progress(TextColumn("[bold]replaying odometry"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  console=console) as progress:  # fmt: skip
+        task = progress.add_task("frames", total=seen)
+        for _ in range(seen):
+            frame = next(frames, None)
+            if frame is None:
+                raise FrontendInputError(f"{log}: ended after {progress.tasks[task].completed:.0f} frames; "
+                                         f"the checkpoint had seen {seen}")  # fmt: skip
+            system.replay_odometry(frame)
+            progress.advance(task)
+    system.resume_keyframe_selection()
+    pipeline.ending = StreamEnd(seconds=checkpoint.result.ending.seconds)  # the run's time carries on
+    console.print(f"resumed from [bold]{escape(str(checkpoint.folder))}[/bold]: {len(checkpoint.result.keyframes)} "
+                  f"keyframes, {seen} frames")  # fmt: skip
+
+
+@contextmanager
+def progress_bar(console: Console, source: Source) -> Iterator[Callable[[RunState], None]]:
+    """A rich progress bar; yields the per-frame update."""
     total = getattr(source, "length", None)
     columns = [TextColumn("[bold]SLAM"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                TextColumn("{task.fields[status]}")]  # fmt: skip
     with Progress(*columns, console=console) as progress:
-        task = progress.add_task("frames", total=total, status="")
+        task = progress.add_task("frames", total=total, status="", completed=0)
 
-        def on_frame(state: RunState) -> None:
+        def show(state: RunState) -> None:
             fps = state.frames_seen / max(progress.tasks[task].elapsed or 1e-9, 1e-9)
             proposed = len(state.loops)
             in_graph = sum(r.in_graph for r in state.loops)
-            progress.update(task, advance=1, status=f"kf {len(state.keyframes)} | loops {proposed} proposed, "
-                            f"{in_graph} in graph | {fps:.1f} fps")  # fmt: skip
+            progress.update(task, completed=state.frames_seen, status=f"kf {len(state.keyframes)} | loops "
+                            f"{proposed} proposed, {in_graph} in graph | {fps:.1f} fps")  # fmt: skip
 
-        pipeline.run(frames, on_frame)
-    extra = {"log": str(log), "source": source.description, "source_stats": _stats(source),
-             "odometry_kind": config.frontend.odometry.kind, "prior_map": str(prior_map) if prior_map else None,
-             "injected_wrong_loop_rate": inject_wrong_loops}  # fmt: skip
-    with staged_results_dir(config.results.out_dir, name) as staged:  # `latest` moves once complete
-        metrics = write_run_results(staged.path, pipeline, config, extra)
-    folder = staged.final
+        yield show
+
+
+def run_description(log: Path, source: Source, config: SlamConfig, prior_map: Path | None,
+                    resume: Checkpoint | None) -> dict[str, Any]:  # fmt: skip
+    """What metrics.json says about the run's inputs."""
+    return {"log": str(log), "source": source.description, "source_stats": _stats(source),
+            "odometry_kind": config.frontend.odometry.kind, "prior_map": str(prior_map) if prior_map else None,
+            "resumed_from": None if resume is None else {"checkpoint": str(resume.folder),
+                                                          "frames": resume.result.frames_seen}}  # fmt: skip
+
+
+def publish_results(run_folder: RunFolder, result: RunResult, report: RunReport, config: SlamConfig,
+                    extra: dict[str, Any], name: str) -> tuple[Path, dict[str, Any]]:  # fmt: skip
+    """Write every result into a staging folder and move it into place as one unit (over the
+    run's checkpoints, if it wrote any); `latest` moves once it is complete."""
+    with staged_results_dir(run_folder.base, name, run_folder.path) as staged:
+        metrics = write_results(staged.path, result, report, config, extra)
+    assert staged.final is not None
+    return staged.final, metrics
+
+
+def print_summary(console: Console, metrics: dict[str, Any], result: RunResult, folder: Path) -> None:
     console.print(summary_table(metrics))
-    if pipeline.state.interrupted:
+    if result.ending.interrupted:
         console.print("[yellow]stopped early on request: results cover the frames processed so far[/yellow]")
     console.print(f"results in [bold]{escape(str(folder))}[/bold]")
-    if pipeline.state.step_error is not None:
-        raise pipeline.state.step_error  # results up to the failing frame are written above
-    if pipeline.state.source_error is not None:
-        # the frames before the fault are processed and written; the run still reports failure
-        raise FrontendInputError(f"{pipeline.state.source_error} (results up to there are in {folder})")
-    return folder, metrics
+
+
+def raise_if_failed(pipeline: SlamPipeline, folder: Path) -> None:
+    """A run that failed midway still wrote its results above; it then reports the failure."""
+    if pipeline.step_error is not None:
+        raise pipeline.step_error
+    source_error = pipeline.ending.source_error
+    if source_error is not None:  # the frames before the fault are processed and written
+        raise FrontendInputError(f"{source_error} (results up to there are in {folder})")
 
 
 def _stats(source: object) -> dict[str, Any]:

@@ -30,10 +30,10 @@ from loopclosure.detector import LoopProposal
 from loopclosure.encoder import Encoder, PlaceCodes
 from loopclosure.pca import Codebooks, PCAProjection
 from ssmvpr_slam.config import load_config
-from ssmvpr_slam.pipeline import Keyframe, LoopRecord
 from ssmvpr_slam.prior_map import PriorMap, save_map
+from ssmvpr_slam.report import evaluate
+from ssmvpr_slam.result import Keyframe, LoopRecord, RunResult
 from ssmvpr_slam.results import staged_results_dir
-from ssmvpr_slam.run_results import evaluate_run
 
 
 from cli_helpers import assert_user_error, clean_ssmvpr_environment, invoke  # noqa: E402, F401
@@ -244,7 +244,7 @@ def test_run_failing_while_writing_keeps_the_earlier_run(partial_gt_run: SimpleN
     out = tmp_path / "out"
     shutil.copytree(partial_gt_run.out, out, symlinks=True)
     first = (out / "latest").resolve()
-    monkeypatch.setattr("ssmvpr_slam.run_results.write_json", lambda *_: _crash(Path()))
+    monkeypatch.setattr("ssmvpr_slam.writers.write_json", lambda *_: _crash(Path()))
     result = invoke("run", partial_gt_run.log, "--odometry", "logged", "--weights", weights_path,
                     "--device", "cpu", "--out", out)  # fmt: skip
     assert result.exit_code != 0 and isinstance(result.exception, OSError)
@@ -547,14 +547,14 @@ def _out_and_back(n: int = 20) -> np.ndarray:
     return poses
 
 
-def _state(gt: list[np.ndarray | None], loops: list[tuple[int, int]]) -> SimpleNamespace:
+def _result(gt: list[np.ndarray | None], loops: list[tuple[int, int]]) -> RunResult:
     true = _out_and_back(len(gt))
     odom = true.copy()
     odom[:, 1, 3] += 0.2 * np.arange(len(gt))  # drift
-    kfs = [Keyframe(k, k, float(k), odom[k], g, None, None) for k, g in enumerate(gt)]
-    records = [LoopRecord(LoopProposal(q, m, m, 0.9, 0.5, 0, 0.0, True, "accepted", "reverse"), factor_handle=i)
-               for i, (q, m) in enumerate(loops)]  # fmt: skip
-    return SimpleNamespace(state=SimpleNamespace(keyframes=kfs, loops=records, rear_keyframes=0), odom=odom, optimised=true.copy())
+    kfs = tuple(Keyframe(k, k, float(k), odom[k], g, None, None) for k, g in enumerate(gt))
+    records = tuple(LoopRecord(LoopProposal(q, m, m, 0.9, 0.5, 0, 0.0, True, "accepted", "reverse"), factor_handle=i)
+                    for i, (q, m) in enumerate(loops))  # fmt: skip
+    return RunResult(kfs, records, np.arange(len(gt), dtype=float), odom, true.copy())
 
 
 PARTIAL_GT_CASES = {
@@ -573,9 +573,9 @@ def test_evaluation_on_the_keyframes_with_ground_truth(case: str) -> None:
     true = _out_and_back()
     gt = [None if missing.get(k, 0) is None else np.full((4, 4), np.nan) if k in missing else true[k] for k in range(20)]
     # (16, 3) and (15, 4) close correct loops; (18, 6) is 25 m off
-    run = _state(gt, [(16, 3), (15, 4), (18, 6)])
+    run = _result(gt, [(16, 3), (15, 4), (18, 6)])
     config = load_config(overrides={"evaluation": {"loops": {"min_frame_gap": 5}}})
-    metrics = evaluate_run(run, run.odom, run.optimised, config)  # type: ignore[arg-type]
+    metrics = evaluate(run, config.evaluation).metrics()
     covered = 20 - len(missing)
     assert metrics["ground_truth_coverage"] == pytest.approx(covered / 20)
     assert metrics["ground_truth_keyframes"] == covered

@@ -1,4 +1,4 @@
-"""SlamPipeline end to end: a simulated traverse with revisits, the real VGG16 weights,
+"""SlamSystem (fed by SlamPipeline) end to end: a simulated traverse with revisits, the real VGG16 weights,
 drifting logged odometry (and kiss-icp), SSM-VPR loops, iSAM2, the results files.
 
 Traverse: the block_grid route in a city of 14 m blocks, 5 Hz, 210 frames (294 m, the second
@@ -10,7 +10,8 @@ Measured on this setup (default preset, logged odometry with the simulator's dri
 2 mrad/m yaw bias and 2 % scale error): ATE RMSE odometry 5.29 m -> optimised 1.10 m (0.21x);
 38 proposals, 29 gate-accepted, all in the graph, precision 1.0, recall 0.71 (29 of 41
 revisit keyframes), stream PR-AUC 0.90; RPE rotation 0.42 -> 0.19 deg. With wrong loops
-injected at rate 0.2 (6 of them, as confident as ICP loops): ATE 1.12 m. kiss-icp (180
+injected by a pose-graph test double (tests/wrong_loops.py; each keyframe after the warm-up
+with probability WRONG_LOOP_RATE, as confident as ICP loops): see the test. kiss-icp (180
 frames, 16x512 LiDAR): ATE 0.227 m -> 0.223 m, 14 ICP loops, precision 1.0, each within
 0.21 m / 0.4 deg of the true relative pose. The thresholds keep a clear margin on these.
 Runtime ~90 s on 2 shared cores, most of it the 105 VGG16 passes.
@@ -39,15 +40,20 @@ from loopclosure.backbone import load_backbone
 from loopclosure.errors import LoopClosureInputError
 from ssmvpr_slam.config import SlamConfig, load_config
 from ssmvpr_slam.evaluation.trajectory_io import read_kitti, read_tum
+from ssmvpr_slam.backend.noise import sigmas6
 from ssmvpr_slam.pipeline import SlamPipeline
 from ssmvpr_slam.prior_map import PriorMap
-from ssmvpr_slam.run_results import LOOP_COLUMNS, evaluate_run, write_run_results
+from ssmvpr_slam.report import evaluate
+from ssmvpr_slam.result import RunResult
+from ssmvpr_slam.writers import LOOP_COLUMNS, write_results
+from wrong_loops import WrongLoopGraph
 
 pytestmark = pytest.mark.slow
 
 FRAMES = 210
 KISS_FRAMES = 180
 INTERRUPT_AFTER = 150  # frames; the second lap's loops have started by then
+WRONG_LOOP_RATE = 0.1  # per keyframe after the PCA warm-up: ~7 wrong loops over the 75 keyframes
 CORRECT_RADIUS = 10.0
 
 
@@ -102,6 +108,13 @@ class Run:
     config: SlamConfig
     metrics: dict[str, Any]
     folder: Path
+    result: RunResult
+
+
+def _finish_and_write(pipeline: SlamPipeline, cfg: SlamConfig, folder: Path, extra: dict[str, Any]) -> Run:
+    result = pipeline.finish()
+    metrics = write_results(folder, result, evaluate(result, cfg.evaluation), cfg, extra)
+    return Run(pipeline, cfg, metrics, folder, result)
 
 
 @pytest.fixture(scope="module")
@@ -129,13 +142,17 @@ def camera_frames() -> list[Frame]:
 def _run(
     folder: Path, cfg: SlamConfig, backbone: MemoBackbone, frames, inject: float = 0.0, plots: bool = False  # noqa: ANN001
 ) -> Run:
+    graph = None
+    if inject:
+        lidar = cfg.backend.registration.lidar  # as confident as a real ICP loop
+        graph = WrongLoopGraph(cfg.backend.pose_graph.for_odometry(cfg.frontend.odometry.kind), inject,
+                               sigmas6(lidar.rot_sigma, lidar.trans_sigma), cfg.detector.pca_warmup_keyframes)  # fmt: skip
     pipeline = SlamPipeline(cfg, make_odometry(cfg.frontend.odometry, cfg.frontend.pose_files), backbone,
-                            inject_wrong_loops=inject, seed=0)  # type: ignore[arg-type]  # fmt: skip
+                            graph=graph)  # type: ignore[arg-type]  # fmt: skip
     pipeline.run(frames)
     cfg.results.plots = plots
     folder.mkdir(parents=True)
-    metrics = write_run_results(folder, pipeline, cfg, {"test": folder.name})
-    return Run(pipeline, cfg, metrics, folder)
+    return _finish_and_write(pipeline, cfg, folder, {"test": folder.name})
 
 
 @pytest.fixture(scope="module")
@@ -150,7 +167,7 @@ def clean(tmp_path_factory, weights_path, backbone, camera_frames) -> Run:  # no
 def injected(tmp_path_factory, weights_path, backbone, camera_frames, clean) -> Run:  # noqa: ANN001
     passes = backbone.passes
     run = _run(tmp_path_factory.mktemp("slam") / "injected", slam_config(weights_path, "logged"), backbone,
-               iter(camera_frames), inject=0.2)  # fmt: skip
+               iter(camera_frames), inject=WRONG_LOOP_RATE)  # fmt: skip
     assert backbone.passes == passes  # same keyframes, no new backbone pass
     return run
 
@@ -167,7 +184,7 @@ def _gt_distance(run: Run, query: int, match: int) -> float:
 
 
 def _graph_loops(run: Run) -> list:
-    return [r for r in run.pipeline.state.loops if r.in_graph and not r.injected]
+    return [r for r in run.result.loops if r.in_graph]
 
 
 # ------------------------------------------------------------------------- logged odometry
@@ -175,7 +192,7 @@ def _graph_loops(run: Run) -> list:
 
 def test_every_other_frame_is_a_keyframe_and_the_backbone_ran_once_each(clean: Run) -> None:
     state = clean.pipeline.state
-    assert state.frames_seen == FRAMES and not state.interrupted and not state.frames_skipped
+    assert state.frames_seen == FRAMES and not clean.result.ending.interrupted and not state.frames_skipped
     assert len(state.keyframes) == FRAMES // 2
     assert [k.id for k in state.keyframes] == list(range(FRAMES // 2))
     assert [k.frame_index for k in state.keyframes] == list(range(0, FRAMES, 2))
@@ -222,8 +239,8 @@ def test_results_files_are_consistent(clean: Run) -> None:
     for name in ("odometry", "optimised", "ground_truth"):
         assert len(read_kitti(folder / f"{name}.kitti")) == n
     np.testing.assert_allclose(read_kitti(folder / "optimised.kitti"), optimised, atol=1e-6)
-    # the files hold what the pipeline has
-    stamps, odom_poses, opt_poses = clean.pipeline.trajectories()
+    # the files hold what the run's result has
+    stamps, odom_poses, opt_poses = clean.result.stamps, clean.result.odometry, clean.result.optimised
     np.testing.assert_allclose(odom, odom_poses, atol=1e-6)
     np.testing.assert_allclose(optimised, opt_poses, atol=1e-6)
     np.testing.assert_allclose(stamps_odom, stamps, atol=1e-6)
@@ -236,7 +253,7 @@ def test_results_files_are_consistent(clean: Run) -> None:
     assert len(in_graph) == clean.metrics["loops"]["in_graph"]
     assert all(float(r["gt_distance_m"]) <= CORRECT_RADIUS for r in in_graph)
     assert all(r["gate_accepted"] == "1" and r["direction"] in ("forward", "reverse") for r in in_graph)
-    assert all(r["injected"] == "0" and r["prior_map"] == "0" for r in rows)
+    assert all(r["prior_map"] == "0" for r in rows)
 
     metrics = json.loads((folder / "metrics.json").read_text())
     assert metrics["keyframes"] == n and metrics["frames"] == FRAMES and metrics["interrupted"] is False
@@ -247,9 +264,9 @@ def test_results_files_are_consistent(clean: Run) -> None:
         assert (folder / plot).stat().st_size > 1000
 
 
-def test_metrics_recomputed_from_the_pipeline_agree(clean: Run) -> None:
-    _, odom, optimised = clean.pipeline.trajectories()
-    again = evaluate_run(clean.pipeline, odom, optimised, clean.config)
+def test_metrics_recomputed_from_the_result_agree(clean: Run) -> None:
+    assert clean.pipeline.finish() is clean.result  # finishing again optimises nothing twice
+    again = evaluate(clean.result, clean.config.evaluation).metrics()
     assert again["ate_optimised"]["rmse"] == pytest.approx(clean.metrics["ate_optimised"]["rmse"])
     assert again["loops"]["n_loops"] == clean.metrics["loops"]["n_loops"]
 
@@ -257,21 +274,24 @@ def test_metrics_recomputed_from_the_pipeline_agree(clean: Run) -> None:
 # -------------------------------------------------------------------------- injected loops
 
 
+def _edges(run: Run) -> int:
+    return sum(line.startswith("EDGE") for line in (run.folder / "pose_graph.g2o").read_text().splitlines())
+
+
 def test_wrong_loops_are_injected_and_recorded(injected: Run, clean: Run) -> None:
-    records = [r for r in injected.pipeline.state.loops if r.injected]
+    records = injected.pipeline.graph.injected
     assert len(records) >= 3
-    assert all(r.factor_handle is not None for r in records)
-    assert injected.metrics["loops"]["injected"] == len(records)
+    assert all(r.handle in injected.pipeline.graph.loop_handles for r in records)  # still in the final graph
     # they are far from right: most join places tens of metres apart
-    assert sum(_gt_distance(injected, r.proposal.query_id, r.proposal.match_id) > 20.0 for r in records) >= 3
+    assert sum(_gt_distance(injected, r.query, r.match) > 20.0 for r in records) >= 3
     # the recogniser saw the same stream: its own proposals and metrics do not change
     assert injected.metrics["loops"]["proposed"] == clean.metrics["loops"]["proposed"]
     assert injected.metrics["loops"]["in_graph"] == clean.metrics["loops"]["in_graph"]
     assert injected.metrics["loops"]["precision"] == 1.0
     assert injected.metrics["stream_pr_auc"] == pytest.approx(clean.metrics["stream_pr_auc"])
     with open(injected.folder / "loop_closures.csv", newline="") as f:
-        rows = list(csv.DictReader(f))
-    assert sum(r["injected"] == "1" for r in rows) == len(records)
+        assert len(list(csv.DictReader(f))) == len(clean.result.loops)  # they are no proposals
+    assert _edges(injected) == _edges(clean) + len(records)  # but the pose graph file holds them
 
 
 def test_wrong_loops_barely_move_the_trajectory(injected: Run, clean: Run) -> None:
@@ -298,12 +318,12 @@ def test_sigint_mid_run_stops_cleanly_and_results_are_consistent(
     pipeline = SlamPipeline(cfg, make_odometry(cfg.frontend.odometry), backbone)  # type: ignore[arg-type]
     state = pipeline.run(frames())
     assert signal.getsignal(signal.SIGINT) is previous  # the handler is handed back
-    assert state.interrupted
+    assert pipeline.ending.interrupted
     assert state.frames_seen == INTERRUPT_AFTER  # the frame after the request is not processed
     assert len(state.keyframes) == INTERRUPT_AFTER // 2
     assert any(r.in_graph for r in state.loops)  # it got into the second lap
 
-    metrics = write_run_results(tmp_path, pipeline, cfg, {})
+    metrics = _finish_and_write(pipeline, cfg, tmp_path, {}).metrics
     n = len(state.keyframes)
     _, odom = read_tum(tmp_path / "odometry.tum")
     _, optimised = read_tum(tmp_path / "optimised.tum")
@@ -329,8 +349,8 @@ def test_stop_flag_before_the_first_frame_gives_an_empty_but_valid_run(
         yield from camera_frames[:3]
 
     state = pipeline.run(frames())
-    assert state.interrupted and state.frames_seen == 0 and not state.keyframes
-    metrics = write_run_results(tmp_path, pipeline, cfg, {})
+    assert pipeline.ending.interrupted and state.frames_seen == 0 and not state.keyframes
+    metrics = _finish_and_write(pipeline, cfg, tmp_path, {}).metrics
     assert metrics["keyframes"] == 0 and metrics["interrupted"] is True
     assert json.loads((tmp_path / "metrics.json").read_text())["interrupted"] is True
     assert not (tmp_path / "odometry.tum").exists()  # no trajectory, rather than an empty one
@@ -372,7 +392,7 @@ def _second_session(folder: Path, cfg: SlamConfig, backbone: MemoBackbone, frame
     pipeline = SlamPipeline(cfg, make_odometry(cfg.frontend.odometry, cfg.frontend.pose_files), backbone, prior_map)  # type: ignore[arg-type]
     pipeline.run(frames)
     folder.mkdir(parents=True)
-    return Run(pipeline, cfg, write_run_results(folder, pipeline, cfg, {"test": folder.name}), folder)
+    return _finish_and_write(pipeline, cfg, folder, {"test": folder.name})
 
 
 @pytest.fixture(scope="module")

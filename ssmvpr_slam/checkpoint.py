@@ -1,0 +1,418 @@
+"""Checkpoints: a run killed (SIGKILL, power loss) keeps its work up to the last one.
+
+Every `results.checkpoint_every_keyframes` keyframes or `results.checkpoint_every_s` seconds
+the runner writes the run so far into its results folder::
+
+    run_<stamp>/checkpoint -> checkpoint-000003     a link, switched atomically (os.replace)
+    run_<stamp>/checkpoint-000003/
+        odometry.tum, optimised.tum, ground_truth.tum   keyframe trajectories (iSAM2's estimate)
+        loop_closures.csv                               the loop log so far
+        database/                                       the place database: opens as `--map`
+        config.yaml, keyframes.npz, detector.npz, images/, checkpoint.json (written last)
+
+A version folder is complete before the link points at it, so a kill at any moment leaves the
+previous checkpoint or the new one, never a mixture. `ssmvpr-slam run LOG --resume RUN_DIR`
+continues from it, and `load_checkpoint(...).result` reads it as a partial `RunResult`.
+
+What is saved and what is re-derived (the choice, and why):
+- saved exactly: keyframes (poses, ground truth, scans, images as lossless PNG), loop records
+  with their registrations and factor handles, the place database, and the detector's state
+  (travelled distances, the sequence matchers' recent stage-II grids and score caches, the gate);
+- re-derived: the pose graph, by repeating the run's calls in order (cheap: no backbone, no
+  ICP); and the odometry, by replaying the frames already seen through it alone. kiss-icp's
+  voxel map and adaptive threshold live in its C++ core with no serialisation API, so replay
+  is the one way that works for every odometry; it costs an odometry pass, not a backbone pass.
+- checkpoints start once the place database exists (after the PCA warm-up): the warm-up's raw
+  feature cubes are megabytes per keyframe, and a kill before then loses only the warm-up.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import logging
+import os
+import shutil
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from loopclosure.atomic import atomic_write_bytes, atomic_write_text
+from loopclosure.database import PlaceDatabase
+from loopclosure.detector import LoopProposal
+from loopclosure.errors import LoopClosureInputError
+from ssmvpr_slam.backend.loop_registration import LoopRegistration
+from ssmvpr_slam.config import ResultsConfig, SlamConfig
+from ssmvpr_slam.result import Keyframe, LoopRecord, RunResult, StreamEnd, frozen_array
+from ssmvpr_slam.errors import SlamError
+from ssmvpr_slam.results import RunFolder, switch_link
+from ssmvpr_slam.writers import write_config, write_database, write_loop_csv, write_trajectories
+
+log = logging.getLogger(__name__)
+
+FORMAT = "ssmvpr-slam-checkpoint"
+FORMAT_VERSION = 1
+LINK = "checkpoint"
+META = "checkpoint.json"
+_PREFIX = "checkpoint-"
+
+
+class CheckpointError(SlamError, ValueError):
+    """A checkpoint that cannot be read or resumed (the message names the file or the log)."""
+
+
+# --------------------------------------------------------------------------- fingerprints
+
+
+def log_fingerprint(path: str | Path) -> dict[str, Any]:
+    """What identifies a log cheaply: its size and the hash of its first and last MiB (a file),
+    or its files' names and sizes (a folder, e.g. KITTI). A resume refuses another log."""
+    path = Path(path)
+    digest = hashlib.sha256()
+    if path.is_dir():
+        files = sorted(p for p in path.rglob("*") if p.is_file())
+        for p in files:
+            digest.update(f"{p.relative_to(path)}\0{p.stat().st_size}\n".encode())
+        return {"kind": "folder", "files": len(files), "sha256": digest.hexdigest()}
+    size = path.stat().st_size
+    with open(path, "rb") as handle:
+        digest.update(handle.read(1 << 20))
+        handle.seek(max(0, size - (1 << 20)))
+        digest.update(handle.read(1 << 20))
+    return {"kind": "file", "size": size, "sha256": digest.hexdigest()}
+
+
+# --------------------------------------------------------------------------- writing
+
+
+@dataclass(frozen=True)
+class CheckpointMeta:
+    """What a resume needs besides the run's state: the log, the prior map, the odometry."""
+
+    log: str
+    log_fingerprint: dict[str, Any]
+    prior_map: str | None
+    name: str
+
+
+def write_checkpoint(
+    run_folder: Path, partial: RunResult, detector_state: dict[str, np.ndarray], config: SlamConfig, meta: CheckpointMeta
+) -> Path:
+    """Write the run so far as a new checkpoint version, then point `checkpoint` at it."""
+    previous = _current(run_folder)
+    number = 1 + max([_number(p) for p in run_folder.glob(f"{_PREFIX}*")] or [0])
+    folder = run_folder / f"{_PREFIX}{number:06d}"
+    folder.mkdir()
+    write_trajectories(folder, partial)
+    write_loop_csv(folder / "loop_closures.csv", partial.keyframes, partial.loops)
+    write_config(folder, config)
+    write_database(folder / "database", partial, config, poses=partial.in_map_frame)
+    _write_images(folder / "images", partial.keyframes, previous)
+    atomic_write_bytes(folder / "keyframes.npz", _npz(_keyframe_arrays(partial)))
+    atomic_write_bytes(folder / "detector.npz", _npz(detector_state))
+    record = {
+        "format": FORMAT, "version": FORMAT_VERSION, "written": time.strftime("%Y-%m-%dT%H:%M:%S"),
+        **asdict(meta), "frames_seen": partial.frames_seen, "frames_skipped": dict(partial.frames_skipped),
+        "rear_keyframes": partial.rear_keyframes, "seconds": partial.ending.seconds,
+        "keyframes": len(partial.keyframes), "timings": [dict(r) for r in partial.timings],
+        "loops": [_loop_dict(r) for r in partial.loops],
+    }  # fmt: skip
+    atomic_write_text(folder / META, json.dumps(record, indent=1, allow_nan=True) + "\n")
+    _fsync_dir(folder)
+    switch_link(run_folder / LINK, folder.name)
+    for old in run_folder.glob(f"{_PREFIX}*"):  # earlier versions, and any a kill left half written
+        if old != folder:
+            shutil.rmtree(old, ignore_errors=True)
+    return folder
+
+
+def _current(run_folder: Path) -> Path | None:
+    link = run_folder / LINK
+    return link.resolve() if link.is_symlink() and (link / META).is_file() else None
+
+
+def _number(path: Path) -> int:
+    try:
+        return int(path.name.removeprefix(_PREFIX))
+    except ValueError:
+        return 0
+
+
+def _fsync_dir(folder: Path) -> None:
+    fd = os.open(folder, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def _npz(arrays: dict[str, np.ndarray]) -> bytes:
+    buffer = io.BytesIO()
+    np.savez(buffer, **arrays)
+    return buffer.getvalue()
+
+
+def _image_names(kf: Keyframe) -> list[tuple[str, np.ndarray]]:
+    out = []
+    if kf.image is not None:
+        out.append((f"kf{kf.id:06d}.png", kf.image))
+    if kf.rear_image is not None:
+        out.append((f"kf{kf.id:06d}_rear.png", kf.rear_image))
+    return out
+
+
+def _write_images(folder: Path, keyframes: tuple[Keyframe, ...], previous: Path | None) -> None:
+    """Lossless PNGs (RGB kept as written); an image the previous version holds is hard-linked,
+    so each keyframe's image is encoded once over the whole run."""
+    folder.mkdir()
+    for kf in keyframes:
+        for name, image in _image_names(kf):
+            earlier = previous / "images" / name if previous is not None else None
+            if earlier is not None and earlier.is_file():
+                try:
+                    os.link(earlier, folder / name)
+                    continue
+                except OSError:  # a file system without hard links: write it again
+                    pass
+            ok, png = cv2.imencode(".png", cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2BGR))
+            if not ok:
+                raise CheckpointError(f"{folder / name}: cv2 could not encode keyframe {kf.id}'s image")
+            atomic_write_bytes(folder / name, png.tobytes())
+
+
+def _keyframe_arrays(result: RunResult) -> dict[str, np.ndarray]:
+    kfs = result.keyframes
+    n = len(kfs)
+    gt = np.full((n, 4, 4), np.nan)
+    for i, k in enumerate(kfs):
+        if k.gt_pose is not None:
+            gt[i] = k.gt_pose
+    scans = [k.scan for k in kfs]
+    lengths = np.array([-1 if s is None else len(s) for s in scans], np.int64)
+    stacked = np.concatenate([s for s in scans if s is not None]) if any(s is not None for s in scans) else np.zeros((0, 3))
+    in_map = result.in_map_frame
+    return {
+        "ids": np.array([k.id for k in kfs], np.int64),
+        "frame_index": np.array([k.frame_index for k in kfs], np.int64),
+        "timestamps": np.array([k.timestamp for k in kfs], np.float64),
+        "odometry": np.array(result.odometry, np.float64).reshape(n, 4, 4),
+        "optimised": np.array(result.optimised, np.float64).reshape(n, 4, 4),
+        "in_map_frame": np.full((n, 4, 4), np.nan) if in_map is None else np.array(in_map, np.float64),
+        "gt_present": np.array([k.gt_pose is not None for k in kfs], bool),
+        "gt": gt,
+        "scan_lengths": lengths,
+        "scans": np.asarray(stacked, np.float64),
+        "has_image": np.array([k.image is not None for k in kfs], bool),
+        "has_rear_image": np.array([k.rear_image is not None for k in kfs], bool),
+    }
+
+
+def _loop_dict(record: LoopRecord) -> dict[str, Any]:
+    reg = record.registration
+    registration = None
+    if reg is not None:
+        registration = {**asdict(reg), "T_mq": np.asarray(reg.T_mq).tolist(), "sigmas": np.asarray(reg.sigmas).tolist()}
+    return {"proposal": asdict(record.proposal), "registration": registration, "factor_handle": record.factor_handle}
+
+
+# --------------------------------------------------------------------------- the runner's side
+
+
+class Checkpointer:
+    """Decides when a checkpoint of `system` (a SlamSystem) is due and writes it; the runner
+    calls `maybe` after every frame. seconds: the run's time before this session (a resume)."""
+
+    def __init__(self, run: RunFolder, config: SlamConfig, meta: CheckpointMeta, system: Any, seconds: float = 0.0) -> None:
+        self.run = run
+        self.config = config
+        self.meta = meta
+        self.system = system
+        self.settings: ResultsConfig = config.results
+        self._keyframes_at_last = len(system.state.keyframes)
+        self._started = self._time_of_last = time.monotonic()
+        self._seconds_before = seconds
+        self.written = 0
+
+    def due(self) -> bool:
+        new = len(self.system.state.keyframes) - self._keyframes_at_last
+        if new <= 0:
+            return False
+        every_kf, every_s = self.settings.checkpoint_every_keyframes, self.settings.checkpoint_every_s
+        by_count = every_kf is not None and new >= every_kf
+        by_time = every_s is not None and time.monotonic() - self._time_of_last >= every_s
+        return by_count or by_time
+
+    def maybe(self) -> Path | None:
+        """Write a checkpoint if one is due and the system can be resumed from it."""
+        if not self.due():
+            return None
+        state = self.system.detector_state()
+        if state is None:  # still in the PCA warm-up: nothing a resume could start from
+            return None
+        seconds = self._seconds_before + time.monotonic() - self._started
+        partial = self.system.partial_result(StreamEnd(interrupted=True, seconds=seconds))
+        self._keyframes_at_last = len(partial.keyframes)
+        self._time_of_last = time.monotonic()
+        try:
+            folder = write_checkpoint(self.run.ensure(), partial, state, self.config, self.meta)
+        except OSError as exc:  # a safety net that fails (disk full) must not end the run itself
+            log.error("checkpoint not written (%s); the run goes on, the previous checkpoint stays", exc)
+            return None
+        self.written += 1
+        log.info("checkpoint %s: %d keyframes, %d frames", folder, len(partial.keyframes), partial.frames_seen)
+        return folder
+
+
+# --------------------------------------------------------------------------- reading
+
+
+@dataclass(frozen=True)
+class Checkpoint:
+    """A checkpoint as read back: the partial result, the detector's state, what resuming needs."""
+
+    folder: Path  # the version folder
+    run_folder: Path  # the run's results folder that holds it
+    meta: CheckpointMeta
+    result: RunResult  # the run so far (interrupted; iSAM2's estimate, no final pass)
+    detector_state: dict[str, np.ndarray]
+    config_text: str
+
+    @property
+    def config_path(self) -> Path:
+        return self.folder / "config.yaml"
+
+
+def find_checkpoint(path: str | Path) -> Path:
+    """The checkpoint version folder for a run's results folder or a checkpoint folder."""
+    path = Path(path)
+    if (path / META).is_file():
+        return path
+    if (path / LINK / META).is_file():
+        return (path / LINK).resolve()
+    if not path.exists():
+        raise CheckpointError(f"{path}: no such results folder")
+    if (path / "metrics.json").is_file():
+        raise CheckpointError(f"{path}: this run finished (metrics.json is there); nothing to resume")
+    raise CheckpointError(f"{path}: no checkpoint here (no {LINK}/{META}); a run writes one after its PCA warm-up")
+
+
+def load_checkpoint(path: str | Path) -> Checkpoint:
+    """Read a checkpoint (`path`: the run's results folder or the checkpoint folder)."""
+    folder = find_checkpoint(path)
+    record = _read_meta(folder / META)
+    run_folder = folder.parent
+    try:
+        meta = CheckpointMeta(record["log"], record["log_fingerprint"], record["prior_map"], record["name"])
+        arrays = _load_npz(folder / "keyframes.npz")
+        keyframes = _keyframes(arrays, folder / "images")
+        loops = tuple(_loop_record(d) for d in record["loops"])
+        detector_state = _load_npz(folder / "detector.npz")
+        database = PlaceDatabase.load(folder / "database")
+        config_text = (folder / "config.yaml").read_text(encoding="utf-8")
+    except (KeyError, TypeError, ValueError) as exc:
+        if isinstance(exc, (CheckpointError, LoopClosureInputError)):
+            raise
+        raise CheckpointError(f"{folder / META}: not a usable checkpoint ({type(exc).__name__}: {exc})") from None
+    except OSError as exc:
+        raise CheckpointError(f"{folder}: cannot read the checkpoint ({exc})") from None
+    prior_places = int(detector_state.get("prior_places", 0))
+    for info in database.places[prior_places:]:  # the session's places: the poses are the checkpoint's, not the run's
+        info.extra.pop("map_pose", None)
+        info.extra.pop("gt_pose", None)
+    n = len(keyframes)
+    if int(record["keyframes"]) != n or len(arrays["odometry"]) != n:
+        raise CheckpointError(f"{folder}: {META} lists {record['keyframes']} keyframes, keyframes.npz holds {n}")
+    in_map = arrays["in_map_frame"]
+    result = RunResult(
+        keyframes=keyframes,
+        loops=loops,
+        stamps=frozen_array(arrays["timestamps"]),
+        odometry=frozen_array(arrays["odometry"]),
+        optimised=frozen_array(arrays["optimised"]),
+        in_map_frame=frozen_array(in_map) if np.isfinite(in_map).all() else None,
+        frames_seen=int(record["frames_seen"]),
+        frames_skipped=dict(record["frames_skipped"]),
+        rear_keyframes=int(record["rear_keyframes"]),
+        timings=tuple(record["timings"]),
+        ending=StreamEnd(interrupted=True, seconds=float(record["seconds"])),
+        database=database,
+        session_places={database.places[i].frame_id: i for i in range(prior_places, len(database))},
+    )
+    return Checkpoint(folder, run_folder, meta, result, detector_state, config_text)
+
+
+def _read_meta(path: Path) -> dict[str, Any]:
+    try:
+        record = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise CheckpointError(f"{path}: cannot read the checkpoint record ({exc})") from None
+    if not isinstance(record, dict) or record.get("format") != FORMAT:
+        raise CheckpointError(f"{path}: not a {FORMAT} record")
+    if record.get("version") != FORMAT_VERSION:
+        raise CheckpointError(f"{path}: checkpoint format version {record.get('version')}, this build reads {FORMAT_VERSION}")
+    return record
+
+
+def _load_npz(path: Path) -> dict[str, np.ndarray]:
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return {name: data[name] for name in data.files}
+    except (OSError, ValueError, EOFError) as exc:
+        raise CheckpointError(f"{path}: cannot read ({type(exc).__name__}: {exc})") from None
+
+
+def _read_png(path: Path) -> np.ndarray:
+    data = np.fromfile(path, np.uint8) if path.is_file() else np.zeros(0, np.uint8)
+    image = cv2.imdecode(data, cv2.IMREAD_COLOR) if len(data) else None
+    if image is None:
+        raise CheckpointError(f"{path}: missing or not a PNG image")
+    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
+def _keyframes(arrays: dict[str, np.ndarray], images: Path) -> tuple[Keyframe, ...]:
+    out = []
+    offset = 0
+    scans = arrays["scans"]
+    for i, kf_id in enumerate(arrays["ids"].tolist()):
+        length = int(arrays["scan_lengths"][i])
+        scan = None
+        if length >= 0:
+            scan = np.array(scans[offset : offset + length], np.float64)
+            offset += length
+        out.append(Keyframe(
+            id=kf_id,
+            frame_index=int(arrays["frame_index"][i]),
+            timestamp=float(arrays["timestamps"][i]),
+            odom_pose=np.array(arrays["odometry"][i], np.float64),
+            gt_pose=np.array(arrays["gt"][i], np.float64) if arrays["gt_present"][i] else None,
+            scan=scan,
+            image=_read_png(images / f"kf{kf_id:06d}.png") if arrays["has_image"][i] else None,
+            rear_image=_read_png(images / f"kf{kf_id:06d}_rear.png") if arrays["has_rear_image"][i] else None,
+        ))  # fmt: skip
+    return tuple(out)
+
+
+def _loop_record(data: dict[str, Any]) -> LoopRecord:
+    proposal = LoopProposal(**data["proposal"])
+    reg = data["registration"]
+    registration = None
+    if reg is not None:
+        registration = LoopRegistration(**{**reg, "T_mq": np.array(reg["T_mq"], np.float64), "sigmas": np.array(reg["sigmas"], np.float64)})
+    handle = data["factor_handle"]
+    return LoopRecord(proposal, registration, None if handle is None else int(handle))
+
+
+def check_log(checkpoint: Checkpoint, log: str | Path) -> None:
+    """Refuse to resume a checkpoint with another log than the one it was made from."""
+    now = log_fingerprint(log)
+    if now != checkpoint.meta.log_fingerprint:
+        raise CheckpointError(
+            f"{log}: not the log checkpoint {checkpoint.folder} was made from ({checkpoint.meta.log}); "
+            "a resume must replay the same frames"
+        )
+

@@ -1,0 +1,324 @@
+"""The SLAM core: frames in, a `RunResult` out; no files, no signals, no progress bars.
+
+As kiss-slam separates `KissSLAM` from its pipeline, `SlamSystem` holds the method
+(odometry -> keyframes -> SSM-VPR loops -> iSAM2 pose graph) and nothing else:
+``process(frame)`` per frame, ``finish()`` once at the end. The loop that feeds it
+(`ssmvpr_slam.pipeline`), the files (`ssmvpr_slam.writers`, `ssmvpr_slam.checkpoint`) and
+the command line (`ssmvpr_slam.runner`) live elsewhere, so the core can be driven by a test,
+a benchmark or a resumed run alike.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import Counter
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from frontend.frame import Frame
+from frontend.keyframes import KeyframeSelector
+from frontend.odometry.base import Odometry
+from loopclosure.backbone import Backbone
+from loopclosure.detector import LoopDetector, LoopProposal
+from loopclosure.encoder import Encoder
+from ssmvpr_slam.backend.g2o_io import from_pose_graph
+from ssmvpr_slam.backend.loop_registration import LoopRegistrar, LoopRegistration, build_local_map
+from ssmvpr_slam.backend.pose_graph import PoseGraph
+from ssmvpr_slam.config import SlamConfig
+from ssmvpr_slam.prior_map import PriorMap
+from ssmvpr_slam.result import (
+    Keyframe,
+    LoopRecord,
+    RunResult,
+    StageTimes,
+    StreamEnd,
+    frozen_array,
+    keyframe_poses,
+)
+
+
+@dataclass
+class RunState:
+    """What the system has accumulated so far (read it for progress; change it never)."""
+
+    keyframes: list[Keyframe] = field(default_factory=list)
+    loops: list[LoopRecord] = field(default_factory=list)
+    frames_seen: int = 0
+    frames_skipped: Counter[str] = field(default_factory=Counter)
+    rear_keyframes: int = 0  # keyframes queried with a rear image too
+    times: StageTimes = field(default_factory=StageTimes)
+
+
+class SlamSystem:
+    """Streaming SLAM with SSM-VPR loop closures: ``process(frame)``, then ``finish()``.
+
+    graph: the pose graph to build (default: a `PoseGraph` for the configured odometry); tests
+    hand in a wrapper (e.g. one that injects wrong loops) through it."""
+
+    def __init__(
+        self,
+        config: SlamConfig,
+        odometry: Odometry,
+        backbone: Backbone,
+        prior_map: PriorMap | None = None,
+        graph: PoseGraph | None = None,
+    ) -> None:
+        self.config = config
+        self.odometry = odometry
+        self.selector = KeyframeSelector(config.frontend.keyframes)
+        self.prior_map = prior_map
+        # the session grows its own copy: the prior map stays as it was loaded
+        database = prior_map.database.copy() if prior_map is not None else None
+        self.detector = LoopDetector(config.vpr, config.detector, Encoder(config.vpr, backbone), database)
+        self.registrar = LoopRegistrar(config.backend.registration)
+        self.graph = graph if graph is not None else PoseGraph(config.backend.pose_graph.for_odometry(config.frontend.odometry.kind))
+        self.state = RunState()
+        self._result: RunResult | None = None
+
+    # ---- per frame ------------------------------------------------------------------------
+    def process(self, frame: Frame) -> None:
+        """Odometry for every frame; a keyframe also gets recognised, registered and graphed."""
+        if self._result is not None:
+            raise RuntimeError("SlamSystem.process: the run is finished (finish() was called)")
+        self.state.frames_seen += 1
+        pose = self.odometry.update(frame)  # every scan feeds the odometry, camera or not
+        if pose is None or not np.all(np.isfinite(pose)):
+            self.state.frames_skipped["odometry gave no pose"] += 1
+            return
+        if frame.image is None:
+            self.state.frames_skipped["no camera image"] += 1
+            return
+        if not self.selector.select(pose, frame.timestamp):
+            return
+        self._keyframe(frame, pose)
+
+    def _keyframe(self, frame: Frame, pose: np.ndarray) -> None:
+        scan = self._keep_scan(self._scan_of(frame)) if self.config.pipeline.use_lidar_for_loops else None
+        kf = Keyframe(
+            id=len(self.state.keyframes),
+            frame_index=frame.index,
+            timestamp=frame.timestamp,
+            odom_pose=np.array(pose, dtype=np.float64),
+            gt_pose=None if frame.gt_pose is None else np.array(frame.gt_pose, dtype=np.float64),
+            scan=scan,
+            image=frame.image,
+            rear_image=frame.rear_image if scan is None else None,
+        )
+        if frame.rear_image is not None and self.config.detector.rear.enabled:
+            self.state.rear_keyframes += 1
+        self.state.keyframes.append(kf)
+        t0 = time.perf_counter()
+        self.graph.add_keyframe(kf.id, kf.odom_pose)
+        proposal = self.detector.process(frame.image, kf.id, kf.odom_pose[:3, 3], frame.timestamp, frame.rear_image)
+        t_reg = 0.0
+        if proposal is not None:
+            self.state.loops.append(LoopRecord(proposal))  # recorded even if registration fails
+            if proposal.accepted:
+                t1 = time.perf_counter()
+                registration = self._register(kf, proposal)
+                t_reg = time.perf_counter() - t1
+                self.state.loops[-1] = self._add_loop(LoopRecord(proposal, registration))
+        t2 = time.perf_counter()
+        self.graph.update()
+        t_graph = time.perf_counter() - t2
+        timings = self.detector.timings
+        self.state.times.rows.append({
+            "backbone": timings.backbone, "database_query": timings.database_query,
+            "spatial_matching": timings.spatial_matching, "sequence_matching": timings.sequence_matching,
+            "gate": timings.gate,
+            "registration": t_reg, "isam2_update": t_graph, "total": time.perf_counter() - t0,
+        })  # fmt: skip
+
+    def _add_loop(self, record: LoopRecord) -> LoopRecord:
+        """The record with its factor handle, once an accepted registration became a factor."""
+        reg, proposal = record.registration, record.proposal
+        if reg is None or not reg.accepted:
+            return record
+        if proposal.prior_map:
+            assert self.prior_map is not None  # a prior-map proposal needs a prior map
+            place_pose = self.prior_map.pose(proposal.match_place)
+            handle = self.graph.add_map_loop(proposal.match_place, place_pose, proposal.query_id, reg.T_mq, reg.sigmas)
+        else:
+            handle = self.graph.add_loop(proposal.match_id, proposal.query_id, reg.T_mq, sigmas=reg.sigmas)
+        return replace(record, factor_handle=handle)
+
+    def _scan_of(self, frame: Frame) -> np.ndarray | None:
+        """The odometry's motion-compensated scan when it has one (kiss-icp), else the raw one."""
+        deskewed = getattr(self.odometry, "last_scan", None)
+        return deskewed if deskewed is not None else frame.points
+
+    def _keep_scan(self, points: np.ndarray | None) -> np.ndarray | None:
+        if points is None or len(points) == 0:
+            return None
+        from kiss_icp.voxelization import voxel_down_sample
+
+        lidar = self.config.backend.registration.lidar
+        finite = np.asarray(points, dtype=np.float64)
+        finite = finite[np.isfinite(finite).all(axis=1)]
+        voxel = lidar.voxel_size * lidar.map_downsample_factor
+        return voxel_down_sample(finite, voxel) if len(finite) else None
+
+    def _register(self, kf: Keyframe, proposal: LoopProposal) -> LoopRegistration:
+        """ICP against a local map around the match when both have scans, else a place prior."""
+        if proposal.prior_map:
+            return self._register_to_map(kf, proposal)
+        match = self.state.keyframes[proposal.match_id]
+        if kf.scan is not None and match.scan is not None:
+            half = self.config.backend.registration.lidar.local_map_half_window
+            window = self.state.keyframes[max(0, match.id - half) : match.id + half + 1]
+            window = [k for k in window if k.scan is not None]
+            local_map = build_local_map(
+                [k.scan for k in window], [k.odom_pose for k in window], match.odom_pose,
+                self.config.backend.registration.lidar.max_range,
+            )  # fmt: skip
+            return self.registrar.register_scans(kf.scan, local_map, proposal.yaw_guess)
+        if proposal.camera == "rear":  # the rear image saw what the match's forward camera saw
+            if kf.rear_image is None:
+                return self.registrar.yaw_prior(proposal.yaw_guess, "rear camera match: no rear image kept")
+            return self.registrar.register_images(kf.rear_image, match.image, proposal.yaw_guess, query_yaw_offset=math.pi)
+        return self.registrar.register_images(kf.image, match.image, proposal.yaw_guess)
+
+    def _register_to_map(self, kf: Keyframe, proposal: LoopProposal) -> LoopRegistration:
+        """ICP against the prior map's scans around the place, else the visual place prior."""
+        place = proposal.match_place
+        pose = self.prior_map.pose(place) if self.prior_map is not None else None
+        if pose is None or self.prior_map is None:
+            reason = "prior place has no pose in its map (its session was never anchored)"
+            return LoopRegistration(np.eye(4), False, reason, np.nan, np.nan)
+        lidar = self.config.backend.registration.lidar
+        parts = self.prior_map.neighbourhood(place, lidar.local_map_half_window)
+        if kf.scan is not None and parts:
+            scans, poses = zip(*parts)
+            local_map = build_local_map(scans, poses, pose, lidar.max_range)
+            return self.registrar.register_scans(kf.scan, local_map, proposal.yaw_guess)
+        return self.registrar.yaw_prior(proposal.yaw_guess, "prior-map place: no scans to align")
+
+    # ---- the end --------------------------------------------------------------------------
+    @property
+    def finished(self) -> bool:
+        return self._result is not None
+
+    def finish(self, ending: StreamEnd | None = None) -> RunResult:
+        """Final optimisation (GNC when configured) and the run's result.
+
+        Runs once: the final pass may remove loops from the graph, so a second call returns
+        the same result instead of optimising again (and ignores its `ending`)."""
+        if self._result is None:
+            self._result = self._final_result(ending or StreamEnd())
+        return self._result
+
+    def _final_result(self, ending: StreamEnd) -> RunResult:
+        optimised = self.graph.finalize() if self.state.keyframes else {}
+        return self._result_with(optimised, set(self.graph.loop_handles), ending)
+
+    def partial_result(self, ending: StreamEnd) -> RunResult:
+        """The run so far with iSAM2's current estimate, without the final pass (a checkpoint's
+        view: the system goes on afterwards, unchanged). Its `database` is the live one, which
+        the next keyframe extends: write it out before processing on."""
+        optimised = self.graph.optimized_poses() if self.state.keyframes else {}
+        return self._result_with(optimised, set(self.graph.loop_handles), ending)
+
+    def _result_with(self, by_id: dict[int, np.ndarray], final: set[int], ending: StreamEnd) -> RunResult:
+        state = self.state
+        kfs = tuple(state.keyframes)
+        stamps, odom = keyframe_poses(kfs)
+        optimised, in_map, pose_graph = odom, odom, None
+        if kfs:
+            optimised = frozen_array([by_id[k.id] for k in kfs])
+            in_map = self._in_map_frame(optimised)
+            pose_graph = from_pose_graph(self.graph, optimised)
+        loops = tuple(
+            replace(r, dropped=True) if r.factor_handle is not None and r.factor_handle not in final else r
+            for r in state.loops
+        )
+        return RunResult(
+            keyframes=kfs,
+            loops=loops,
+            stamps=stamps,
+            odometry=odom,
+            optimised=optimised,
+            in_map_frame=in_map,
+            anchored=self.graph.anchor() is not None if kfs else False,
+            frames_seen=state.frames_seen,
+            frames_skipped=dict(state.frames_skipped),
+            rear_keyframes=state.rear_keyframes,
+            timings=tuple(dict(r) for r in state.times.rows),
+            odometry_stats=_odometry_stats(self.odometry),
+            ending=ending,
+            pose_graph=pose_graph,
+            database=self.detector.database,
+            session_places=self.session_places(),
+            prior_map=self.prior_map,
+        )
+
+    def _in_map_frame(self, optimised: np.ndarray) -> np.ndarray | None:
+        """Poses in the map frame: the session's own without a prior map, the prior map's once
+        a map loop anchored the session, None if it never was."""
+        if self.prior_map is None:
+            return optimised
+        anchor = self.graph.anchor()
+        return None if anchor is None else frozen_array(np.linalg.inv(anchor) @ optimised)
+
+    def session_places(self) -> dict[int, int]:
+        """Keyframe id -> database place index of this session's places."""
+        database = self.detector.database
+        if database is None:
+            return {}
+        first = self.detector.prior_places
+        return {database.places[i].frame_id: i for i in range(first, len(database))}
+
+    # ---- resuming from a checkpoint: plain data in, no files --------------------------------
+    def detector_state(self) -> dict[str, np.ndarray] | None:
+        """The detector's state as arrays, None while the PCA warm-up still buffers keyframes."""
+        return self.detector.state_arrays() if self.detector.ready else None
+
+    def restore(self, partial: RunResult, detector_state: dict[str, np.ndarray]) -> None:
+        """Continue a run from its checkpoint (`partial_result` + `detector_state`, reloaded).
+
+        The pose graph is rebuilt by repeating the original calls in their order (each
+        keyframe, its loop factor, one iSAM2 step), so it is the graph the run had; the
+        odometry's state is re-derived by `replay_odometry` on the frames already seen."""
+        if self.state.frames_seen or self.state.keyframes or self.finished:
+            raise RuntimeError("SlamSystem.restore: only a fresh system can be restored")
+        if partial.database is None:
+            raise ValueError("restore: the checkpoint holds no place database")
+        self.detector.load_state_arrays(detector_state, partial.database)
+        rows = [dict(r) for r in partial.timings]
+        self.state = RunState([], [], partial.frames_seen, Counter(partial.frames_skipped), partial.rear_keyframes,
+                              StageTimes(rows))  # fmt: skip
+        loops: dict[int, list[LoopRecord]] = {}
+        for record in partial.loops:
+            loops.setdefault(record.proposal.query_id, []).append(record)
+        for kf in partial.keyframes:
+            self.state.keyframes.append(kf)
+            self.graph.add_keyframe(kf.id, kf.odom_pose)
+            for record in loops.get(kf.id, []):
+                restored = self._add_loop(replace(record, factor_handle=None)) if record.factor_handle is not None else record
+                if restored.factor_handle != record.factor_handle:
+                    raise ValueError(f"restore: keyframe {kf.id}'s loop factor came back as handle "
+                                     f"{restored.factor_handle}, the checkpoint says {record.factor_handle}")  # fmt: skip
+                self.state.loops.append(record)
+            self.graph.update()
+
+    def replay_odometry(self, frame: Frame) -> None:
+        """Feed a frame processed before the checkpoint to the odometry only (its state is not
+        serialisable: kiss-icp's voxel map lives in C++)."""
+        self.odometry.update(frame)
+
+    def resume_keyframe_selection(self) -> None:
+        """After the replay: the next keyframe is chosen relative to the checkpoint's last one."""
+        self.selector.reset()
+        if self.state.keyframes:
+            last = self.state.keyframes[-1]
+            self.selector.select(last.odom_pose, last.timestamp)
+            self.selector.count = len(self.state.keyframes)
+
+
+def _odometry_stats(odometry: Odometry) -> dict[str, Any]:
+    stats = getattr(odometry, "stats", None)
+    if stats is None:
+        return {}
+    return {k: (Counter(v) if isinstance(v, Counter) else set(v) if isinstance(v, set) else v) for k, v in vars(stats).items()}

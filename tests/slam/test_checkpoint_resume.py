@@ -1,0 +1,193 @@
+"""Crash safety: a `run` killed with SIGKILL midway keeps its last checkpoint; the checkpoint
+reads as a partial result and opens as `--map`; `run LOG --resume DIR` finishes the run, and
+its trajectory equals an uninterrupted run's.
+
+Log: the block_grid route in a city of 10 m blocks, 5 Hz, 120 frames, camera only, with the
+logged odometry drifting (heading bias, scale error); a keyframe every second frame (60), the
+first revisit from keyframe ~33. Small settings keep it to about a minute on 2 shared cores:
+input 112 px, 8 PCA dimensions, PCA fitted on 15 keyframes, a checkpoint every 5 keyframes.
+The kill comes once a checkpoint holds 40 keyframes, so loop factors are in the restored graph
+and more come after the resume.
+
+Tolerance: the resumed trajectory equals the uninterrupted one to 1e-6 (m, and per element of
+the rotation matrices), which is the 9 decimals of the TUM files compared: the detector's state
+and the graph are restored exactly, and logged odometry replays deterministically.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from frontend.config import McapWriterConfig
+from frontend.simulation import SimulationConfig, TraverseSimulator
+from frontend.sources import write_frames
+from ssmvpr_slam.checkpoint import load_checkpoint
+from ssmvpr_slam.config import load_config
+from ssmvpr_slam.evaluation.trajectory_io import read_tum
+from ssmvpr_slam.prior_map import PriorMap
+
+from cli_helpers import assert_user_error, clean_ssmvpr_environment, invoke  # noqa: E402, F401
+
+pytestmark = pytest.mark.slow
+
+FRAMES = 120
+KILL_AT_KEYFRAMES = 40
+TOLERANCE = 1e-6
+
+CONFIG = """\
+vpr:
+  backbone: {input_size: 112, device: cpu}
+  filtering: {pca: {dim: 8}}
+  spatial: {pca: {dim: 8}}
+detector: {pca_warmup_keyframes: 15}
+frontend:
+  keyframes: {min_distance_m: null, min_angle_deg: null, max_interval_s: 0.35}
+  odometry:
+    kind: logged
+    logged: {pose_source: logged, drift: {enabled: true, yaw_bias_per_m: 0.002, translation_scale_error: 0.02}}
+pipeline: {use_lidar_for_loops: false}
+evaluation: {loops: {min_frame_gap: 25}}
+results: {plots: false, checkpoint_every_keyframes: 5, checkpoint_every_s: null}
+"""
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory: pytest.TempPathFactory) -> SimpleNamespace:
+    base = tmp_path_factory.mktemp("resume")
+    sim = SimulationConfig(frame_rate_hz=5.0, city={"block_size_m": 10.0}, route={"preset": "block_grid", "laps": 2},
+                           max_frames=FRAMES, lidar={"enabled": False})  # fmt: skip
+    frames = list(TraverseSimulator(sim).frames())
+    writer = McapWriterConfig(image_format="png", chunk_size=256 * 1024)  # lossless: the same pixels on every read
+    log = base / "log.mcap"
+    assert write_frames(iter(frames), log, writer) == FRAMES
+    short = base / "short.mcap"
+    assert write_frames(iter(frames[:8]), short, writer) == 8
+    config = base / "small.yaml"
+    config.write_text(CONFIG)
+    return SimpleNamespace(base=base, log=log, short=short, config=config)
+
+
+def _env() -> dict[str, str]:
+    return {k: v for k, v in os.environ.items() if not k.upper().startswith("SSMVPR_")}
+
+
+@pytest.fixture(scope="module")
+def killed(inputs: SimpleNamespace, weights_path: Path) -> SimpleNamespace:
+    """`run` in a subprocess, killed with SIGKILL once a checkpoint holds KILL_AT_KEYFRAMES."""
+    out = inputs.base / "killed"
+    command = [sys.executable, "-c", "from ssmvpr_slam.cli import app; app()", "run", str(inputs.log),
+               "-c", str(inputs.config), "--weights", str(weights_path), "--out", str(out)]  # fmt: skip
+    log_file = open(inputs.base / "killed.log", "wb")  # noqa: SIM115
+    process = subprocess.Popen(command, stdout=log_file, stderr=subprocess.STDOUT, env=_env())
+    checkpointed = 0
+    deadline = time.monotonic() + 600
+    try:
+        while checkpointed < KILL_AT_KEYFRAMES:
+            assert process.poll() is None, f"the run ended before the kill:\n{(inputs.base / 'killed.log').read_text()}"
+            assert time.monotonic() < deadline, "no checkpoint came"
+            for record in out.glob("run_*/checkpoint/checkpoint.json"):
+                try:
+                    checkpointed = json.loads(record.read_text())["keyframes"]
+                except (OSError, ValueError):
+                    pass  # replaced under our feet: the next poll reads the new one
+            time.sleep(0.1)
+        process.send_signal(signal.SIGKILL)
+        assert process.wait(60) == -signal.SIGKILL
+    finally:
+        if process.poll() is None:
+            process.kill()
+        log_file.close()
+    [run_folder] = out.glob("run_*")
+    return SimpleNamespace(out=out, run_folder=run_folder, checkpoint=load_checkpoint(run_folder))
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(inputs: SimpleNamespace, weights_path: Path) -> Path:
+    out = inputs.base / "uninterrupted"
+    result = invoke("run", inputs.log, "-c", inputs.config, "--weights", weights_path, "--out", out)
+    assert result.exit_code == 0, result.output
+    return (out / "latest").resolve()
+
+
+@pytest.fixture(scope="module")
+def resumed(killed: SimpleNamespace, inputs: SimpleNamespace, weights_path: Path) -> SimpleNamespace:
+    result = invoke("run", inputs.log, "--resume", killed.run_folder, "--weights", weights_path)
+    assert result.exit_code == 0, result.output
+    return SimpleNamespace(result=result, folder=killed.run_folder)
+
+
+def test_the_kill_leaves_a_checkpoint_and_no_finished_results(killed: SimpleNamespace) -> None:
+    assert not (killed.out / "latest").exists()  # nothing was published
+    assert not (killed.run_folder / "metrics.json").exists()
+    assert (killed.run_folder / "checkpoint").is_symlink()
+    partial = killed.checkpoint.result
+    assert len(partial.keyframes) >= KILL_AT_KEYFRAMES and partial.ending.interrupted
+    assert any(r.in_graph for r in partial.loops)  # the restored graph has loop factors to rebuild
+
+
+def test_the_checkpoint_reads_as_a_partial_result(killed: SimpleNamespace) -> None:
+    checkpoint = killed.checkpoint
+    partial = checkpoint.result
+    stamps, odom = read_tum(checkpoint.folder / "odometry.tum")
+    _, optimised = read_tum(checkpoint.folder / "optimised.tum")
+    np.testing.assert_allclose(stamps, partial.stamps, atol=TOLERANCE)
+    np.testing.assert_allclose(odom, partial.odometry, atol=TOLERANCE)
+    np.testing.assert_allclose(optimised, partial.optimised, atol=TOLERANCE)
+    with open(checkpoint.folder / "loop_closures.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == len(partial.loops) and sum(r["in_graph"] == "1" for r in rows) == sum(r.in_graph for r in partial.loops)
+    assert all(k.image is not None and k.image.shape == (240, 320, 3) for k in partial.keyframes)
+
+
+def test_the_checkpoint_opens_as_a_prior_map(killed: SimpleNamespace, inputs: SimpleNamespace, weights_path: Path,
+                                              tmp_path: Path) -> None:  # fmt: skip
+    database = killed.run_folder / "checkpoint" / "database"
+    n = len(killed.checkpoint.result.keyframes)
+    prior = PriorMap.load(database, load_config(inputs.config).vpr)
+    assert len(prior) == n and len(prior.poses) == n and len(prior.gt_poses) == n
+    np.testing.assert_allclose(prior.poses[n - 1], killed.checkpoint.result.optimised[n - 1], atol=1e-9)
+    # and the command line takes it: a short session closes loops against it
+    result = invoke("run", inputs.short, "-c", inputs.config, "--map", database, "--weights", weights_path,
+                    "--out", tmp_path / "out")  # fmt: skip
+    assert result.exit_code == 0, result.output
+    metrics = json.loads((tmp_path / "out" / "latest" / "metrics.json").read_text())
+    assert metrics["prior_map_loops"]["places"] == n and metrics["prior_map_loops"]["loops_proposed"] >= 1
+
+
+def test_resume_refuses_other_settings_and_another_log(killed: SimpleNamespace, inputs: SimpleNamespace) -> None:
+    result = invoke("run", inputs.log, "--resume", killed.run_folder, "-c", inputs.config)
+    assert_user_error(result, "--resume", "--config cannot be combined")
+    result = invoke("run", inputs.short, "--resume", killed.checkpoint.folder)
+    assert_user_error(result, str(inputs.short), "not the log")
+    missing = inputs.base / "no_such_run"
+    assert_user_error(invoke("run", inputs.log, "--resume", missing), str(missing), "no such results folder")
+
+
+def test_resume_finishes_the_run_as_if_never_killed(resumed: SimpleNamespace, uninterrupted: Path,
+                                                     killed: SimpleNamespace) -> None:  # fmt: skip
+    folder = resumed.folder
+    assert (killed.out / "latest").resolve() == folder  # published under the run's own name
+    assert not list(folder.glob("checkpoint*"))  # the final results replaced the checkpoints
+    metrics = json.loads((folder / "metrics.json").read_text())
+    expected = json.loads((uninterrupted / "metrics.json").read_text())
+    assert metrics["resumed_from"]["frames"] == killed.checkpoint.result.frames_seen
+    assert metrics["frames"] == expected["frames"] == FRAMES and metrics["keyframes"] == expected["keyframes"]
+    assert metrics["loops"] == expected["loops"]
+    for name in ("odometry.tum", "optimised.tum"):
+        stamps, poses = read_tum(folder / name)
+        stamps_ref, poses_ref = read_tum(uninterrupted / name)
+        np.testing.assert_array_equal(stamps, stamps_ref)
+        assert np.abs(poses - poses_ref).max() <= TOLERANCE, name
+    assert (folder / "loop_closures.csv").read_text() == (uninterrupted / "loop_closures.csv").read_text()
+    assert (folder / "trajectory.mcap").stat().st_size > 0 and (folder / "database" / "manifest.json").is_file()
