@@ -37,14 +37,12 @@ OutOpt = Annotated[Optional[Path], typer.Option("--out", help="Results base fold
 
 
 def _user_errors() -> tuple[type[BaseException], ...]:
-    from frontend.errors import FrontendInputError
-    from loopclosure.errors import LoopClosureInputError, WeightsNotFoundError
+    from ssmvpr_common.errors import SsmvprError
     from ssmvpr_slam.backend.g2o_io import PoseGraphFileError
-    from ssmvpr_slam.errors import SlamError
 
-    # SlamError: ConfigError, OutputError, CheckpointError
-    return (FrontendInputError, LoopClosureInputError, WeightsNotFoundError, SlamError, FileNotFoundError,
-            PoseGraphFileError)  # fmt: skip
+    # SsmvprError: each package's errors (FrontendInputError, LoopClosureInputError,
+    # WeightsNotFoundError, ConfigError, OutputError, CheckpointError, ...)
+    return (SsmvprError, FileNotFoundError, PoseGraphFileError)
 
 
 def _print_error(message: str) -> None:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from ssmvpr_common.errors import SsmvprError
 
-class SlamError(Exception):
+
+class SlamError(SsmvprError):
     """Root of the errors `ssmvpr_slam` raises on purpose (configuration, outputs, checkpoints)."""

@@ -204,7 +204,7 @@ def test_pyproject_ships_every_package_and_the_presets() -> None:
 
     root = Path(__file__).resolve().parents[2]
     tool = tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]
-    found = find_packages(str(root), include=["ssmvpr_slam*", "frontend*", "loopclosure*"])
+    found = find_packages(str(root), include=["ssmvpr_slam*", "ssmvpr_common*", "frontend*", "loopclosure*"])
     assert set(tool["packages"]) == set(found) | {"ssmvpr_slam.presets"}
     assert tool["package-dir"] == {"ssmvpr_slam.presets": "configs"}
     assert tool["package-data"]["ssmvpr_slam.presets"] == ["*.yaml"]
