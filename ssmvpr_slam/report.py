@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import copy
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -195,8 +195,6 @@ def evaluate(
 
 
 def _reindexed(record: LoopRecord, index: dict[int, int]) -> LoopRecord:
-    from dataclasses import replace
-
     p = record.proposal
     return replace(record, proposal=replace(p, query_id=index[p.query_id], match_id=index[p.match_id]))
 

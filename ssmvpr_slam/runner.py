@@ -44,21 +44,16 @@ def run_log(
     """Stream `log` through SLAM (from `resume`'s checkpoint if given); returns the results
     folder and its metrics."""
     console = console or Console()
-    source = open_camera_source(log, config)
-    if resume is not None:
-        check_log(resume, log)  # before the slow part
+    source = open_camera_source(log, config, resume)
     prior = PriorMap.load(prior_map, config.vpr) if prior_map is not None else None  # before the slow part
-    system = SlamSystem(config, make_odometry(config.frontend.odometry, config.frontend.pose_files),
-                        load_backbone(config.vpr.backbone, progress=True), prior)  # fmt: skip
+    pipeline = SlamPipeline.around(build_system(config, prior))
     frames = iter(source)
-    pipeline = SlamPipeline.around(system)
     if resume is not None:
         restore_from_checkpoint(pipeline, resume, log, frames, console)
     run_folder = RunFolder(config.results.out_dir, name, resume.run_folder if resume else None)
     meta = CheckpointMeta(str(log), log_fingerprint(log), None if prior_map is None else str(prior_map), name)
-    checkpoints = Checkpointer(run_folder, config, meta, system, pipeline.ending.seconds)
-    with progress_bar(console, source) as show:
-        pipeline.run(frames, lambda state: show(state) or checkpoints.maybe())
+    checkpoints = Checkpointer(run_folder, config, meta, pipeline.system, pipeline.ending.seconds)
+    stream_frames(pipeline, frames, source, checkpoints, console)
     result = pipeline.finish()
     report = evaluate(result, config.evaluation)
     extra = run_description(log, source, config, prior_map, resume)
@@ -68,15 +63,36 @@ def run_log(
     return folder, metrics
 
 
-def open_camera_source(log: Path, config: SlamConfig) -> Source:
-    """The log's source, refused without camera images; `auto` odometry resolved for it."""
+def open_camera_source(log: Path, config: SlamConfig, resume: Checkpoint | None = None) -> Source:
+    """The log's source, refused without camera images (or, for a resume, when it is not the
+    checkpoint's log); `auto` odometry resolved for it."""
     source = open_source(log, config.frontend.source, config.frontend.pose_files)
     topics = source.topics
     if "camera" not in topics:  # places are recognised in images: a run without them finds no loop
         streams = ", ".join(sorted(topics)) or "none"
         raise FrontendInputError(f"{log}: no camera images to recognise places in (streams: {streams})")
+    if resume is not None:
+        check_log(resume, log)
     config.frontend.odometry = choose_odometry(config.frontend.odometry, topics, str(log))
     return source
+
+
+def build_system(config: SlamConfig, prior: PriorMap | None) -> SlamSystem:
+    """The core with its odometry and backbone (the slow part: the weights load here)."""
+    odometry = make_odometry(config.frontend.odometry, config.frontend.pose_files)
+    return SlamSystem(config, odometry, load_backbone(config.vpr.backbone, progress=True), prior)
+
+
+def stream_frames(pipeline: SlamPipeline, frames: Iterator[Frame], source: Source, checkpoints: Checkpointer,
+                  console: Console) -> None:  # fmt: skip
+    """Every frame through the pipeline, with a progress bar and a checkpoint when one is due."""
+    with progress_bar(console, source) as show:
+
+        def after_frame(state: RunState) -> None:
+            show(state)
+            checkpoints.maybe()
+
+        pipeline.run(frames, after_frame)
 
 
 def restore_from_checkpoint(pipeline: SlamPipeline, checkpoint: Checkpoint, log: Path, frames: Iterator[Frame],
@@ -126,8 +142,8 @@ def run_description(log: Path, source: Source, config: SlamConfig, prior_map: Pa
     """What metrics.json says about the run's inputs."""
     return {"log": str(log), "source": source.description, "source_stats": _stats(source),
             "odometry_kind": config.frontend.odometry.kind, "prior_map": str(prior_map) if prior_map else None,
-            "resumed_from": None if resume is None else {"checkpoint": str(resume.folder),
-                                                          "frames": resume.result.frames_seen}}  # fmt: skip
+            "resumed_from": None if resume is None else {"checkpoint": resume.folder.name, "frames": resume.result.frames_seen,
+                                                          "keyframes": len(resume.result.keyframes)}}  # fmt: skip
 
 
 def publish_results(run_folder: RunFolder, result: RunResult, report: RunReport, config: SlamConfig,
