@@ -109,7 +109,8 @@ class LoopDetector:
         self._advance(position)
         start = time.perf_counter()
         images = [self.encoder.prepare(image, f"keyframe {keyframe_id} image")]
-        use_rear = rear_image is not None and self.config.rear.enabled
+        # the rear image has nothing to match until the places exist (PCA warm-up)
+        use_rear = rear_image is not None and self.config.rear.enabled and self.database is not None
         if use_rear:
             images.append(self.encoder.prepare(rear_image, f"keyframe {keyframe_id} rear image"))
         raw = self.encoder.raw_cubes(images)

@@ -441,3 +441,12 @@ def test_no_state_during_the_warmup() -> None:
     feed(det, [0, 1], 0)
     with pytest.raises(RuntimeError, match="warm-up"):
         det.state_arrays()
+
+
+def test_rear_images_are_not_encoded_during_the_pca_warmup() -> None:
+    det = detector()
+    for k in range(WARMUP):
+        assert det.process(scene(k), k, rear_image=scene(500 + k)) is None
+    assert det.ready and det.encoder.backbone.images == WARMUP  # nothing to match them against yet
+    det.process(scene(50), WARMUP, rear_image=scene(2))
+    assert det.encoder.backbone.images == WARMUP + 2
