@@ -75,6 +75,34 @@ class FilteringConfig(_Strict):
     neighbours_per_vector: int | None = Field(
         default=None, ge=1, description="Nearest database vectors per query vector; None uses N as the paper does."
     )
+    # The nearest-vector search behind the votes (loopclosure/ann_index.py). exact and numpy give
+    # the same votes bit for bit (tested); ivf/hnsw are approximate (README "Speed": recall@N).
+    index: Literal["auto", "exact", "ivf", "hnsw", "numpy"] = Field(
+        default="auto",
+        description="exact: faiss brute-force inner products; ivf: faiss IVF (trained k-means lists), "
+        "hnsw: faiss HNSW graph (no training, slow to build); auto: exact up to ann_threshold_places, "
+        "ivf beyond; numpy: the reference brute force without faiss.",
+    )
+    ann_threshold_places: int = Field(default=50_000, ge=1, description="auto: places from which IVF replaces exact search.")
+    ivf_nlist: int | None = Field(
+        default=None, ge=1, description="IVF lists; None: 4*sqrt(vectors) as a power of two in [64, 16384]."
+    )
+    ivf_nprobe: int = Field(default=48, ge=1, description="IVF lists searched per query vector.")
+    ivf_train_vectors: int = Field(
+        default=40, ge=1, description="Training sample per IVF list (k-means on that many times nlist vectors)."
+    )
+    ivf_retrain_growth: float = Field(
+        default=4.0, gt=1.0,
+        description="Retrain (new k-means, all vectors re-added) when the map has grown this many times "
+        "since the last training: lists trained on the first streets go on fitting a grown city.",
+    )  # fmt: skip
+    hnsw_m: int = Field(default=32, ge=4, description="HNSW links per vector.")
+    hnsw_ef_construction: int = Field(default=80, ge=1)
+    hnsw_ef_search: int = Field(default=128, ge=1, description="HNSW search breadth (at least k is used).")
+    ann_candidates_factor: float = Field(
+        default=1.0, ge=1.0, description="ivf/hnsw: neighbours fetched per query vector, times k, then re-scored exactly."
+    )
+    faiss_threads: int = Field(default=1, ge=1, description="OpenMP threads of faiss searches (2 cores shared: 1).")
 
     @property
     def k_neighbours(self) -> int:
@@ -91,8 +119,11 @@ class SpatialConfig(_Strict):
 
 
 class DatabaseConfig(_Strict):
-    stage1_dtype: Literal["float16", "float32"] = "float32"
-    stage2_dtype: Literal["float16", "float32"] = "float16"
+    """How place codes are stored: float, or int8 with one float32 scale per vector (x ~ q * s,
+    s = max|x| / 127): 19.2 kB per place instead of 40.2 kB (README "Speed")."""
+
+    stage1_dtype: Literal["float16", "float32", "int8"] = "float32"
+    stage2_dtype: Literal["float16", "float32", "int8"] = "float16"
 
 
 class FrameCorrelationConfig(_Strict):

@@ -4,13 +4,24 @@ Each of a query's stage-I vectors finds its k nearest database vectors; every ne
 one vote for the place it belongs to; the places with the most votes go on to spatial
 matching. Excluded places (the recent past, in SLAM) are removed before the neighbours are
 chosen, so they can never crowd true candidates out of the top N.
+
+The neighbours are decided on exact similarities: float64 sums of the (exact) products of
+the float32 values, computed row by row in a fixed order. A float32 matrix product (BLAS,
+faiss) only proposes candidates: every vector within twice its rounding bound of the k-th
+similarity is re-scored exactly. So numpy brute force (`vote`) and an index
+(`loopclosure.ann_index`) that proposes a superset of the same vectors choose the same
+neighbours, votes and tie order, bit for bit, whatever order their kernels sum in.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
+
+# unit roundoff of float32: a d-term float32 dot product is within d*u*|q||x| of the exact value
+_F32_UNIT_ROUNDOFF = float(np.finfo(np.float32).eps) / 2.0
 
 
 @dataclass(frozen=True)
@@ -25,48 +36,116 @@ class Candidates:
         return int(self.places.shape[0])
 
 
-def vote(
+def empty_candidates() -> Candidates:
+    return Candidates(np.empty(0, np.int64), np.empty(0, np.int64), np.empty(0, np.float32))
+
+
+def similarity_margin(query: np.ndarray, max_norm: float) -> np.ndarray:
+    """(n,) how far under the k-th float32 similarity an exact top-k vector can lie: twice the
+    rounding bound of a float32 dot product, gamma_d |q| max|x|, doubled again for safety."""
+    d = query.shape[1]
+    gamma = d * _F32_UNIT_ROUNDOFF / (1.0 - d * _F32_UNIT_ROUNDOFF)
+    norms = np.linalg.norm(query.astype(np.float64), axis=1)
+    return 4.0 * gamma * norms * max(float(max_norm), 1e-30) + 1e-300
+
+
+def max_row_norm(rows: np.ndarray, chunk: int = 1 << 16) -> float:
+    """Largest L2 norm among (m, d) rows, a little rounded up (the margin needs an upper bound)."""
+    best = 0.0
+    for start in range(0, len(rows), chunk):
+        part = np.asarray(rows[start : start + chunk], dtype=np.float64)
+        if len(part):
+            best = max(best, float(np.sqrt(np.einsum("ij,ij->i", part, part).max())))
+    return best * (1.0 + 1e-6)
+
+
+def exact_similarities(query_row: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """(m,) float64 inner products of one query vector with (m, d) rows.
+
+    Products of float32 values are exact in float64 and each row is summed on its own, in the
+    same order whatever the other rows: the value of a vector does not depend on which set it
+    was scored in (a BLAS product's does, in the last bit)."""
+    return (np.asarray(rows, dtype=np.float64) * np.asarray(query_row, dtype=np.float64)).sum(axis=1)
+
+
+def rank_neighbours(
     query: np.ndarray,
-    database: np.ndarray,
-    k_neighbours: int,
+    rows: Callable[[np.ndarray], np.ndarray],
+    candidates: list[np.ndarray],
+    k: int,
+    per_place: int,
     num_candidates: int,
-    excluded: np.ndarray | None = None,
 ) -> Candidates:
-    """query (n, d); database (P, n, d) stage-I codes; excluded: place indices never to return."""
-    n_places, per_place, dim = database.shape
-    if query.ndim != 2 or query.shape[1] != dim:
-        raise ValueError(f"stage-I query must be (n, {dim}), got {query.shape}")
+    """Votes from each query row's k exact nearest among its candidate vector ids.
+
+    `candidates[r]`: ascending vector ids, a superset of row r's exact top k (or an index's
+    approximation of it); `rows(ids)` gives those vectors. Ties at the k-th similarity go to
+    the lower id; places tied on votes are ordered by summed similarity, then by index."""
+    ids_parts, sims_parts = [], []
+    for row, cand in enumerate(candidates):
+        if not len(cand):
+            continue
+        exact = exact_similarities(query[row], rows(cand))
+        if len(cand) > k:
+            threshold = np.partition(exact, len(cand) - k)[len(cand) - k]
+            keep = np.flatnonzero(exact >= threshold)[:k]
+            cand, exact = cand[keep], exact[keep]
+        ids_parts.append(cand)
+        sims_parts.append(exact)
+    if not ids_parts:
+        return empty_candidates()
+    neighbour_places = np.concatenate(ids_parts) // per_place
+    places, inverse = np.unique(neighbour_places, return_inverse=True)
+    votes = np.bincount(inverse)
+    similarity = np.bincount(inverse, weights=np.concatenate(sims_parts))
+    order = np.lexsort((-similarity, -votes))[:num_candidates]
+    max_votes = len(query) * min(k, per_place)
+    return Candidates(places[order], votes[order], (votes[order] / max_votes).astype(np.float32))
+
+
+def allowed_mask(n_places: int, excluded: np.ndarray | None) -> np.ndarray:
+    """Places that may be returned; `excluded` indices must lie in [0, n_places)."""
     allowed = np.ones(n_places, dtype=bool)
     if excluded is not None and len(excluded):
         excluded = np.asarray(excluded, dtype=np.int64)
         if excluded.min() < 0 or excluded.max() >= n_places:
             raise ValueError(f"excluded place indices must lie in [0, {n_places}), got {excluded.min()}..{excluded.max()}")
         allowed[excluded] = False
+    return allowed
+
+
+def vote(
+    query: np.ndarray,
+    database: np.ndarray,
+    k_neighbours: int,
+    num_candidates: int,
+    excluded: np.ndarray | None = None,
+    max_norm: float | None = None,
+) -> Candidates:
+    """Brute force: query (n, d); database (P, n, d) stage-I codes; excluded: place indices never
+    to return. `max_norm` bounds the database vectors' norms (computed when not given)."""
+    n_places, per_place, dim = database.shape
+    if query.ndim != 2 or query.shape[1] != dim:
+        raise ValueError(f"stage-I query must be (n, {dim}), got {query.shape}")
+    allowed = allowed_mask(n_places, excluded)
     n_allowed = int(allowed.sum())
     if n_allowed == 0:
-        return Candidates(np.empty(0, np.int64), np.empty(0, np.int64), np.empty(0, np.float32))
+        return empty_candidates()
 
-    sims = query.astype(np.float32, copy=False) @ database.reshape(-1, dim).T.astype(np.float32, copy=False)
+    flat = database.reshape(-1, dim)
+    sims = query.astype(np.float32, copy=False) @ flat.T.astype(np.float32, copy=False)
     if n_allowed < n_places:
         sims.reshape(len(query), n_places, per_place)[:, ~allowed, :] = -np.inf
     k = min(k_neighbours, n_allowed * per_place)
     n_vectors = sims.shape[1]
     if k < n_vectors:
-        # per row: the k-th largest value as a threshold, then the first k at or above it;
-        # avoids argpartition's full negated copy and index array (half the query time at 100k)
-        neighbours = np.empty((len(query), k), dtype=np.int64)
+        # per row: the k-th largest float32 value as a threshold (np.partition avoids argpartition's
+        # negated copy and index array), then every vector that may be in the exact top k
+        margin = similarity_margin(query, max_row_norm(flat) if max_norm is None else max_norm)
+        candidates = []
         for row, values in enumerate(sims):
             threshold = np.partition(values, n_vectors - k)[n_vectors - k]
-            neighbours[row] = np.flatnonzero(values >= threshold)[:k]
+            candidates.append(np.flatnonzero(values >= threshold - margin[row]))
     else:
-        neighbours = np.broadcast_to(np.arange(n_vectors), sims.shape)
-    neighbour_sims = np.take_along_axis(sims, neighbours, axis=1).ravel()
-    neighbour_places = (neighbours // per_place).ravel()
-    votes = np.bincount(neighbour_places, minlength=n_places)
-    similarity = np.bincount(neighbour_places, weights=neighbour_sims, minlength=n_places)
-
-    voted = np.flatnonzero(votes)
-    order = np.lexsort((-similarity[voted], -votes[voted]))[:num_candidates]
-    places = voted[order]
-    max_votes = len(query) * min(k, per_place)
-    return Candidates(places, votes[places], (votes[places] / max_votes).astype(np.float32))
+        candidates = [np.arange(n_vectors)] * len(query)
+    return rank_neighbours(query, lambda ids: flat[ids], candidates, k, per_place, num_candidates)

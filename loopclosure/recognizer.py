@@ -42,6 +42,7 @@ class Recognizer:
     def __init__(self, config: VPRConfig, database: PlaceDatabase) -> None:
         self.config = config
         self.database = database
+        database.configure_search(config.filtering)  # the database's stage-I index follows the config
 
     def query(
         self, codes: PlaceCodes, excluded: np.ndarray | None = None, boosted: np.ndarray | None = None

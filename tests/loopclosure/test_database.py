@@ -207,9 +207,9 @@ def _saved(codebooks, tmp_path, n: int = 5):
 def test_manifest_version_mismatch(codebooks, tmp_path):
     _, folder = _saved(codebooks, tmp_path)
     manifest = json.loads((folder / MANIFEST).read_text())
-    manifest["version"] = 2
+    manifest["version"] = 3
     (folder / MANIFEST).write_text(json.dumps(manifest))
-    with pytest.raises(LoopClosureInputError, match=r"manifest\.json has format version 2, this build reads 1"):
+    with pytest.raises(LoopClosureInputError, match=r"manifest\.json has format version 3, this build reads 1 and 2"):
         PlaceDatabase.load(folder)
 
 
@@ -305,3 +305,194 @@ def test_a_copy_grows_without_touching_the_original(codebooks):
     assert np.array_equal(prior.stage1, stage1)
     empty = PlaceDatabase(codebooks).copy()
     assert len(empty) == 0
+
+
+# ---- int8 codes -------------------------------------------------------------------------------
+def test_int8_storage_round_trip_and_bytes(codebooks, tmp_path):
+    config = DatabaseConfig(stage1_dtype="int8", stage2_dtype="int8")
+    db = PlaceDatabase(codebooks, config)
+    codes = _codes(6, seed=12)
+    db.add(codes, _infos(6))
+    assert db.bytes_per_place == N1 * D1 + N1 * 4 + GH * GW * D2 + GH * GW * 4
+    for stored, original in ((db.stage1, codes.stage1), (db.stage2, codes.stage2)):
+        values = np.asarray(stored)
+        assert values.dtype == np.float32 and values.shape == original.shape
+        # within half a step of the vector's own scale
+        step = np.abs(original).max(axis=-1, keepdims=True) / 127
+        assert (np.abs(values - original) <= 0.5 * step * (1 + 1e-5)).all()
+        np.testing.assert_array_equal(stored[2:4], values[2:4])
+    folder = db.save(tmp_path / "db")
+    assert json.loads((folder / MANIFEST).read_text())["version"] == 2
+    assert np.load(folder / "stage1.npy").dtype == np.int8 and np.load(folder / "stage2_scale.npy").shape == (6, GH, GW)
+    for loaded in (PlaceDatabase.load(folder), PlaceDatabase.load(folder, mmap=True)):
+        _assert_same_db(db, loaded)
+        assert loaded.bytes_per_place == db.bytes_per_place
+
+
+def test_int8_default_shapes_fit_in_20_kB(codebooks):
+    cb = Codebooks(_projection(120, 100, 1), _projection(120, 100, 2))
+    db = PlaceDatabase(cb, DatabaseConfig(stage1_dtype="int8", stage2_dtype="int8"))
+    rng = np.random.default_rng(0)
+    db.add(PlaceCodes(rng.standard_normal((1, 16, 100)).astype(np.float32), rng.standard_normal((1, 13, 13, 100)).astype(np.float32)))
+    assert db.bytes_per_place == 19_240 <= 20_000  # today's float32 + float16: 40,200
+
+
+@pytest.mark.parametrize("edit, match", [
+    (lambda f: np.save(f / "stage1_scale.npy", -np.ones((5, N1), np.float32)), r"stage1_scale\.npy: codes of 5 of 5 places are NaN, inf or negative"),
+    (lambda f: (f / "stage2_scale.npy").unlink(), r"stage2_scale\.npy"),
+    (lambda f: np.save(f / "stage1.npy", np.zeros((5, N1, D1), np.float32)), r"stage1\.npy: float32 codes, its manifest says int8"),
+])  # fmt: skip
+def test_broken_int8_files_are_named(codebooks, tmp_path, edit, match):
+    db = PlaceDatabase(codebooks, DatabaseConfig(stage1_dtype="int8", stage2_dtype="int8"))
+    db.add(_codes(5), _infos(5))
+    folder = db.save(tmp_path / "db")
+    edit(folder)
+    for mmap in (False, True):
+        with pytest.raises(LoopClosureInputError, match=match):
+            PlaceDatabase.load(folder, mmap=mmap)
+
+
+# ---- memory-mapped maps, grown in place ---------------------------------------------------------
+def _write_v1_map(folder, codebooks, n: int = 5):
+    """A map as the build before int8 and memory mapping wrote it (format version 1)."""
+    folder.mkdir(parents=True)
+    codes = _codes(n)
+    codebooks.save(folder / "codebooks.npz")
+    np.save(folder / "stage1.npy", codes.stage1)
+    np.save(folder / "stage2.npy", codes.stage2.astype(np.float16))
+    (folder / "places.json").write_text(json.dumps([{"frame_id": i, "timestamp": 0.0, "name": "", "extra": {}} for i in range(n)]))
+    manifest = {"format": "ssmvpr-place-database", "version": 1, "num_places": n, "stage1_shape": [N1, D1],
+                "stage2_shape": [GH, GW, D2], "config": {"stage1_dtype": "float32", "stage2_dtype": "float16"}, "extra": {}}
+    (folder / MANIFEST).write_text(json.dumps(manifest))
+    return codes
+
+
+@pytest.mark.parametrize("dtype", ["float32", "int8"])
+def test_memory_mapped_load_reads_the_same_and_copies_to_ram(codebooks, tmp_path, dtype):
+    db = PlaceDatabase(codebooks, DatabaseConfig(stage1_dtype=dtype, stage2_dtype=dtype))
+    db.add(_codes(7), _infos(7))
+    mapped = PlaceDatabase.load(db.save(tmp_path / "db"), mmap=True)
+    assert mapped.memory_mapped
+    assert isinstance(mapped._codes["stage2"].values.view, np.memmap)
+    _assert_same_db(db, mapped)
+    np.testing.assert_array_equal(mapped.filter(_codes(1).stage1[0], 5, 3).places, db.filter(_codes(1).stage1[0], 5, 3).places)
+    with pytest.raises(RuntimeError, match="read-only"):
+        mapped.add(_codes(1))
+    session = mapped.copy()  # a session grows its own copy in RAM
+    session.add(_codes(1, seed=3))
+    assert len(session) == 8 and len(mapped) == 7 and not session.memory_mapped
+
+
+def test_a_version_1_map_loads_mapped_and_grows_in_place(codebooks, tmp_path):
+    folder = tmp_path / "old"
+    codes = _write_v1_map(folder, codebooks)
+    ram = PlaceDatabase.load(folder)
+    np.testing.assert_array_equal(ram.stage1, codes.stage1)
+    db = PlaceDatabase.open(folder)
+    _assert_same_db(ram, db)
+    db.add(_codes(2, seed=5), _infos(2, start=5))
+    db.commit()
+    again = PlaceDatabase.load(folder)
+    assert len(again) == 7 and json.loads((folder / MANIFEST).read_text())["version"] == 1
+    np.testing.assert_array_equal(again.stage1[5:], _codes(2, seed=5).stage1)
+    np.testing.assert_array_equal(np.load(folder / "stage1.npy")[:5], codes.stage1)  # a plain .npy still
+
+
+@pytest.mark.parametrize("dtype", ["float32", "int8"])
+def test_open_append_commit_equals_a_database_built_in_ram(codebooks, tmp_path, dtype):
+    config = DatabaseConfig(stage1_dtype=dtype, stage2_dtype="float16" if dtype == "float32" else dtype)
+    codes = _codes(12, seed=6)
+    reference = PlaceDatabase(codebooks, config)
+    reference.add(codes, _infos(12))
+    db = PlaceDatabase(codebooks, config)
+    db.add(codes[0:3], _infos(3))
+    folder = db.save(tmp_path / "db")
+    grown = PlaceDatabase.open(folder)
+    for lo, hi in ((3, 4), (4, 9), (9, 12)):
+        grown.add(codes[lo:hi], _infos(hi - lo, start=lo))
+        grown.save(folder)  # to its own folder: a commit
+    _assert_same_db(grown, reference)
+    _assert_same_db(PlaceDatabase.load(folder), reference)
+    _assert_same_db(PlaceDatabase.load(folder, mmap=True), reference)
+
+
+def test_an_empty_map_opened_for_appending_starts_its_files(codebooks, tmp_path):
+    folder = PlaceDatabase(codebooks).save(tmp_path / "db")
+    db = PlaceDatabase.open(folder)
+    db.add(_codes(2), _infos(2))
+    db.commit()
+    db.add(_codes(1, seed=2), _infos(1, start=2))
+    db.commit()
+    assert db.memory_mapped and len(PlaceDatabase.load(folder)) == 3
+
+
+@pytest.mark.parametrize("dtype", ["float32", "int8"])
+def test_crash_between_the_data_and_the_manifest_of_an_append(codebooks, tmp_path, monkeypatch, dtype):
+    """Append to a mapped map, fail at the manifest (the commit point): a reload gives the
+    previous consistent count; opening it again cuts the orphan rows off and appends cleanly."""
+    config = DatabaseConfig(stage1_dtype=dtype, stage2_dtype=dtype)
+    db = PlaceDatabase(codebooks, config)
+    db.add(_codes(5), _infos(5))
+    folder = db.save(tmp_path / "db")
+    before = PlaceDatabase.load(folder)
+
+    import loopclosure.database as database_module
+
+    def crash(path, manifest):
+        raise OSError("simulated crash before the manifest")
+
+    grown = PlaceDatabase.open(folder)
+    grown.add(_codes(3, seed=8), _infos(3, start=5))  # the rows are in the files already
+    assert np.load(folder / "stage1.npy", mmap_mode="r").shape[0] == 8
+    monkeypatch.setattr(database_module, "write_manifest", crash)
+    with pytest.raises(OSError, match="simulated crash"):
+        grown.commit()
+    monkeypatch.undo()
+    assert len(json.loads((folder / "places.json").read_text())) == 8  # places.json went before the manifest
+    _assert_same_db(PlaceDatabase.load(folder), before)
+    _assert_same_db(PlaceDatabase.load(folder, mmap=True), before)
+
+    reopened = PlaceDatabase.open(folder)
+    assert np.load(folder / "stage1.npy").shape[0] == 5  # the uncommitted rows are gone
+    reopened.add(_codes(1, seed=9), _infos(1, start=5))
+    reopened.commit()
+    final = PlaceDatabase.load(folder)
+    assert len(final) == 6
+    np.testing.assert_array_equal(final.stage1[5:], _stored(codebooks, config, _codes(1, seed=9)))
+
+
+def _stored(codebooks, config, codes):
+    db = PlaceDatabase(codebooks, config)
+    db.add(codes)
+    return np.asarray(db.stage1)
+
+
+_KILL_CHILD = """
+import os, signal, sys
+import numpy as np
+sys.path.insert(0, {tests!r})
+from test_database import _codes, _infos
+from loopclosure.database import PlaceDatabase
+import loopclosure.database as m
+db = PlaceDatabase.open({folder!r})
+db.add(_codes(4, seed=21), _infos(4, start=5))
+m.write_manifest = lambda path, manifest: os.kill(os.getpid(), signal.SIGKILL)
+db.commit()
+"""
+
+
+def test_sigkill_mid_append_leaves_the_previous_map(codebooks, tmp_path):
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    db = PlaceDatabase(codebooks)
+    db.add(_codes(5), _infos(5))
+    folder = db.save(tmp_path / "db")
+    script = _KILL_CHILD.format(tests=os.path.dirname(__file__), folder=str(folder))
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120, check=False)
+    assert proc.returncode == -signal.SIGKILL, proc.stderr[-2000:]
+    assert np.load(folder / "stage1.npy", mmap_mode="r").shape[0] == 9  # the killed append's rows
+    _assert_same_db(PlaceDatabase.load(folder), db)
+    _assert_same_db(PlaceDatabase.load(folder, mmap=True), db)

@@ -1,0 +1,236 @@
+"""Stage-I nearest-vector search through faiss, kept in step with a growing place database.
+
+The index only proposes neighbours; `filtering.rank_neighbours` re-scores the proposals
+exactly and votes. Modes (`vpr.filtering.index`):
+
+- exact: faiss's brute-force inner-product kernel (`faiss.knn`, what `IndexFlatIP.search`
+  runs) over the database's own float32 array when codes are stored float32 (no copy), else
+  over a float32 mirror grown with the database. It asks for k + slack neighbours and
+  widens until every vector within the float32 rounding margin of the k-th is in, so the
+  votes equal numpy brute force (`filtering.vote`) bit for bit.
+- ivf: `IndexIVFFlat` with inner product. It is trained (k-means on `ivf_train_vectors` per
+  list, sampled evenly from all places so far) when first built, and trained anew, with every
+  vector re-added, each time the map has grown `ivf_retrain_growth` times since; between those
+  milestones new places are appended to the trained lists. The coarse quantizer is an HNSW
+  graph over the centroids, so choosing the lists costs little even with 16k of them.
+- hnsw: `IndexHNSWFlat`, appended to vector by vector; no training, but slow to build.
+- auto: exact up to `ann_threshold_places`, ivf beyond.
+
+Excluded places: the exclusion window of a streaming session is a suffix of the database,
+searched as the id range [0, first excluded) (`IDSelectorRange`, or a prefix of the array in
+exact mode); any other set is removed by `IDSelectorNot(IDSelectorBatch)` (ivf, hnsw) or by
+asking for more neighbours and dropping the excluded ones (exact).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import time
+from collections.abc import Callable, Iterator
+
+import numpy as np
+
+from loopclosure.config import FilteringConfig
+from loopclosure.filtering import similarity_margin
+
+Rows = Callable[[int, int], np.ndarray]  # (start, stop) vector ids -> float32 (stop - start, d)
+
+
+@contextlib.contextmanager
+def faiss_threads(n: int) -> Iterator[None]:
+    """faiss's OpenMP threads for one call: with 2 shared cores, 2 spinning threads were measured
+    10-300x slower than 1 while another process ran."""
+    import faiss
+
+    before = faiss.omp_get_max_threads()
+    faiss.omp_set_num_threads(n)
+    try:
+        yield
+    finally:
+        faiss.omp_set_num_threads(before)
+
+
+def auto_nlist(n_vectors: int) -> int:
+    """4 sqrt(N) lists, as a power of two in [64, 16384]."""
+    return int(min(16384, max(64, 2 ** round(math.log2(max(1.0, 4.0 * math.sqrt(n_vectors)))))))
+
+
+class StageOneIndex:
+    """Nearest stage-I vectors of a database of `per_place` vectors per place."""
+
+    def __init__(self, config: FilteringConfig, dim: int, per_place: int) -> None:
+        self.config = config
+        self.dim = dim
+        self.per_place = per_place
+        self.n_places = 0  # places the index holds
+        self.max_norm = 0.0  # largest stage-I vector norm seen (the exactness margin needs it)
+        self.kind = "exact" if config.index in ("auto", "exact") else config.index
+        self._mirror: np.ndarray | None = None  # float32 vectors for exact search (compact storage)
+        self._index = None  # faiss index (ivf, hnsw)
+        self._trained_at = 0  # places when the IVF lists were trained
+        self.build_seconds: list[tuple[str, int, float]] = []  # (what, places, seconds), newest last
+
+    # ---- keeping up with the database ---------------------------------------------------
+    def sync(self, n_places: int, rows: Rows, view: np.ndarray | None = None) -> None:
+        """Take in places [self.n_places, n_places). `view`: the database's (N, d) float32
+        vectors when it stores float32 (exact search reads them without a copy)."""
+        if n_places < self.n_places:
+            raise ValueError(f"the stage-I index holds {self.n_places} places, the database only {n_places}")
+        if n_places == self.n_places:
+            return
+        start_vec, stop_vec = self.n_places * self.per_place, n_places * self.per_place
+        for lo in range(start_vec, stop_vec, 1 << 18):
+            part = rows(lo, min(stop_vec, lo + (1 << 18)))
+            if len(part):
+                self.max_norm = max(self.max_norm, float(np.sqrt(np.einsum("ij,ij->i", part, part, dtype=np.float64).max())) * (1 + 1e-6))
+        if self.config.index == "auto" and self.kind == "exact" and n_places > self.config.ann_threshold_places:
+            self.kind, self._mirror = "ivf", None
+        if self.kind == "exact":
+            if view is None:
+                self._mirror = _grow(self._mirror, stop_vec, self.dim)
+                self._mirror[start_vec:stop_vec] = rows(start_vec, stop_vec)
+            self.n_places = n_places
+            return
+        t0 = time.perf_counter()
+        with faiss_threads(max(1, self.config.faiss_threads)):
+            if self.kind == "ivf":
+                if self._index is None or n_places >= self.config.ivf_retrain_growth * self._trained_at:
+                    self._build_ivf(n_places, rows)
+                    what = "ivf train + add"
+                else:
+                    self._add(rows, start_vec, stop_vec)
+                    what = "ivf add"
+            else:
+                if self._index is None:
+                    import faiss
+
+                    self._index = faiss.IndexHNSWFlat(self.dim, self.config.hnsw_m, faiss.METRIC_INNER_PRODUCT)
+                    self._index.hnsw.efConstruction = self.config.hnsw_ef_construction
+                self._add(rows, start_vec, stop_vec)
+                what = "hnsw add"
+        self.build_seconds.append((what, n_places - self.n_places, time.perf_counter() - t0))
+        del self.build_seconds[:-16]
+        self.n_places = n_places
+
+    def _build_ivf(self, n_places: int, rows: Rows) -> None:
+        import faiss
+
+        n_vectors = n_places * self.per_place
+        nlist = min(self.config.ivf_nlist or auto_nlist(n_vectors), n_vectors)
+        quantizer = faiss.IndexHNSWFlat(self.dim, 32, faiss.METRIC_INNER_PRODUCT)
+        index = faiss.IndexIVFFlat(quantizer, self.dim, nlist, faiss.METRIC_INNER_PRODUCT)
+        index.cp.niter = 10
+        index.cp.spherical = True  # inner product: unit centroids, or the longest ones take every vector
+        n_train = min(n_vectors, self.config.ivf_train_vectors * nlist)
+        picks = np.unique(np.linspace(0, n_vectors - 1, n_train).astype(np.int64))
+        sample = _gather(rows, picks)
+        # k-means assigns with a flat search (BLAS, batched); the graph is built over the centroids after
+        clustering = faiss.Clustering(self.dim, nlist, index.cp)
+        flat = faiss.IndexFlatIP(self.dim)
+        clustering.train(np.ascontiguousarray(sample, np.float32), flat)
+        centroids = faiss.vector_to_array(clustering.centroids).reshape(nlist, self.dim)
+        quantizer.hnsw.efConstruction = 40
+        quantizer.add(centroids)
+        index.is_trained = True
+        self._index, self._quantizer = index, quantizer
+        self._trained_at = n_places
+        self._add(rows, 0, n_vectors)
+
+    def _add(self, rows: Rows, start: int, stop: int) -> None:
+        for lo in range(start, stop, 1 << 18):
+            part = np.ascontiguousarray(rows(lo, min(stop, lo + (1 << 18))), np.float32)
+            self._index.add(part)
+
+    # ---- search -------------------------------------------------------------------------
+    def candidates(
+        self, query: np.ndarray, k: int, excluded: np.ndarray, view: np.ndarray | None = None
+    ) -> list[np.ndarray]:
+        """Per query row, ascending vector ids proposed as its k nearest outside the `excluded`
+        places (sorted, unique); exact mode: a superset of the exact top k."""
+        query = np.ascontiguousarray(query, np.float32)
+        n_places = self.n_places
+        n_allowed_vectors = (n_places - len(excluded)) * self.per_place
+        k = min(k, n_allowed_vectors)
+        if k <= 0:
+            return [np.empty(0, np.int64) for _ in query]
+        # a suffix exclusion is the id range [0, limit)
+        limit = int(excluded[0]) if len(excluded) and excluded[0] + len(excluded) == n_places else None
+        with faiss_threads(max(1, self.config.faiss_threads)):
+            if self.kind == "exact":
+                return self._exact(query, k, n_allowed_vectors, excluded, limit, view)
+            return self._approximate(query, k, excluded, limit)
+
+    def _exact(
+        self, query: np.ndarray, k: int, n_allowed: int, excluded: np.ndarray, limit: int | None, view: np.ndarray | None
+    ) -> list[np.ndarray]:
+        import faiss
+
+        base = view if view is not None else self._mirror[: self.n_places * self.per_place]
+        if limit is not None:
+            base, excluded = base[: limit * self.per_place], excluded[:0]
+        excluded_ids = (excluded[:, None] * self.per_place + np.arange(self.per_place)).ravel()
+        margin = similarity_margin(query, self.max_norm)
+        out: list[np.ndarray | None] = [None] * len(query)
+        todo = np.arange(len(query))
+        kk = min(k + max(8, k // 4), n_allowed)
+        while len(todo):
+            fetch = min(kk + len(excluded_ids), len(base))
+            sims, ids = faiss.knn(query[todo], base, fetch, metric=faiss.METRIC_INNER_PRODUCT)
+            again = []
+            for row, s, i in zip(todo, sims, ids):
+                keep = (i >= 0) & ~np.isin(i, excluded_ids) if len(excluded_ids) else i >= 0
+                s, i = s[keep][:kk], i[keep][:kk]
+                kth = s[k - 1]
+                # complete: nothing left out can be within the margin of the k-th
+                if len(i) < kk or kk >= n_allowed or s[-1] < kth - margin[row]:
+                    out[row] = np.sort(i[s >= kth - margin[row]])
+                else:
+                    again.append(row)
+            todo, kk = np.asarray(again, np.int64), min(2 * kk, n_allowed)
+        return out  # type: ignore[return-value]
+
+    def _approximate(self, query: np.ndarray, k: int, excluded: np.ndarray, limit: int | None) -> list[np.ndarray]:
+        import faiss
+
+        if limit is not None:
+            selector = faiss.IDSelectorRange(0, limit * self.per_place)
+            keep_alive: tuple = (selector,)
+        elif len(excluded):
+            batch = faiss.IDSelectorBatch((excluded[:, None] * self.per_place + np.arange(self.per_place)).ravel())
+            selector = faiss.IDSelectorNot(batch)
+            keep_alive = (batch, selector)
+        else:
+            selector, keep_alive = None, ()
+        fetch = int(math.ceil(k * self.config.ann_candidates_factor))
+        if self.kind == "ivf":
+            params = faiss.SearchParametersIVF(nprobe=min(self.config.ivf_nprobe, self._index.nlist))
+            quantizer_params = faiss.SearchParametersHNSW(efSearch=max(64, 2 * params.nprobe))
+            params.quantizer_params = quantizer_params
+        else:
+            params = faiss.SearchParametersHNSW(efSearch=max(self.config.hnsw_ef_search, fetch))
+        if selector is not None:
+            params.sel = selector
+        _, ids = self._index.search(query, fetch, params=params)
+        del keep_alive
+        return [np.sort(i[i >= 0]) for i in ids]
+
+
+def _grow(array: np.ndarray | None, rows: int, dim: int) -> np.ndarray:
+    """A float32 (capacity, d) buffer holding at least `rows` rows, contents kept (doubling)."""
+    if array is not None and len(array) >= rows:
+        return array
+    grown = np.empty((max(rows, 2 * (0 if array is None else len(array)), 1024), dim), np.float32)
+    if array is not None:
+        grown[: len(array)] = array
+    return grown
+
+
+def _gather(rows: Rows, picks: np.ndarray, chunk: int = 1 << 18) -> np.ndarray:
+    """Rows at sorted vector ids `picks`, read chunk by chunk of the id range."""
+    parts = []
+    for lo in range(0, int(picks[-1]) + 1, chunk):
+        sel = picks[(picks >= lo) & (picks < lo + chunk)]
+        if len(sel):
+            parts.append(rows(lo, min(int(picks[-1]) + 1, lo + chunk))[sel - lo])
+    return np.concatenate(parts)

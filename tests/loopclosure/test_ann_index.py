@@ -1,0 +1,250 @@
+"""Stage I through faiss (loopclosure.ann_index): exact mode votes as numpy brute force does,
+bit for bit (places, counts, tie order), on random data, exact ties and real Corridor codes;
+IVF and HNSW honour exclusions, append incrementally and find most of the exact candidates."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from loopclosure.ann_index import StageOneIndex, auto_nlist
+from loopclosure.config import DatabaseConfig, FilteringConfig
+from loopclosure.database import PlaceDatabase
+from loopclosure.encoder import PlaceCodes
+from loopclosure.filtering import Candidates, vote
+from loopclosure.pca import Codebooks, PCAProjection
+
+pytest.importorskip("faiss")
+
+
+def _vote_float32_before_faiss(query, database, k_neighbours, num_candidates, excluded=None) -> Candidates:
+    """`filtering.vote` as it was before the faiss index (neighbours chosen on float32 BLAS
+    similarities): the reference the exact modes must reproduce."""
+    n_places, per_place, dim = database.shape
+    allowed = np.ones(n_places, dtype=bool)
+    if excluded is not None and len(excluded):
+        allowed[np.asarray(excluded, dtype=np.int64)] = False
+    n_allowed = int(allowed.sum())
+    if n_allowed == 0:
+        return Candidates(np.empty(0, np.int64), np.empty(0, np.int64), np.empty(0, np.float32))
+    sims = query.astype(np.float32, copy=False) @ database.reshape(-1, dim).T.astype(np.float32, copy=False)
+    if n_allowed < n_places:
+        sims.reshape(len(query), n_places, per_place)[:, ~allowed, :] = -np.inf
+    k = min(k_neighbours, n_allowed * per_place)
+    n_vectors = sims.shape[1]
+    if k < n_vectors:
+        neighbours = np.empty((len(query), k), dtype=np.int64)
+        for row, values in enumerate(sims):
+            threshold = np.partition(values, n_vectors - k)[n_vectors - k]
+            neighbours[row] = np.flatnonzero(values >= threshold)[:k]
+    else:
+        neighbours = np.broadcast_to(np.arange(n_vectors), sims.shape)
+    neighbour_sims = np.take_along_axis(sims, neighbours, axis=1).ravel()
+    neighbour_places = (neighbours // per_place).ravel()
+    votes = np.bincount(neighbour_places, minlength=n_places)
+    similarity = np.bincount(neighbour_places, weights=neighbour_sims, minlength=n_places)
+    voted = np.flatnonzero(votes)
+    order = np.lexsort((-similarity[voted], -votes[voted]))[:num_candidates]
+    places = voted[order]
+    max_votes = len(query) * min(k, per_place)
+    return Candidates(places, votes[places], (votes[places] / max_votes).astype(np.float32))
+
+
+def _same(a: Candidates, b: Candidates) -> None:
+    np.testing.assert_array_equal(a.places, b.places)
+    np.testing.assert_array_equal(a.votes, b.votes)
+    np.testing.assert_array_equal(a.scores, b.scores)
+
+
+def _projection(dim_in: int, dim: int, seed: int) -> PCAProjection:
+    rng = np.random.default_rng(seed)
+    return PCAProjection(
+        mean=np.zeros(dim_in, np.float32),
+        components=np.linalg.qr(rng.standard_normal((dim_in, dim)))[0].T.astype(np.float32),
+        explained_variance=np.ones(dim, np.float32),
+        whiten=False,
+        l2_normalize_output=True,
+    )
+
+
+def _database(stage1: np.ndarray, config: DatabaseConfig | None = None, index: str = "exact", **filtering) -> PlaceDatabase:
+    p, n, d = stage1.shape
+    db = PlaceDatabase(Codebooks(_projection(max(d, 8), d, 1), _projection(8, 3, 2)), config)
+    db.configure_search(FilteringConfig(index=index, **filtering))
+    db.add(PlaceCodes(stage1, np.zeros((p, 2, 2, 3), np.float32)))
+    return db
+
+
+def _unit(x: np.ndarray) -> np.ndarray:
+    return (x / np.linalg.norm(x, axis=-1, keepdims=True)).astype(np.float32)
+
+
+def _exclusions(draw, places: int) -> list[np.ndarray | None]:
+    window = draw(st.integers(0, places))
+    arbitrary = np.array(draw(st.lists(st.integers(0, places - 1), max_size=places, unique=True)), np.int64)
+    return [None, np.arange(places - window, places), arbitrary]
+
+
+# ---- exact: the same votes as numpy ------------------------------------------------------------
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    n=st.integers(1, 8),
+    per_place=st.integers(1, 6),
+    places=st.integers(1, 40),
+    d=st.integers(1, 12),
+    k=st.integers(1, 60),
+    lattice=st.booleans(),
+    data=st.data(),
+)
+@settings(max_examples=120, deadline=None)
+def test_exact_index_votes_as_numpy_brute_force(seed, n, per_place, places, d, k, lattice, data):
+    """Random vectors, and vectors on a small integer lattice (many exact ties, duplicated
+    vectors and places), under no, a suffix and an arbitrary exclusion."""
+    rng = np.random.default_rng(seed)
+    if lattice:
+        db = rng.integers(-1, 2, (places, per_place, d)).astype(np.float32)
+        query = rng.integers(-1, 2, (n, d)).astype(np.float32)
+    else:
+        db = rng.standard_normal((places, per_place, d)).astype(np.float32)
+        query = rng.standard_normal((n, d)).astype(np.float32)
+    database = _database(db)
+    for excluded in _exclusions(data.draw, places):
+        expected = vote(query, db, k, places, excluded)
+        _same(database.filter(query, k, places, excluded), expected)
+        if not lattice:  # no near-ties: the float32 selection of before agrees too
+            _same(expected, _vote_float32_before_faiss(query, db, k, places, excluded))
+
+
+@pytest.mark.parametrize("dtype", ["float32", "float16", "int8"])
+def test_exact_equals_numpy_for_every_storage(dtype):
+    rng = np.random.default_rng(3)
+    db = _unit(rng.standard_normal((300, 16, 20)))
+    query = _unit(db[17] + 0.4 * rng.standard_normal((16, 20)))
+    config = DatabaseConfig(stage1_dtype=dtype)
+    exact, numpy_ = _database(db, config, "exact"), _database(db, config, "numpy")
+    stored = np.asarray(exact.stage1)  # the values as stored (float16 / int8 * scale)
+    for excluded in (None, np.arange(250, 300), np.array([17, 3, 299, 150])):
+        expected = vote(query, stored, 50, 50, excluded)
+        _same(exact.filter(query, 50, 50, excluded), expected)
+        _same(numpy_.filter(query, 50, 50, excluded), expected)
+    assert exact.filter(query, 50, 50).places[0] == 17
+
+
+def test_exact_widens_until_every_tie_is_in():
+    """200 copies of one vector: the k-th similarity is shared by all of them; the lowest ids win."""
+    db = np.tile(_unit(np.ones((1, 1, 8))), (200, 1, 1))
+    query = _unit(np.ones((1, 8)))
+    database = _database(db)
+    got = database.filter(query, 5, 10)
+    _same(got, vote(query, db, 5, 10))
+    np.testing.assert_array_equal(got.places, [0, 1, 2, 3, 4])
+
+
+def test_exact_index_grows_with_the_database():
+    rng = np.random.default_rng(4)
+    db = _unit(rng.standard_normal((120, 4, 10)))
+    query = _unit(rng.standard_normal((4, 10)))
+    database = _database(db[:50])
+    database.filter(query, 8, 10)
+    for lo, hi in ((50, 51), (51, 120)):
+        database.add(PlaceCodes(db[lo:hi], np.zeros((hi - lo, 2, 2, 3), np.float32)))
+        _same(database.filter(query, 8, 10, np.arange(hi - 5, hi)), vote(query, db[:hi], 8, 10, np.arange(hi - 5, hi)))
+
+
+@pytest.fixture(scope="module")
+def corridor_codes(corridor_dir: Path, weights_path: Path) -> tuple[PlaceCodes, PlaceCodes]:
+    from loopclosure.backbone import load_backbone
+    from loopclosure.config import VPRConfig
+    from loopclosure.encoder import Encoder
+    from loopclosure.images import list_images, read_image
+
+    cfg = VPRConfig()
+    cfg.backbone.weights = str(weights_path)
+    cfg.backbone.device = "cpu"
+    encoder = Encoder(cfg, load_backbone(cfg.backbone))
+    refs = [encoder.prepare(read_image(p)) for p in list_images(corridor_dir / "ref")[::2]]
+    queries = [encoder.prepare(read_image(p)) for p in list_images(corridor_dir / "query")[::4]]
+    _, ref_codes = encoder.fit_and_encode(refs)
+    return ref_codes, encoder.encode(queries)
+
+
+@pytest.mark.parametrize("dtype", ["float32", "int8"])
+def test_exact_votes_as_numpy_on_real_corridor_codes(corridor_codes, dtype):
+    refs, queries = corridor_codes
+    config = DatabaseConfig(stage1_dtype=dtype)
+    database = _database(refs.stage1, config)
+    stored = np.asarray(database.stage1)
+    p = len(refs)
+    for q in range(len(queries)):
+        for excluded in (None, np.arange(p - 10, p), np.arange(0, p, 3)):
+            expected = vote(queries.stage1[q], stored, 50, 50, excluded)
+            _same(database.filter(queries.stage1[q], 50, 50, excluded), expected)
+            if dtype == "float32":
+                _same(expected, _vote_float32_before_faiss(queries.stage1[q], stored, 50, 50, excluded))
+
+
+# ---- approximate: ivf, hnsw -------------------------------------------------------------------
+def _streets(places: int, per_place: int, d: int, seed: int) -> np.ndarray:
+    """Places along streets: each vector slot drifts slowly from place to place (as keyframes do)."""
+    rng = np.random.default_rng(seed)
+    out = np.empty((places, per_place, d), np.float32)
+    x = rng.standard_normal((per_place, d))
+    for p in range(places):
+        x = 0.95 * x + 0.31 * rng.standard_normal((per_place, d)) if p % 100 else rng.standard_normal((per_place, d))
+        out[p] = x
+    return _unit(out)
+
+
+def _recall(a: Candidates, b: Candidates) -> float:
+    return len(np.intersect1d(a.places, b.places)) / max(1, len(b.places))
+
+
+@pytest.mark.parametrize("kind", ["ivf", "hnsw"])
+def test_approximate_indexes_find_the_exact_candidates_and_honour_exclusions(kind):
+    db = _streets(3000, 16, 24, seed=5)
+    rng = np.random.default_rng(6)
+    database = _database(db, index=kind, ivf_nprobe=128)
+    recalls = []
+    for t in range(12):
+        p = int(rng.integers(0, 3000))
+        query = _unit(db[p] + 0.1 * rng.standard_normal((16, 24)))
+        for excluded in (None, np.arange(2900, 3000), np.arange(p - 3, p + 4) % 3000):
+            got = database.filter(query, 50, 50, excluded)
+            assert len(got) == 50 and not np.isin(got.places, excluded if excluded is not None else []).any()
+            recalls.append(_recall(got, vote(query, db, 50, 50, excluded)))
+    assert np.mean(recalls) >= 0.9, np.mean(recalls)
+
+
+def test_ivf_appends_then_retrains_at_the_growth_milestone():
+    db = _streets(2000, 8, 16, seed=7)
+    config = FilteringConfig(index="ivf", ivf_retrain_growth=2.0)
+    index = StageOneIndex(config, 16, 8)
+    rows = lambda lo, hi: db.reshape(-1, 16)[lo:hi]  # noqa: E731
+    index.sync(600, rows)
+    index.sync(900, rows)  # 1.5x: appended to the trained lists
+    index.sync(1300, rows)  # 2.2x the 600 trained on: trained anew
+    assert [what for what, _, _ in index.build_seconds] == ["ivf train + add", "ivf add", "ivf train + add"]
+    assert index._index.ntotal == 1300 * 8 and index._trained_at == 1300
+    query = _unit(db[1250] + 0.1)
+    ids = index.candidates(query, 20, np.arange(1290, 1300))
+    assert all(len(i) and i.max() < 1290 * 8 for i in ids)
+
+
+def test_auto_switches_from_exact_to_ivf_past_the_threshold():
+    db = _streets(400, 4, 12, seed=8)
+    database = _database(db[:100], index="auto", ann_threshold_places=300)
+    query = _unit(db[50] + 0.05)
+    database.filter(query, 10, 10)
+    assert database.search_index().kind == "exact"
+    database.add(PlaceCodes(db[100:], np.zeros((300, 2, 2, 3), np.float32)))
+    assert database.filter(query, 10, 10).places[0] == 50
+    assert database.search_index().kind == "ivf"
+
+
+def test_auto_nlist():
+    assert auto_nlist(100) == 64 and auto_nlist(16_000_000) == 16384
+    assert auto_nlist(1_600_000) == 4096
