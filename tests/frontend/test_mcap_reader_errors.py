@@ -137,6 +137,31 @@ def test_a_bad_image_keeps_the_scan_of_its_frame(tmp_path: Path, damage: str) ->
     assert source.stats.skipped["undecodable_image"] == 1
 
 
+def test_a_bad_rear_image_keeps_the_rest_of_its_frame(tmp_path: Path) -> None:
+    """A corrupt rear image is a counted skip naming its topic; the frame keeps its forward
+    image and scan, and the rear camera's other frames keep theirs."""
+    path = tmp_path / "rear.mcap"
+    log = _RawLog(path)
+    rng = np.random.default_rng(5)
+    for i in range(4):
+        t = 1.0 + 0.1 * i
+        pixels = np.full((8, 8, 3), 9, np.uint8)
+        log.put("/camera/image_raw", ros_msgdefs.IMAGE, ros_convert.image_message(pixels, t, "cam"), t)
+        rear = ros_convert.compressed_image_message(pixels, t, "cam_rear", "jpeg", [])
+        if i == 1:
+            rear["data"] = b"\xff\xd8garbage"
+        log.put("/camera_rear/image_raw/compressed", ros_msgdefs.COMPRESSED_IMAGE, rear, t)
+        cloud = ros_convert.point_cloud_message(rng.normal(size=(50, 3)), None, t, "lidar")
+        log.put("/lidar", ros_msgdefs.POINT_CLOUD2, cloud, t)
+    log.close()
+    source = McapSource(path)
+    assert source.topics["rear_camera"].startswith("/camera_rear/image_raw/compressed")
+    frames = list(source)
+    assert [f.rear_image is None for f in frames] == [False, True, False, False]
+    assert all(f.image is not None and f.points is not None for f in frames)
+    assert source.stats.skipped["undecodable_image"] == 1
+
+
 def test_undecodable_compressed_image_is_counted(tmp_path: Path) -> None:
     path = tmp_path / "jpeg.mcap"
     write_frames([Frame(i, 1.0 + i, image=np.zeros((8, 8, 3), np.uint8)) for i in range(3)], path,
