@@ -291,7 +291,7 @@ def find_checkpoint(path: str | Path) -> Path:
     """The checkpoint version folder for a run's results folder or a checkpoint folder."""
     path = Path(path)
     if (path / META).is_file():
-        return path
+        return path.resolve()  # the `checkpoint` link itself: its version folder
     if (path / LINK / META).is_file():
         return (path / LINK).resolve()
     if not path.exists():

@@ -191,3 +191,8 @@ def test_resume_finishes_the_run_as_if_never_killed(resumed: SimpleNamespace, un
         assert np.abs(poses - poses_ref).max() <= TOLERANCE, name
     assert (folder / "loop_closures.csv").read_text() == (uninterrupted / "loop_closures.csv").read_text()
     assert (folder / "trajectory.mcap").stat().st_size > 0 and (folder / "database" / "manifest.json").is_file()
+
+
+def test_a_finished_run_is_not_resumed_again(resumed: SimpleNamespace, inputs: SimpleNamespace) -> None:
+    result = invoke("run", inputs.log, "--resume", resumed.folder)
+    assert_user_error(result, str(resumed.folder), "this run finished")
