@@ -45,7 +45,7 @@ class LoopProposal:
     yaw_guess: float  # rad, rotation of the query about z relative to the match, from the shift
     accepted: bool
     reason: str
-    direction: Literal["forward", "reverse"] | None = None  # of the sequence (None: injected loops)
+    direction: Literal["forward", "reverse"] | None = None  # of the winning sequence
     prior_map: bool = False  # the match comes from a database loaded from an earlier session
     sequence_score: float | None = None  # the decision score: stage-II scores averaged along the sequence
     sequence_terms: int = 0  # keyframes of the sequence that could be compared (at most L)
