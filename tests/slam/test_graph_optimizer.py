@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -10,8 +11,9 @@ import pytest
 from ssmvpr_slam.backend.g2o_io import (
     GraphEdge, PoseGraphData, information_planar_to_pose3, planar_pose, read_ground_truth, read_pose_graph,
 )  # fmt: skip
+from ssmvpr_slam.backend.config import GncConfig
 from ssmvpr_slam.backend.graph_optimizer import (
-    OptimizerSettings, check_kept_loops, chi2_threshold, initial_poses, optimize_graph, trajectory_ate,
+    OptimizerSettings, check_kept_loops, chi2_threshold, initial_poses, optimize_graph, refine_with_gnc, trajectory_ate,
 )  # fmt: skip
 from ssmvpr_slam.backend.se3 import make_pose, relative, rot_z
 
@@ -185,3 +187,17 @@ def test_leave_one_out_check_removes_false_loops_that_hold_a_bend_together(dim: 
         singles_only = OptimizerSettings(verify_group=0, verify_leverage=1.0)
         _, keep_single = check_kept_loops(bent_graph, bent.poses, np.ones(bent.n_loops, dtype=bool), singles_only)
         assert keep_single.all()
+
+
+def test_kernel_answer_is_kept_when_its_tls_objective_is_lower() -> None:
+    """GNC stopped after one step (a failed GNC) ends far from the optimum; the default compares
+    the TLS objective of that answer with the kernel solution's and returns the cheaper one."""
+    clean, noisy, gt = _drifting_graph(2, 4)
+    optimum = trajectory_ate(gt, optimize_graph(clean, OptimizerSettings(kernel="none", gnc=False)).poses, 2).stats.rmse
+    kernel = optimize_graph(noisy, OptimizerSettings(gnc=False))
+    assert trajectory_ate(gt, kernel.poses, 2).stats.rmse <= 1.1 * optimum
+    failed = OptimizerSettings(gnc_config=GncConfig(enabled=True, init="current", max_iterations=1))
+    alone = refine_with_gnc(noisy, kernel, replace(failed, verify=False))
+    assert trajectory_ate(gt, alone.poses, 2).stats.rmse > 2 * optimum and not alone.from_kernel
+    result = refine_with_gnc(noisy, kernel, failed)
+    assert result.from_kernel and trajectory_ate(gt, result.poses, 2).stats.rmse <= 1.1 * optimum
