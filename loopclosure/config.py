@@ -254,14 +254,16 @@ class DetectorConfig(_Strict):
         default=15.0, ge=0.0, description="Keyframes within this travelled distance (m) of the query are never candidates."
     )
     min_score: float = Field(
-        default=0.2, ge=0.0, le=1.0,
+        default=0.3, ge=0.0, le=1.0,
         description="Sequence score (the stage-II score when sequence.length is 1) below which nothing is proposed.",
     )  # fmt: skip
     accept_score: float | None = Field(
-        default=None, ge=0.0, le=1.0, description="Sequence score from which a proposal is accepted; None: min_score."
+        default=0.45, ge=0.0, le=1.0,
+        description="Sequence score from which a proposal is accepted (None: min_score). Demo stream, L=3: wrong "
+        "sequences <= 0.39, right ones median 0.62.",
     )
     min_single_score: float = Field(
-        default=0.0, ge=0.0, le=1.0,
+        default=0.25, ge=0.0, le=1.0,
         description="The keyframe's own stage-II score against the match needed to accept: a sequence that "
         "has just ended must not carry a loop onto a keyframe that no longer looks like the place.",
     )  # fmt: skip

@@ -169,7 +169,7 @@ class LidarRegistrationConfig(_Strict):
     inlier_distance: float = Field(
         0.5, gt=0, description="m; distance to the nearest raw map point counted as inlier"
     )
-    min_inlier_ratio: float = Field(0.5, ge=0, le=1)
+    min_inlier_ratio: float = Field(0.8, ge=0, le=1)  # demo: true loops >= 0.89, aliased streets <= 0.69
     max_rmse: float = Field(0.3, gt=0, description="m; RMSE of the inlier distances")
     min_points: int = Field(50, ge=3, description="after down-sampling, per cloud")
     local_map_half_window: int = Field(
