@@ -8,7 +8,8 @@ exactly and votes. Modes (`vpr.filtering.index`):
   over a float32 mirror grown with the database. It asks for k + slack neighbours and
   widens until every vector within the float32 rounding margin of the k-th is in, so the
   votes equal numpy brute force (`filtering.vote`) bit for bit.
-- ivf: `IndexIVFFlat` with inner product. It is trained (k-means on `ivf_train_vectors` per
+- ivf: `IndexIVFFlat` (or `IndexIVFScalarQuantizer` 8-bit, `ivf_codes: sq8`) with inner
+  product. It is trained (k-means on `ivf_train_vectors` per
   list, sampled evenly from all places so far) when first built, and trained anew, with every
   vector re-added, each time the map has grown `ivf_retrain_growth` times since; between those
   milestones new places are appended to the trained lists. The coarse quantizer is an HNSW
@@ -119,7 +120,12 @@ class StageOneIndex:
         n_vectors = n_places * self.per_place
         nlist = min(self.config.ivf_nlist or auto_nlist(n_vectors), n_vectors)
         quantizer = faiss.IndexHNSWFlat(self.dim, 32, faiss.METRIC_INNER_PRODUCT)
-        index = faiss.IndexIVFFlat(quantizer, self.dim, nlist, faiss.METRIC_INNER_PRODUCT)
+        if self.config.ivf_codes == "sq8":
+            index = faiss.IndexIVFScalarQuantizer(
+                quantizer, self.dim, nlist, faiss.ScalarQuantizer.QT_8bit, faiss.METRIC_INNER_PRODUCT
+            )
+        else:
+            index = faiss.IndexIVFFlat(quantizer, self.dim, nlist, faiss.METRIC_INNER_PRODUCT)
         index.cp.niter = 10
         index.cp.spherical = True  # inner product: unit centroids, or the longest ones take every vector
         n_train = min(n_vectors, self.config.ivf_train_vectors * nlist)
@@ -132,6 +138,8 @@ class StageOneIndex:
         centroids = faiss.vector_to_array(clustering.centroids).reshape(nlist, self.dim)
         quantizer.hnsw.efConstruction = 40
         quantizer.add(centroids)
+        if self.config.ivf_codes == "sq8":  # the per-dimension ranges of the 8-bit codes
+            index.sq.train(np.ascontiguousarray(sample, np.float32))
         index.is_trained = True
         self._index, self._quantizer = index, quantizer
         self._trained_at = n_places

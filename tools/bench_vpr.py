@@ -61,7 +61,7 @@ sys.path.insert(0, str(ROOT))
 from loopclosure.config import BackboneConfig, DatabaseConfig, SequenceMatchConfig, VPRConfig, feature_side, grid_side  # noqa: E402
 from loopclosure.database import PlaceDatabase  # noqa: E402
 from loopclosure.encoder import PlaceCodes  # noqa: E402
-from loopclosure.filtering import vote  # noqa: E402
+from loopclosure.filtering import max_row_norm, rank_neighbours, vote  # noqa: E402
 from loopclosure.pca import Codebooks, PCAProjection  # noqa: E402
 from loopclosure.spatial import best_query_cells, consistency_counts, spatial_scores  # noqa: E402
 
@@ -450,10 +450,11 @@ def bench_filtering(args, config: VPRConfig, sizes: list[int], repeats: int) -> 
         noise = [0.3 * rng.standard_normal(shape, dtype=np.float32) for _ in picks]
         queries = [unit_rows(db[p].astype(np.float32) + e) for p, e in zip(picks, noise)]
         excluded = np.arange(max(0, n_places - window), n_places)
+        norm = max_row_norm(db.reshape(-1, shape[-1]))  # a database keeps this bound up to date
         entry: dict = {"build_s": round(build_s, 2), "db_mb": round(db.nbytes / 2**20, 1)}
         for label, exc in (("no_exclusion", None), ("with_exclusion", excluded)):
             log(f"filtering P={n_places} {label}: {repeats} repeats")
-            samples = time_ms(lambda i, exc=exc: vote(queries[i], db, k, n_cand, exc), repeats, warmup=1)
+            samples = time_ms(lambda i, exc=exc: vote(queries[i], db, k, n_cand, exc, norm), repeats, warmup=1)
             entry[label] = stats(samples)
         bd = [filtering_breakdown(queries[i % len(queries)], db, k, excluded) for i in range(max(3, repeats // 2))]
         entry["breakdown_ms_median_with_exclusion"] = {
@@ -468,6 +469,146 @@ def bench_filtering(args, config: VPRConfig, sizes: list[int], repeats: int) -> 
         }
         out["sizes"][str(n_places)] = entry
         del db
+    return out
+
+
+# ---- stage I through faiss: exact vs IVF at growing sizes ----------------------------------------
+def street_codes(n_places: int, shape: tuple[int, int], seed: int, street: int = 200, rho: float = 0.93) -> np.ndarray:
+    """Synthetic stage-I codes shaped like real ones (measured on Corridor's PCA codes): a
+    power-law spectrum (variance of component i ~ 1/i: effective dimension 16.5, Corridor 16.5),
+    slots of one place independent (Corridor: cosine 0.016), each slot drifting along a street
+    of `street` places (AR(1), consecutive cosine ~rho; Corridor 0.93), a new street afresh."""
+    n, d = shape
+    rng = np.random.default_rng(seed)
+    sd = (np.arange(1, d + 1, dtype=np.float32) ** -0.5).astype(np.float32)
+    out = np.empty((n_places, n, d), np.float32)
+    n_streets = -(-n_places // street)
+    keep = np.float32(np.sqrt(1 - rho**2))
+    z = None
+    for step in range(street):  # all streets advance together
+        rows = np.arange(step, n_places, street)
+        e = rng.standard_normal((len(rows), n, d), dtype=np.float32) * sd
+        z = e if step == 0 else np.float32(rho) * z[: len(rows)] + keep * e
+        out[rows] = z
+    del n_streets
+    for start in range(0, n_places, 65536):
+        unit_rows(out[start : start + 65536])
+    return out
+
+
+def revisit_queries(db: np.ndarray, count: int, cosine: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Noisy copies of random places whose vectors keep `cosine` to the originals (Corridor's
+    query vectors: 0.71 to their best vector in the right place)."""
+    rng = np.random.default_rng(seed)
+    n, d = db.shape[1:]
+    sd = (np.arange(1, d + 1, dtype=np.float32) ** -0.5).astype(np.float32)
+    places = rng.integers(0, len(db), count)
+    noise = unit_rows(rng.standard_normal((count, n, d), dtype=np.float32) * sd)
+    sigma = np.float32(np.sqrt(1.0 / cosine**2 - 1.0))
+    return unit_rows(db[places] + sigma * noise), places
+
+
+def bench_stage1_index(args, config: VPRConfig, sizes: list[int], repeats: int) -> dict:
+    """Exact (faiss) vs IVF stage I: query ms and recall@N of the candidates against exact voting,
+    build and append seconds, on street-like synthetic codes with an exclusion window."""
+    from loopclosure.ann_index import StageOneIndex
+
+    shape = layout(config)["stage1"]
+    per, d = shape
+    k, n_cand, window = config.filtering.k_neighbours, config.filtering.num_candidates, args.exclude_recent
+    nprobes = _ints(args.nprobes)
+    out: dict = {
+        "codes": "street_codes: power-law spectrum, AR(1) slots along 200-place streets (see its docstring)",
+        "query_cosine": args.query_cosine, "k_neighbours": k, "num_candidates": n_cand,
+        "exclusion_window_places": window, "faiss_threads": config.filtering.faiss_threads,
+        "recall": "|ANN top-N places & exact top-N places| / N, mean (and min) over queries", "sizes": {},
+    }  # fmt: skip
+    for n_places in sizes:
+        gc.collect()
+        log(f"stage-I index P={n_places}: generating codes")
+        t0 = time.perf_counter()
+        db = street_codes(n_places + args.append_places, shape, seed=n_places)
+        flat = db.reshape(-1, d)
+        entry: dict = {"generate_s": round(time.perf_counter() - t0, 1), "loadavg_start": loadavg()}
+        queries, sources = revisit_queries(db[:n_places], repeats + 2, args.query_cosine, seed=1)
+        # the place a query revisits (within 2) among the candidates: what recognition needs
+        found = lambda c, i: bool(np.any(np.abs(c.places - sources[i]) <= 2))  # noqa: E731
+        excluded = np.arange(n_places - window, n_places)
+        rows = lambda lo, hi: flat[lo:hi]  # noqa: E731
+
+        exact = StageOneIndex(config.filtering.model_copy(update={"index": "exact"}), d, per)
+        t0 = time.perf_counter()
+        exact.sync(n_places, rows, flat[: n_places * per])
+        entry["exact_build_s"] = round(time.perf_counter() - t0, 3)
+
+        def run(index, q, view=None):
+            return rank_neighbours(q, lambda ids: flat[ids], index.candidates(q, k, excluded, view), k, per, n_cand)
+
+        log(f"stage-I index P={n_places}: exact, {args.exact_repeats} queries")
+        view = flat[: n_places * per]
+        truth = [run(exact, q, view) for q in queries[: args.exact_repeats]]
+        entry["exact_true_place_in_candidates"] = round(float(np.mean([found(c, i) for i, c in enumerate(truth)])), 4)
+        entry["exact_query_ms"] = stats(time_ms(lambda i: run(exact, queries[i], view), min(repeats, args.exact_repeats)))
+        del exact
+        gc.collect()
+        for nlist in (_ints(args.nlists) or [None]) if args.nprobes else []:
+            cfg = config.filtering.model_copy(
+                update={"index": "ivf", "ivf_nlist": nlist, "faiss_threads": args.build_threads, "ivf_codes": args.ivf_codes}
+            )
+            ivf = StageOneIndex(cfg, d, per)
+            log(f"stage-I index P={n_places}: IVF nlist={nlist or 'auto'} train + add")
+            t0 = time.perf_counter()
+            ivf.sync(n_places, rows)
+            key = f"ivf_nlist_{ivf._index.nlist}"
+            res: dict = {"build_s": round(time.perf_counter() - t0, 1), "build_threads": args.build_threads,
+                         "train_vectors": min(n_places * per, cfg.ivf_train_vectors * ivf._index.nlist), "nprobe": {}}  # fmt: skip
+            for nprobe in nprobes:
+                ivf.config = cfg.model_copy(update={"ivf_nprobe": nprobe, "faiss_threads": config.filtering.faiss_threads})
+                recall, hits = [], []
+                for i, (q, ref) in enumerate(zip(queries, truth)):
+                    got = run(ivf, q)
+                    recall.append(len(np.intersect1d(got.places, ref.places)) / max(1, len(ref.places)))
+                    hits.append(found(got, i))
+                res["nprobe"][str(nprobe)] = {
+                    "query_ms": stats(time_ms(lambda i: run(ivf, queries[i]), repeats)),
+                    "recall_at_n_mean": round(float(np.mean(recall)), 4), "recall_at_n_min": round(float(np.min(recall)), 4),
+                    "true_place_in_candidates": round(float(np.mean(hits)), 4),
+                }  # fmt: skip
+                log(f"  nprobe {nprobe}: {res['nprobe'][str(nprobe)]['query_ms']['median']} ms, recall {np.mean(recall):.3f}")
+            # streaming appends between retrains: one place at a time
+            ivf.config = cfg.model_copy(update={"faiss_threads": config.filtering.faiss_threads})
+            appends = Samples()
+            for i in range(args.append_places):
+                t0 = time.perf_counter()
+                ivf.sync(n_places + i + 1, rows)
+                appends.append((time.perf_counter() - t0) * 1e3)
+            res["append_ms_per_place"] = stats(appends) if appends else None
+            entry[key] = res
+            del ivf
+            gc.collect()
+        if args.hnsw_ef:
+            cfg = config.filtering.model_copy(update={"index": "hnsw", "faiss_threads": args.build_threads})
+            hnsw = StageOneIndex(cfg, d, per)
+            log(f"stage-I index P={n_places}: HNSW M={cfg.hnsw_m} efConstruction={cfg.hnsw_ef_construction} build")
+            t0 = time.perf_counter()
+            hnsw.sync(n_places, rows)
+            res = {"build_s": round(time.perf_counter() - t0, 1), "build_threads": args.build_threads, "m": cfg.hnsw_m,
+                   "ef_construction": cfg.hnsw_ef_construction, "ef_search": {}}  # fmt: skip
+            for ef in _ints(args.hnsw_ef):
+                hnsw.config = cfg.model_copy(update={"hnsw_ef_search": ef, "faiss_threads": config.filtering.faiss_threads})
+                recall = [
+                    len(np.intersect1d(run(hnsw, q).places, ref.places)) / max(1, len(ref.places)) for q, ref in zip(queries, truth)
+                ]
+                res["ef_search"][str(ef)] = {
+                    "query_ms": stats(time_ms(lambda i: run(hnsw, queries[i]), repeats)),
+                    "recall_at_n_mean": round(float(np.mean(recall)), 4), "recall_at_n_min": round(float(np.min(recall)), 4),
+                }  # fmt: skip
+                log(f"  efSearch {ef}: {res['ef_search'][str(ef)]['query_ms']['median']} ms, recall {np.mean(recall):.3f}")
+            entry["hnsw"] = res
+            del hnsw
+        entry["loadavg_end"] = loadavg()
+        out["sizes"][str(n_places)] = entry
+        del db, flat
     return out
 
 
@@ -540,6 +681,7 @@ def bench_sequence(args, config: VPRConfig, lengths: list[int], repeats: int) ->
     db1 = synthetic_stage1(n_places, shape1, np.dtype(DatabaseConfig().stage1_dtype), seed=11)
     store = rng.standard_normal((n_places, gh, gw, d), dtype=np.float32).astype(DatabaseConfig().stage2_dtype)
     excluded = np.arange(limit, n_places)
+    norm1 = max_row_norm(db1.reshape(-1, shape1[-1]))
     n_stream = repeats + max(lengths)
     first = int(rng.integers(0, max(1, limit - n_stream)))
     truth = [(first + t) % limit for t in range(n_stream)]
@@ -566,7 +708,7 @@ def bench_sequence(args, config: VPRConfig, lengths: list[int], repeats: int) ->
                 with threadpool_limits(limits=1, user_api="blas"):
                     for t in range(n_stream):
                         c0, t0 = time.process_time(), time.perf_counter()
-                        cands = vote(q1[t], db1, k, n_cand, excluded)
+                        cands = vote(q1[t], db1, k, n_cand, excluded, norm1)
                         t1 = time.perf_counter()
                         extra = np.setdiff1d(matcher.continuations(limit), cands.places)
                         places = np.concatenate([cands.places, extra])
@@ -601,6 +743,7 @@ def bench_blas_ab(
     rng = np.random.default_rng(4)
     db = synthetic_stage1(n_places, shape, np.dtype(DatabaseConfig().stage1_dtype), seed=7)
     excluded = np.arange(max(0, n_places - window), n_places)
+    norm = max_row_norm(db.reshape(-1, shape[-1]))
     store = rng.standard_normal((max(store_places, n_candidates), gh, gw, d), dtype=np.float32).astype(
         DatabaseConfig().stage2_dtype
     )
@@ -608,7 +751,7 @@ def bench_blas_ab(
     chunk = config.spatial.chunk_candidates
     out: dict = {}
     for name, fn in (
-        (f"filtering_{n_places}_with_exclusion", lambda q, c: vote(q, db, k, n_cand, excluded)),
+        (f"filtering_{n_places}_with_exclusion", lambda q, c: vote(q, db, k, n_cand, excluded, norm)),
         (f"spatial_{n_candidates}", lambda q, c: spatial_scores(q, store[c], chunk)),
     ):
         samples: dict[str, list[float]] = {"blas_default": [], "blas_1": []}
@@ -641,20 +784,71 @@ def bench_storage(config: VPRConfig) -> dict:
     for label, dbc in (
         ("default", DatabaseConfig()),
         ("float32", DatabaseConfig(stage1_dtype="float32", stage2_dtype="float32")),
+        ("int8", DatabaseConfig(stage1_dtype="int8", stage2_dtype="int8")),
+        ("stage2_int8", DatabaseConfig(stage2_dtype="int8")),
     ):
         db = PlaceDatabase(cb, dbc)
         db.add(codes)
         with tempfile.TemporaryDirectory() as tmp:
             folder = db.save(tmp)
-            disk = sum((folder / f).stat().st_size for f in ("stage1.npy", "stage2.npy"))
+            disk = sum(f.stat().st_size for f in folder.glob("stage*.npy"))
         out[label] = {
             "dtypes": [dbc.stage1_dtype, dbc.stage2_dtype],
             "bytes_per_place": db.bytes_per_place,
-            "stage1_bytes": int(db.stage1[0].nbytes),
-            "stage2_bytes": int(db.stage2[0].nbytes),
+            "stage1_bytes": db._codes["stage1"].place_bytes(),
+            "stage2_bytes": db._codes["stage2"].place_bytes(),
             "disk_npy_bytes_per_place": round(disk / n, 1),
             "fraction_of_paper": round(db.bytes_per_place / PAPER_BYTES_PER_PLACE, 3),
         }
+    return out
+
+
+def bench_mapped_map(config: VPRConfig, n_places: int, dtype: str, folder: Path) -> dict:
+    """A saved map of n_places: open memory-mapped vs read into RAM, then appends in place
+    (add + commit per place, as a checkpoint per keyframe would), with resident memory."""
+    shapes = layout(config)
+    cb = random_codebooks(config, 8, 8)
+    dbc = DatabaseConfig(stage1_dtype=dtype, stage2_dtype=dtype if dtype != "float32" else "float16")
+    rng = np.random.default_rng(9)
+    db = PlaceDatabase(cb, dbc)
+    t0 = time.perf_counter()
+    for start in range(0, n_places, 5000):
+        m = min(5000, n_places - start)
+        db.add(PlaceCodes(unit_rows(rng.standard_normal((m, *shapes["stage1"]), dtype=np.float32)),
+                          rng.standard_normal((m, *shapes["stage2"]), dtype=np.float32)))  # fmt: skip
+    db.save(folder)
+    write_s = time.perf_counter() - t0
+    del db
+    gc.collect()
+    rss = lambda: int(Path("/proc/self/statm").read_text().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20  # noqa: E731 - MB now
+    out: dict = {"places": n_places, "dtypes": [dbc.stage1_dtype, dbc.stage2_dtype], "write_s": round(write_s, 1),
+                 "disk_mb": round(sum(f.stat().st_size for f in folder.iterdir()) / 2**20, 1)}  # fmt: skip
+    peak0 = rss()
+    t0 = time.perf_counter()
+    mapped = PlaceDatabase.load(folder, mmap=True)
+    out["open_mapped_s"] = round(time.perf_counter() - t0, 3)
+    out["open_mapped_rss_growth_mb"] = round(rss() - peak0, 1)
+    del mapped
+    grow = PlaceDatabase.open(folder)
+    one = PlaceCodes(unit_rows(rng.standard_normal((1, *shapes["stage1"]), dtype=np.float32)),
+                     rng.standard_normal((1, *shapes["stage2"]), dtype=np.float32))  # fmt: skip
+    adds, commits = Samples(), Samples()
+    for _ in range(5):
+        t0 = time.perf_counter()
+        grow.add(one)
+        t1 = time.perf_counter()
+        grow.commit()
+        adds.append((t1 - t0) * 1e3)
+        commits.append((time.perf_counter() - t1) * 1e3)
+    out["append_add_ms"], out["append_commit_ms"] = stats(adds), stats(commits)
+    del grow
+    gc.collect()
+    t0 = time.perf_counter()
+    peak0 = rss()
+    ram = PlaceDatabase.load(folder)
+    out["load_in_ram_s"] = round(time.perf_counter() - t0, 3)
+    out["load_in_ram_rss_growth_mb"] = round(rss() - peak0, 1)
+    del ram
     return out
 
 
@@ -680,6 +874,18 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--ab-repeats", type=int, default=None, help="repeats of the BLAS-threads A/B (0: skip)")
     ap.add_argument("--skip-encode", action="store_true", help="no CNN timing")
     ap.add_argument("--sequence-lengths", default="3,5", help="L for the sequence matcher timing ('' to skip)")
+    ap.add_argument("--index-sizes", default="", help="stage I exact vs IVF at these place counts, e.g. 10000,100000,1000000")
+    ap.add_argument("--nlists", default="", help="IVF lists for --index-sizes (default: auto, 4 sqrt(vectors))")
+    ap.add_argument("--nprobes", default="8,16,32,64,128", help="IVF lists probed, swept")
+    ap.add_argument("--exact-repeats", type=int, default=20, help="queries whose exact votes are the recall reference")
+    ap.add_argument("--hnsw-ef", default="", help="also build HNSW and sweep these efSearch values (slow to build)")
+    ap.add_argument("--ivf-codes", choices=("flat", "sq8"), default="flat", help="IVF list storage")
+    ap.add_argument("--append-places", type=int, default=20, help="places appended one by one after the IVF build")
+    ap.add_argument("--build-threads", type=int, default=2, help="faiss threads while training/adding")
+    ap.add_argument("--query-cosine", type=float, default=0.71, help="query vector to its place (Corridor: 0.71)")
+    ap.add_argument("--only-index", action="store_true", help="only the --index-sizes section (and machine info)")
+    ap.add_argument("--mapped-places", type=int, default=0, help="also time a saved map of this many places opened mapped")
+    ap.add_argument("--mapped-dtype", choices=("float32", "int8"), default="int8", help="codes of that map")
     ap.add_argument("--quick", action="store_true", help="~30 s: sizes 1000,10000 and few repeats")
     ap.add_argument("--output", default=None, help="also write the JSON to this file")
     return ap.parse_args(argv)
@@ -729,7 +935,21 @@ def main(argv: list[str] | None = None) -> dict:
         "exclude_recent": args.exclude_recent,
         "precision": config.backbone.precision,
     }
+    if args.only_index:
+        result["stage1_index"] = bench_stage1_index(args, config, _ints(args.index_sizes), repeats)
+        if args.mapped_places:
+            with tempfile.TemporaryDirectory() as tmp:
+                result["mapped_map"] = bench_mapped_map(config, args.mapped_places, args.mapped_dtype, Path(tmp) / "map")
+        machine["loadavg_end"] = loadavg()
+        result["wall_s"] = round(time.perf_counter() - t_start, 1)
+        text = json.dumps(result, indent=2)
+        if args.output:
+            Path(args.output).write_text(text + "\n")
+        print(text)
+        return result
     with blas_limit(args.blas_threads):
+        if args.index_sizes:
+            result["stage1_index"] = bench_stage1_index(args, config, _ints(args.index_sizes), repeats)
         if args.skip_encode:
             result["cnn_encode"] = {"skipped": True}
         else:
@@ -739,6 +959,12 @@ def main(argv: list[str] | None = None) -> dict:
         filt = result["filtering_query_ms"] = bench_filtering(args, config, sizes, repeats)
         spat = result["spatial_matching_ms"] = bench_spatial(args, config, counts, repeats)
         result["bytes_per_place"] = bench_storage(config)
+        if args.mapped_places:
+            with tempfile.TemporaryDirectory() as tmp:
+                log(f"mapped map of {args.mapped_places} places")
+                result["bytes_per_place"]["mapped_map"] = bench_mapped_map(
+                    config, args.mapped_places, args.mapped_dtype, Path(tmp) / "map"
+                )
         seq_lengths = _ints(args.sequence_lengths)
         result["sequence_query_ms"] = bench_sequence(args, config, seq_lengths, repeats) if seq_lengths else {"skipped": True}
         if args.ab_repeats:

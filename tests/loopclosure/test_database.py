@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from loopclosure.config import DatabaseConfig
-from loopclosure.database import MANIFEST, PlaceDatabase, PlaceInfo
+from loopclosure.database import MANIFEST, PlaceDatabase, PlaceInfo, code_weights
 from loopclosure.encoder import PlaceCodes
 from loopclosure.errors import LoopClosureInputError
 from loopclosure.pca import Codebooks, PCAProjection
@@ -314,11 +314,13 @@ def test_int8_storage_round_trip_and_bytes(codebooks, tmp_path):
     codes = _codes(6, seed=12)
     db.add(codes, _infos(6))
     assert db.bytes_per_place == N1 * D1 + N1 * 4 + GH * GW * D2 + GH * GW * 4
-    for stored, original in ((db.stage1, codes.stage1), (db.stage2, codes.stage2)):
+    for stored, original, projection in ((db.stage1, codes.stage1, codebooks.stage1), (db.stage2, codes.stage2, codebooks.stage2)):
         values = np.asarray(stored)
         assert values.dtype == np.float32 and values.shape == original.shape
-        # within half a step of the vector's own scale
-        step = np.abs(original).max(axis=-1, keepdims=True) / 127
+        # within half a step: the vector's own scale times the dimension's spread
+        weights = code_weights(projection)
+        assert weights.max() == 1.0 and len(np.unique(weights)) > 1  # the codebooks' variances differ
+        step = np.abs(original / weights).max(axis=-1, keepdims=True) / 127 * weights
         assert (np.abs(values - original) <= 0.5 * step * (1 + 1e-5)).all()
         np.testing.assert_array_equal(stored[2:4], values[2:4])
     folder = db.save(tmp_path / "db")
@@ -496,3 +498,12 @@ def test_sigkill_mid_append_leaves_the_previous_map(codebooks, tmp_path):
     assert np.load(folder / "stage1.npy", mmap_mode="r").shape[0] == 9  # the killed append's rows
     _assert_same_db(PlaceDatabase.load(folder), db)
     _assert_same_db(PlaceDatabase.load(folder, mmap=True), db)
+
+
+def test_code_weights_follow_the_pca_variances():
+    def projection(ev: list[float], whiten: bool = False) -> PCAProjection:
+        return PCAProjection(np.zeros(5, np.float32), np.eye(4, 5, dtype=np.float32), np.array(ev, np.float32), whiten, False)
+
+    assert code_weights(projection([4.0, 1.0, 0.0, np.nan])).tolist() == [1.0] * 4  # a NaN variance: no weighting
+    np.testing.assert_allclose(code_weights(projection([4.0, 1.0, 0.0, 0.25])), [1.0, 0.5, 1e-3, 0.25])
+    assert code_weights(projection([4.0, 1.0, 0.0, 0.25], whiten=True)).tolist() == [1.0] * 4  # already even
