@@ -33,7 +33,7 @@ from ssmvpr_slam.backend.config import LoopRegistrationConfig
 from ssmvpr_slam.backend.icp import SeededIcp, clean_points, transform_points
 from ssmvpr_slam.backend.noise import sigmas6
 from ssmvpr_slam.backend.se3 import as_pose, invert, make_pose, project_to_so3, rot_z
-from ssmvpr_slam.backend.two_view import estimate_rotation
+from ssmvpr_slam.backend.two_view import ReducedImage, estimate_rotation
 
 
 @dataclass(frozen=True)
@@ -166,9 +166,14 @@ class LoopRegistrar:
 
     # ------------------------------------------------------------------ images
     def register_images(
-        self, query_image: np.ndarray, match_image: np.ndarray, yaw_guess: float = 0.0, query_yaw_offset: float = 0.0
+        self,
+        query_image: np.ndarray | ReducedImage,
+        match_image: np.ndarray | ReducedImage,
+        yaw_guess: float = 0.0,
+        query_yaw_offset: float = 0.0,
     ) -> LoopRegistration:
-        """Place prior from the two keyframes' camera images (see the module docstring).
+        """Place prior from the two keyframes' camera images or their kept grey copies
+        (`ReducedImage`, intrinsics scaled to them; see the module docstring).
 
         query_yaw_offset: yaw of the query's camera in its body frame (pi for a rear camera
         matched against the place's forward camera)."""

@@ -7,6 +7,11 @@ ORB features, Lowe-ratio matching, then two models fitted with RANSAC:
   E is degenerate, and the rotation is read from H instead.
 The translation direction of E is discarded: its scale is unknown, so the caller uses a
 place prior (zero translation with a radius-sized sigma).
+
+Keyframes keep a `ReducedImage` (grey, down-sampled to a pixel budget) rather than the camera
+image: a full image held for the whole run costs megabytes per keyframe. The intrinsics are
+those of the full image (from the config, or from hfov_deg and the full width) scaled to the
+kept pixels, so a calibration given for the camera's resolution stays valid.
 """
 
 from __future__ import annotations
@@ -22,6 +27,60 @@ from ssmvpr_slam.backend.se3 import project_to_so3
 MIN_MODEL_POINTS = 8
 """Fewer matches than this cannot support either RANSAC model (5-point E, 4-point H)."""
 UINT8_MAX = 255.0
+
+
+@dataclass(frozen=True)
+class ReducedImage:
+    """What a keyframe keeps of a camera image for two-view registration: a grey copy
+    area-averaged to a pixel budget and held as lossless PNG bytes (about half the raw size;
+    decoded only when a loop is registered), with the size it was taken at, from which K is
+    scaled (see `intrinsics`). A checkpoint writes the bytes as they are, so a resume is exact."""
+
+    png: bytes
+    width: int
+    height: int
+    full_width: int
+    full_height: int
+
+    @property
+    def gray(self) -> np.ndarray:
+        """The kept (height, width) uint8 pixels."""
+        pixels = cv2.imdecode(np.frombuffer(self.png, np.uint8), cv2.IMREAD_UNCHANGED)
+        if pixels is None or pixels.shape != (self.height, self.width):
+            raise ValueError(f"kept keyframe image: not a {self.width}x{self.height} grey PNG")
+        return pixels
+
+    @property
+    def scale(self) -> tuple[float, float]:
+        """(kept / full) along x and y."""
+        return self.width / self.full_width, self.height / self.full_height
+
+    @property
+    def nbytes(self) -> int:
+        return len(self.png)
+
+    @classmethod
+    def from_png(cls, png: bytes, full_width: int, full_height: int) -> ReducedImage:
+        """Read back from its PNG bytes (a checkpoint); ValueError if they are not a grey image."""
+        pixels = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED) if png else None
+        if pixels is None or pixels.ndim != 2 or pixels.dtype != np.uint8:
+            raise ValueError("not a grey 8-bit PNG image")
+        return cls(bytes(png), pixels.shape[1], pixels.shape[0], int(full_width), int(full_height))
+
+
+def reduce_image(image: np.ndarray, max_pixels: int | None, name: str = "image") -> ReducedImage:
+    """The `ReducedImage` of a camera image: grey, area-averaged down to at most `max_pixels`
+    pixels with its aspect kept (None, or an image within the budget: full size)."""
+    gray = to_gray(name, image)
+    h, w = gray.shape
+    if max_pixels is not None and h * w > max_pixels:
+        f = float(np.sqrt(max_pixels / (h * w)))
+        size = (max(1, int(w * f)), max(1, int(h * f)))  # rounded down: within the budget
+        gray = cv2.resize(gray, size, interpolation=cv2.INTER_AREA)
+    ok, png = cv2.imencode(".png", gray)
+    if not ok:
+        raise ValueError(f"{name}: cv2 could not encode its grey copy as PNG")
+    return ReducedImage(png.tobytes(), gray.shape[1], gray.shape[0], w, h)
 
 
 @dataclass(frozen=True)
@@ -61,15 +120,18 @@ def to_gray(name: str, image: object) -> np.ndarray:
     return np.ascontiguousarray(img)
 
 
-def intrinsics(config: TwoViewConfig, width: int, height: int) -> np.ndarray:
-    """Pinhole K from the config; unset entries come from the image size and hfov_deg."""
+def intrinsics(config: TwoViewConfig, width: int, height: int, scale: tuple[float, float] = (1.0, 1.0)) -> np.ndarray:
+    """Pinhole K from the config for a (width, height) image; unset entries come from the image
+    size and hfov_deg. scale: the kept image's size over that one (`ReducedImage.scale`); pixel
+    centres map as x' = (x + 0.5) s - 0.5, as cv2.resize samples them."""
     fx = config.fx
     if fx is None:
         fx = width / (2.0 * np.tan(np.radians(config.hfov_deg) / 2.0))
     fy = config.fy if config.fy is not None else fx
     cx = config.cx if config.cx is not None else (width - 1) / 2.0
     cy = config.cy if config.cy is not None else (height - 1) / 2.0
-    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    sx, sy = scale
+    return np.array([[fx * sx, 0.0, (cx + 0.5) * sx - 0.5], [0.0, fy * sy, (cy + 0.5) * sy - 0.5], [0.0, 0.0, 1.0]])
 
 
 def _matches(
@@ -119,16 +181,27 @@ def _sampson(e_px: np.ndarray, pts_m: np.ndarray, pts_q: np.ndarray) -> np.ndarr
     return np.sqrt(num / np.maximum(den, np.finfo(float).tiny))
 
 
+def _gray_and_size(name: str, image: np.ndarray | ReducedImage) -> tuple[np.ndarray, tuple[int, int], tuple[float, float]]:
+    """(grey pixels, full (width, height), kept/full scale) of a camera image or a kept copy."""
+    if isinstance(image, ReducedImage):
+        return to_gray(name, image.gray), (image.full_width, image.full_height), image.scale
+    gray = to_gray(name, image)
+    return gray, (gray.shape[1], gray.shape[0]), (1.0, 1.0)
+
+
 def estimate_rotation(
-    image_m: np.ndarray, image_q: np.ndarray, config: TwoViewConfig
+    image_m: np.ndarray | ReducedImage, image_q: np.ndarray | ReducedImage, config: TwoViewConfig
 ) -> TwoViewRotation:
-    """Rotation of camera q in camera m's optical frame (R_mq), or None with a reason."""
-    gray_m = to_gray("match_image", image_m)
-    gray_q = to_gray("query_image", image_q)
-    if gray_m.shape != gray_q.shape:
-        reason = f"image sizes differ: {gray_m.shape} vs {gray_q.shape}"
+    """Rotation of camera q in camera m's optical frame (R_mq), or None with a reason.
+
+    Either image may be a `ReducedImage`; both must then come from the same camera size and
+    be kept at the same size."""
+    gray_m, full_m, scale = _gray_and_size("match_image", image_m)
+    gray_q, full_q, _ = _gray_and_size("query_image", image_q)
+    if gray_m.shape != gray_q.shape or full_m != full_q:
+        reason = f"image sizes differ: {gray_m.shape} vs {gray_q.shape} (from {full_m} vs {full_q})"
         return _failed(0, 0, reason)
-    k = intrinsics(config, gray_m.shape[1], gray_m.shape[0])
+    k = intrinsics(config, full_m[0], full_m[1], scale)
     pts_m, pts_q = _matches(gray_m, gray_q, config)
     n = len(pts_m)
     if n < max(MIN_MODEL_POINTS, config.min_inliers):

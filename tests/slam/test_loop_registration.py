@@ -9,7 +9,7 @@ import pytest
 from ssmvpr_slam.backend.config import LoopRegistrationConfig
 from ssmvpr_slam.backend.loop_registration import LoopRegistrar, build_local_map
 from ssmvpr_slam.backend.se3 import invert, make_pose, rot_z, rotation_angle, yaw_of
-from ssmvpr_slam.backend.two_view import intrinsics
+from ssmvpr_slam.backend.two_view import ReducedImage, intrinsics, reduce_image
 
 DENSITY = 10.0  # surface points per m^2
 SCAN_RANGE = 25.0
@@ -243,3 +243,75 @@ def test_bad_images_are_value_errors(camera):
         registrar.register_images(img_m, "not an image")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="NaN"):
         registrar.register_images(np.full((8, 8), np.nan), img_m)
+
+
+# --------------------------------------------------------------------------- kept (reduced) images
+KEPT_PIXELS = 76800  # the default budget (pipeline.keyframe_image_pixels): 320 x 240, half of this 640 x 480
+
+
+def test_reduce_image_keeps_a_grey_copy_within_the_pixel_budget(camera):
+    _, _, _, img_m = camera
+    rgb = np.dstack([img_m, img_m // 2, 255 - img_m])
+    kept = reduce_image(rgb, KEPT_PIXELS)
+    assert kept.gray.shape == (240, 320) and kept.gray.dtype == np.uint8 and (kept.width, kept.height) == (320, 240)
+    assert (kept.full_width, kept.full_height) == (W_PX, H_PX) and kept.scale == (0.5, 0.5)
+    np.testing.assert_array_equal(kept.gray, cv2.resize(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), (320, 240),
+                                                        interpolation=cv2.INTER_AREA))  # fmt: skip
+    assert kept.nbytes == len(kept.png) < 320 * 240  # held as lossless PNG bytes
+    assert ReducedImage.from_png(kept.png, W_PX, H_PX) == kept
+    odd = reduce_image(np.zeros((376, 1241, 3), np.uint8), KEPT_PIXELS)  # a KITTI image
+    assert odd.gray.size <= KEPT_PIXELS and abs(odd.gray.shape[1] / odd.gray.shape[0] - 1241 / 376) < 0.02
+    small = reduce_image(img_m[:100, :100], KEPT_PIXELS)  # already within budget: full size
+    assert small.gray.shape == (100, 100) and small.scale == (1.0, 1.0)
+    assert reduce_image(img_m, None).gray.shape == (H_PX, W_PX)
+
+
+def test_intrinsics_of_a_kept_image_are_the_full_ones_scaled(camera):
+    cfg = camera[0].two_view
+    # from hfov and the image size: the same K whether computed at the kept size or scaled
+    np.testing.assert_allclose(intrinsics(cfg, W_PX, H_PX, (0.5, 0.5)), intrinsics(cfg, 320, 240), atol=1e-12)
+    calibrated = cfg.model_copy(update={"fx": 500.0, "fy": 510.0, "cx": 300.0, "cy": 250.0})
+    k = intrinsics(calibrated, W_PX, H_PX, (0.5, 0.25))
+    np.testing.assert_allclose(k, [[250.0, 0.0, 149.75], [0.0, 127.5, 62.125], [0.0, 0.0, 1.0]])
+
+
+@pytest.mark.parametrize("yaw_deg", [6.0, -9.0, 15.0])
+def test_pure_rotation_yaw_is_recovered_on_the_kept_images(camera, yaw_deg):
+    """The keyframes' grey copies at the default budget (half of this camera) give the same yaw."""
+    cfg, body_from_cam, k, img_m = camera
+    h = k @ cam_rotation_qm(body_from_cam, yaw_deg) @ np.linalg.inv(k)
+    img_q = cv2.warpPerspective(img_m, h, (W_PX, H_PX))
+    reg = LoopRegistrar(cfg).register_images(reduce_image(img_q, KEPT_PIXELS), reduce_image(img_m, KEPT_PIXELS))
+    assert reg.accepted and reg.method == "two_view_homography", reg.reason
+    assert np.degrees(yaw_of(reg.T_mq[:3, :3])) == pytest.approx(yaw_deg, abs=1.0)
+
+
+@pytest.mark.parametrize(("yaw_deg", "t_mq_cam"), [(10.0, [1.0, 0.0, 0.3]), (-6.0, [-1.5, 0.0, 0.5])])
+def test_essential_matrix_yaw_on_the_kept_images_with_calibrated_intrinsics(camera, yaw_deg, t_mq_cam):
+    """A calibration given for the full image (off-centre principal point, fx from no hfov)
+    stays valid on the kept copies: K is scaled with them."""
+    cfg, body_from_cam, _, img_m = camera
+    two_view = cfg.two_view.model_copy(update={"fx": 520.0, "fy": 520.0, "cx": 300.0, "cy": 260.0})
+    k = intrinsics(two_view, W_PX, H_PX)
+    r_qm = cam_rotation_qm(body_from_cam, yaw_deg)
+    t_qm = -r_qm @ np.asarray(t_mq_cam)
+    left = np.zeros((H_PX, W_PX), np.float32)
+    left[:, :300] = 1.0
+    img_q = np.zeros((H_PX, W_PX), np.float32)
+    depth = 6.0
+    for normal, mask in (((-1, 0, 1), left), ((1, 0, 1), 1.0 - left)):
+        n = np.asarray(normal, float) / np.sqrt(2.0)
+        h = k @ (r_qm + np.outer(t_qm, n) / (depth / np.sqrt(2.0))) @ np.linalg.inv(k)
+        warped = cv2.warpPerspective(img_m.astype(np.float32), h, (W_PX, H_PX))
+        img_q += warped * cv2.warpPerspective(mask, h, (W_PX, H_PX), flags=cv2.INTER_NEAREST)
+    registrar = LoopRegistrar(cfg.model_copy(update={"two_view": two_view}))
+    reg = registrar.register_images(reduce_image(img_q.astype(np.uint8), KEPT_PIXELS), reduce_image(img_m, KEPT_PIXELS))
+    assert reg.accepted and reg.method == "two_view_essential", reg.reason
+    assert np.degrees(yaw_of(reg.T_mq[:3, :3])) == pytest.approx(yaw_deg, abs=2.5)
+
+
+def test_kept_images_from_different_cameras_fall_back_to_the_yaw_guess(camera):
+    cfg, _, _, img_m = camera
+    reg = LoopRegistrar(cfg).register_images(reduce_image(img_m, KEPT_PIXELS), reduce_image(img_m[:, :600], KEPT_PIXELS),
+                                             yaw_guess=0.2)  # fmt: skip
+    assert reg.method == "yaw_prior" and "sizes differ" in reg.reason
