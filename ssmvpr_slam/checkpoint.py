@@ -9,13 +9,15 @@ the runner writes the run so far into its results folder::
         loop_closures.csv                               the loop log so far
         database/                                       the place database: opens as `--map`
         config.yaml, keyframes.npz, detector.npz, images/, checkpoint.json (written last)
+        images/kf000012.png, kf000012_rear.png, kf000012_thumb.jpg   what the keyframes keep
 
 A version folder is complete before the link points at it, so a kill at any moment leaves the
 previous checkpoint or the new one, never a mixture. `ssmvpr-slam run LOG --resume RUN_DIR`
 continues from it, and `load_checkpoint(...).result` reads it as a partial `RunResult`.
 
 What is saved and what is re-derived (the choice, and why):
-- saved exactly: keyframes (poses, ground truth, scans, images as lossless PNG), loop records
+- saved exactly: keyframes (poses, ground truth, scans, and the images they keep: the grey
+  copies' PNG bytes and the JPEG thumbnails, written as they are held), loop records
   with their registrations and factor handles, the place database, and the detector's state
   (travelled distances, the sequence matchers' recent stage-II grids and score caches, the gate);
 - re-derived: the pose graph, by repeating the run's calls in order (cheap: no backbone, no
@@ -47,16 +49,17 @@ from loopclosure.database import PlaceDatabase
 from loopclosure.detector import LoopProposal
 from loopclosure.errors import LoopClosureInputError
 from ssmvpr_slam.backend.loop_registration import LoopRegistration
+from ssmvpr_slam.backend.two_view import ReducedImage
 from ssmvpr_slam.config import ResultsConfig, SlamConfig
-from ssmvpr_slam.result import Keyframe, LoopRecord, RunResult, StreamEnd, frozen_array
 from ssmvpr_slam.errors import SlamError
+from ssmvpr_slam.result import Keyframe, LoopRecord, RunResult, StreamEnd, frozen_array
 from ssmvpr_slam.results import RunFolder, switch_link
 from ssmvpr_slam.writers import write_config, write_database, write_loop_csv, write_trajectories
 
 log = logging.getLogger(__name__)
 
 FORMAT = "ssmvpr-slam-checkpoint"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: keyframes keep grey PNG copies and JPEG thumbnails, float32 scans
 LINK = "checkpoint"
 META = "checkpoint.json"
 _PREFIX = "checkpoint-"
@@ -157,21 +160,25 @@ def _npz(arrays: dict[str, np.ndarray]) -> bytes:
     return buffer.getvalue()
 
 
-def _image_names(kf: Keyframe) -> list[tuple[str, np.ndarray]]:
+def _image_files(kf: Keyframe) -> list[tuple[str, bytes]]:
+    """(file name, bytes) of what the keyframe keeps: its encoded images, as they are held."""
     out = []
     if kf.image is not None:
-        out.append((f"kf{kf.id:06d}.png", kf.image))
+        out.append((f"kf{kf.id:06d}.png", kf.image.png))
     if kf.rear_image is not None:
-        out.append((f"kf{kf.id:06d}_rear.png", kf.rear_image))
+        out.append((f"kf{kf.id:06d}_rear.png", kf.rear_image.png))
+    if kf.thumbnail is not None:
+        out.append((f"kf{kf.id:06d}_thumb.jpg", kf.thumbnail))
     return out
 
 
 def _write_images(folder: Path, keyframes: tuple[Keyframe, ...], previous: Path | None) -> None:
-    """Lossless PNGs (RGB kept as written); an image the previous version holds is hard-linked,
-    so each keyframe's image is encoded once over the whole run."""
+    """The keyframes' images, byte for byte as held (PNG, JPEG: nothing is re-encoded, so a
+    resume is exact); a file the previous version holds is hard-linked, so each keyframe's
+    images are written once over the whole run."""
     folder.mkdir()
     for kf in keyframes:
-        for name, image in _image_names(kf):
+        for name, data in _image_files(kf):
             earlier = previous / "images" / name if previous is not None else None
             if earlier is not None and earlier.is_file():
                 try:
@@ -179,10 +186,7 @@ def _write_images(folder: Path, keyframes: tuple[Keyframe, ...], previous: Path 
                     continue
                 except OSError:  # a file system without hard links: write it again
                     pass
-            ok, png = cv2.imencode(".png", cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2BGR))
-            if not ok:
-                raise CheckpointError(f"{folder / name}: cv2 could not encode keyframe {kf.id}'s image")
-            atomic_write_bytes(folder / name, png.tobytes())
+            atomic_write_bytes(folder / name, data)
 
 
 def _keyframe_arrays(result: RunResult) -> dict[str, np.ndarray]:
@@ -195,6 +199,7 @@ def _keyframe_arrays(result: RunResult) -> dict[str, np.ndarray]:
     scans = [k.scan for k in kfs]
     lengths = np.array([-1 if s is None else len(s) for s in scans], np.int64)
     stacked = np.concatenate([s for s in scans if s is not None]) if any(s is not None for s in scans) else np.zeros((0, 3))
+    full_size = lambda image: (-1, -1) if image is None else (image.full_width, image.full_height)
     in_map = result.in_map_frame
     return {
         "ids": np.array([k.id for k in kfs], np.int64),
@@ -206,9 +211,10 @@ def _keyframe_arrays(result: RunResult) -> dict[str, np.ndarray]:
         "gt_present": np.array([k.gt_pose is not None for k in kfs], bool),
         "gt": gt,
         "scan_lengths": lengths,
-        "scans": np.asarray(stacked, np.float64),
-        "has_image": np.array([k.image is not None for k in kfs], bool),
-        "has_rear_image": np.array([k.rear_image is not None for k in kfs], bool),
+        "scans": np.asarray(stacked, np.float32),
+        "image_full_size": np.array([full_size(k.image) for k in kfs], np.int64).reshape(n, 2),
+        "rear_image_full_size": np.array([full_size(k.rear_image) for k in kfs], np.int64).reshape(n, 2),
+        "has_thumbnail": np.array([k.thumbnail is not None for k in kfs], bool),
     }
 
 
@@ -366,12 +372,29 @@ def _load_npz(path: Path) -> dict[str, np.ndarray]:
         raise CheckpointError(f"{path}: cannot read ({type(exc).__name__}: {exc})") from None
 
 
-def _read_png(path: Path) -> np.ndarray:
-    data = np.fromfile(path, np.uint8) if path.is_file() else np.zeros(0, np.uint8)
-    image = cv2.imdecode(data, cv2.IMREAD_COLOR) if len(data) else None
-    if image is None:
-        raise CheckpointError(f"{path}: missing or not a PNG image")
-    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+def _read_bytes(path: Path) -> bytes:
+    try:
+        return path.read_bytes()
+    except OSError as exc:
+        raise CheckpointError(f"{path}: missing or unreadable ({exc.strerror})") from None
+
+
+def _read_kept(path: Path, full_size: np.ndarray) -> ReducedImage | None:
+    """A keyframe's grey copy as written (None where the keyframe kept none: size -1)."""
+    width, height = (int(v) for v in full_size)
+    if width < 0:
+        return None
+    try:
+        return ReducedImage.from_png(_read_bytes(path), width, height)
+    except ValueError as exc:
+        raise CheckpointError(f"{path}: {exc}") from None
+
+
+def _read_thumbnail(path: Path) -> bytes:
+    data = _read_bytes(path)
+    if not data or cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR) is None:
+        raise CheckpointError(f"{path}: not a JPEG image")
+    return data
 
 
 def _keyframes(arrays: dict[str, np.ndarray], images: Path) -> tuple[Keyframe, ...]:
@@ -382,7 +405,7 @@ def _keyframes(arrays: dict[str, np.ndarray], images: Path) -> tuple[Keyframe, .
         length = int(arrays["scan_lengths"][i])
         scan = None
         if length >= 0:
-            scan = np.array(scans[offset : offset + length], np.float64)
+            scan = np.array(scans[offset : offset + length], np.float32)
             offset += length
         out.append(Keyframe(
             id=kf_id,
@@ -391,8 +414,9 @@ def _keyframes(arrays: dict[str, np.ndarray], images: Path) -> tuple[Keyframe, .
             odom_pose=np.array(arrays["odometry"][i], np.float64),
             gt_pose=np.array(arrays["gt"][i], np.float64) if arrays["gt_present"][i] else None,
             scan=scan,
-            image=_read_png(images / f"kf{kf_id:06d}.png") if arrays["has_image"][i] else None,
-            rear_image=_read_png(images / f"kf{kf_id:06d}_rear.png") if arrays["has_rear_image"][i] else None,
+            image=_read_kept(images / f"kf{kf_id:06d}.png", arrays["image_full_size"][i]),
+            rear_image=_read_kept(images / f"kf{kf_id:06d}_rear.png", arrays["rear_image_full_size"][i]),
+            thumbnail=_read_thumbnail(images / f"kf{kf_id:06d}_thumb.jpg") if arrays["has_thumbnail"][i] else None,
         ))  # fmt: skip
     return tuple(out)
 

@@ -76,6 +76,20 @@ class PipelineConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
     use_lidar_for_loops: bool = Field(default=True, description="Register loops by ICP when scans exist.")
+    keyframe_image_pixels: int | None = Field(
+        default=76800, ge=1024,
+        description="Each keyframe keeps a grey copy of its camera image (and of its rear image where it has no "
+        "scan) for two-view loop registration, area-averaged to at most this many pixels (aspect kept; 76800 = "
+        "320 x 240) and held as PNG bytes; None keeps them at full size. Full colour images are not kept.",
+    )  # fmt: skip
+    overlap: bool = Field(
+        default=True,
+        description="Run the source, odometry and keyframe selection in a thread of their own, alongside "
+        "recognition, registration and iSAM2 (same keyframes, loops and trajectory as false).",
+    )
+    overlap_queue_keyframes: int = Field(
+        default=2, ge=1, description="With overlap: keyframes the front end may run ahead of the back end."
+    )
 
 
 class SlamConfig(BaseSettings):

@@ -12,7 +12,7 @@ Topics (frame ``map``, the session's optimised frame; times are the keyframes' l
   at the first keyframe's time; prior-map loops are not drawn (their other end is in another
   session's frame);
 - ``/slam/keyframes/image/compressed`` (sensor_msgs/CompressedImage, JPEG): a thumbnail per
-  keyframe.
+  keyframe (made when the keyframe was selected, `thumbnail_jpeg`: the run keeps no full image).
 
 Written through the frontend's MCAP writer: a temp file renamed into place on a clean close.
 """
@@ -43,7 +43,7 @@ _REJECTED = (0.9, 0.2, 0.2, 0.8)
 _JPEG_QUALITY = 80
 
 
-def write_trajectory_mcap(path: Path, result: RunResult, thumbnail_width: int = 160) -> Path | None:
+def write_trajectory_mcap(path: Path, result: RunResult) -> Path | None:
     """Write the run's trajectories, loop edges and keyframe thumbnails; None without keyframes."""
     kfs = result.keyframes
     if not kfs:
@@ -57,10 +57,8 @@ def write_trajectory_mcap(path: Path, result: RunResult, thumbnail_width: int = 
         for kf, t, odom, opt in zip(kfs, stamps.tolist(), result.odometry, result.optimised):
             writer.write_message(ODOMETRY_POSE, ros_msgdefs.POSE_STAMPED, ros_convert.pose_stamped_message(odom, t, FRAME), t)
             writer.write_message(OPTIMISED_POSE, ros_msgdefs.POSE_STAMPED, ros_convert.pose_stamped_message(opt, t, FRAME), t)
-            if kf.image is not None:
-                thumb = _thumbnail(kf.image, thumbnail_width)
-                message = ros_convert.compressed_image_message(thumb, t, f"keyframe_{kf.id}", "jpeg",
-                                                               [cv2.IMWRITE_JPEG_QUALITY, _JPEG_QUALITY])  # fmt: skip
+            if kf.thumbnail is not None:
+                message = {"header": ros_convert.header_dict(t, f"keyframe_{kf.id}"), "format": "jpeg", "data": kf.thumbnail}
                 writer.write_message(THUMBNAILS, ros_msgdefs.COMPRESSED_IMAGE, message, t)
     return path
 
@@ -82,9 +80,16 @@ def _loop_markers(result: RunResult, seconds: float) -> dict[str, object]:
     return {"markers": markers}
 
 
-def _thumbnail(image: np.ndarray, width: int) -> np.ndarray:
+def thumbnail_jpeg(image: np.ndarray, width: int) -> bytes:
+    """A keyframe's thumbnail: the RGB image area-averaged to `width` pixels (never enlarged),
+    as JPEG bytes (a few kB), made once when the keyframe is selected."""
     image = np.ascontiguousarray(image, np.uint8)
     h, w = image.shape[:2]
-    if w <= width:
-        return image
-    return cv2.resize(image, (width, max(1, round(h * width / w))), interpolation=cv2.INTER_AREA)
+    if w > width:
+        image = cv2.resize(image, (width, max(1, round(h * width / w))), interpolation=cv2.INTER_AREA)
+    if image.ndim == 2:
+        image = cv2.cvtColor(image, cv2.COLOR_GRAY2RGB)
+    ok, jpeg = cv2.imencode(".jpg", cv2.cvtColor(image[:, :, :3], cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, _JPEG_QUALITY])
+    if not ok:
+        raise ValueError(f"cv2 could not encode a {image.shape} thumbnail as JPEG")
+    return jpeg.tobytes()

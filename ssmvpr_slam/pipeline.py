@@ -5,16 +5,26 @@ SIGTERM) ends it after the current frame; a source that fails midway (a truncate
 it with the frames before the fault kept; an unexpected error while processing a frame ends
 it too, and the caller re-raises once the frames so far are saved. Either way the system's
 `finish()` then gives a complete result of what was processed.
+
+With `pipeline.overlap` the source, the odometry and keyframe selection (`SlamSystem.front`)
+run in a producer thread that hands keyframes to this thread (`SlamSystem.back`: backbone,
+recognition, registration, iSAM2) through a queue of `pipeline.overlap_queue_keyframes`, so
+decoding and kiss-icp proceed while the backbone runs. Signals, progress and checkpoints stay
+in the calling thread. On a stop request the producer reads no further frame and the keyframes
+already queued are still processed (at most the queue's length), so the result covers exactly
+the frames read; the back half sees the same keyframes in the same order as without overlap.
 """
 
 from __future__ import annotations
 
 import logging
+import queue
 import signal
 import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 
 from frontend.errors import FrontendInputError
 from frontend.frame import Frame
@@ -24,9 +34,18 @@ from ssmvpr_slam.backend.pose_graph import PoseGraph
 from ssmvpr_slam.config import SlamConfig
 from ssmvpr_slam.prior_map import PriorMap
 from ssmvpr_slam.result import RunResult, StreamEnd
-from ssmvpr_slam.system import RunState, SlamSystem
+from ssmvpr_slam.system import KeyframeInput, RunState, SlamSystem
 
 log = logging.getLogger(__name__)
+_POLL_S = 0.1  # how often a waiting thread looks at the other side's state (stop, cancel)
+
+
+@dataclass
+class _ProducerEnd:
+    """The producer's last message: why it stopped reading."""
+
+    source_error: str | None = None
+    error: Exception | None = None
 
 
 class StopFlag:
@@ -104,34 +123,117 @@ class SlamPipeline:
         return self.system.prior_map
 
     def run(self, frames: Iterable[Frame], on_frame: Callable[[RunState], None] | None = None) -> RunState:
-        """Process every frame (or until a stop request); returns the system's state."""
+        """Process every frame (or until a stop request); returns the system's state.
+
+        on_frame is called after each frame (with overlap: after each keyframe, and once at the
+        end), in the calling thread."""
         start = time.perf_counter()
         iterator = iter(frames)
-        source_error: str | None = None
         with self.stop.installed():
-            while not self.stop.requested:
-                try:
-                    frame = next(iterator)
-                except StopIteration:
-                    break
-                except FrontendInputError as exc:  # e.g. a log cut short: keep what came before
-                    source_error = str(exc)
-                    log.error("source stopped: %s", exc)
-                    break
-                if self.stop.requested:  # requested while the source was producing this frame
-                    break
-                try:
-                    self.system.process(frame)
-                except Exception as exc:  # keep everything processed so far; the caller re-raises
-                    self.step_error = exc
-                    log.exception("frame %s failed", frame.index)
-                    break
-                if on_frame is not None:
-                    on_frame(self.state)
+            if self.config.pipeline.overlap:
+                source_error = self._run_overlapped(iterator, on_frame)
+            else:
+                source_error = self._run_sequential(iterator, on_frame)
         error = None if self.step_error is None else f"{type(self.step_error).__name__}: {self.step_error}"
         seconds = self.ending.seconds + time.perf_counter() - start
         self.ending = StreamEnd(self.stop.requested, source_error, error, seconds)
         return self.state
+
+    def _next_frame(self, iterator: Iterator[Frame]) -> tuple[Frame | None, str | None]:
+        """(the next frame, None), or (None, why the source stopped early) at its end."""
+        try:
+            return next(iterator), None
+        except StopIteration:
+            return None, None
+        except FrontendInputError as exc:  # e.g. a log cut short: keep what came before
+            log.error("source stopped: %s", exc)
+            return None, str(exc)
+
+    def _run_sequential(self, iterator: Iterator[Frame], on_frame: Callable[[RunState], None] | None) -> str | None:
+        while not self.stop.requested:
+            frame, source_error = self._next_frame(iterator)
+            if frame is None:
+                return source_error
+            if self.stop.requested:  # requested while the source was producing this frame
+                break
+            try:
+                self.system.process(frame)
+            except Exception as exc:  # keep everything processed so far; the caller re-raises
+                self.step_error = exc
+                log.exception("frame %s failed", frame.index)
+                break
+            if on_frame is not None:
+                on_frame(self.state)
+        return None
+
+    def _run_overlapped(self, iterator: Iterator[Frame], on_frame: Callable[[RunState], None] | None) -> str | None:
+        """The front half in a producer thread, the back half here (see the module docstring)."""
+        handoff: queue.Queue[KeyframeInput | _ProducerEnd] = queue.Queue(self.config.pipeline.overlap_queue_keyframes)
+        cancel = threading.Event()  # the consumer gave up (an error): the producer stops too
+
+        def put(message: KeyframeInput | _ProducerEnd) -> None:
+            while not cancel.is_set():
+                try:
+                    handoff.put(message, timeout=_POLL_S)
+                    return
+                except queue.Full:
+                    continue
+
+        def produce() -> None:
+            end = _ProducerEnd()
+            try:
+                while not (self.stop.requested or cancel.is_set()):
+                    frame, end.source_error = self._next_frame(iterator)
+                    if frame is None or self.stop.requested:
+                        break
+                    try:
+                        item = self.system.front(frame)
+                    except Exception as exc:  # the consumer re-raises it once the rest is processed
+                        end.error = exc
+                        log.exception("frame %s failed", frame.index)
+                        break
+                    if item is not None:
+                        put(item)
+            except Exception as exc:  # the source itself failed unexpectedly: ends the run like a frame failing
+                end.error = exc
+                log.exception("the frame source failed")
+            finally:
+                put(end)
+
+        producer = threading.Thread(target=produce, name="slam-front-end", daemon=True)
+        producer.start()
+        end: _ProducerEnd | None = None
+        try:
+            while end is None:
+                try:
+                    message = handoff.get(timeout=_POLL_S)
+                except queue.Empty:
+                    if not producer.is_alive() and handoff.empty():  # it cannot send its end any more
+                        end = _ProducerEnd(error=RuntimeError("the front-end thread ended without a word"))
+                    continue
+                if isinstance(message, _ProducerEnd):
+                    end = message
+                    break
+                try:
+                    self.system.back(message)
+                except Exception as exc:  # keep everything processed so far; the caller re-raises
+                    self.step_error = exc
+                    log.exception("keyframe %s (frame %s) failed", message.keyframe.id, message.keyframe.frame_index)
+                    break
+                if on_frame is not None:
+                    on_frame(self.state)
+        finally:
+            if end is None:  # the consumer stopped first: release a producer waiting on a full queue
+                cancel.set()
+            producer.join()
+        if end is None:
+            return None
+        if end.error is not None and self.step_error is None:
+            self.step_error = end.error
+        self.system.sync_front_counts()  # the frames after the last keyframe (all processed)
+        if on_frame is not None:
+            on_frame(self.state)
+        return end.source_error
 
     def finish(self) -> RunResult:
         """The system's result, with how the stream ended (optimises once; see SlamSystem.finish)."""

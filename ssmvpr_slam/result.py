@@ -16,6 +16,7 @@ import numpy as np
 
 from loopclosure.detector import LoopProposal
 from ssmvpr_slam.backend.loop_registration import LoopRegistration
+from ssmvpr_slam.backend.two_view import ReducedImage
 
 if TYPE_CHECKING:  # only for annotations: the result module stays light to import
     from loopclosure.database import PlaceDatabase
@@ -25,7 +26,10 @@ if TYPE_CHECKING:  # only for annotations: the result module stays light to impo
 
 @dataclass(frozen=True)
 class Keyframe:
-    """What the back end and the evaluation keep of a keyframe (scans voxel-downsampled)."""
+    """What the back end, the evaluation and the outputs keep of a keyframe for the whole run,
+    bounded per keyframe: the voxelised scan (float32), grey copies of the images within
+    `pipeline.keyframe_image_pixels` for two-view registration, a JPEG thumbnail. Never the
+    full camera images (a KITTI image is 1.4 MB: gigabytes over a long drive)."""
 
     id: int
     frame_index: int
@@ -33,8 +37,17 @@ class Keyframe:
     odom_pose: np.ndarray
     gt_pose: np.ndarray | None
     scan: np.ndarray | None
-    image: np.ndarray | None
-    rear_image: np.ndarray | None = None  # kept only where a loop may need two-view geometry (no scan)
+    image: ReducedImage | None
+    rear_image: ReducedImage | None = None  # kept only where a loop may need two-view geometry (no scan)
+    thumbnail: bytes | None = None  # JPEG, for trajectory.mcap (results.mcap)
+
+    @property
+    def nbytes(self) -> int:
+        """Bytes of the arrays and images it holds (the memory a keyframe costs, besides objects)."""
+        arrays = [self.odom_pose, self.gt_pose, self.scan]
+        images = [self.image, self.rear_image]
+        return (sum(a.nbytes for a in arrays if a is not None) + sum(i.nbytes for i in images if i is not None)
+                + len(self.thumbnail or b""))  # fmt: skip
 
 
 @dataclass(frozen=True)

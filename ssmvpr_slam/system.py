@@ -6,6 +6,11 @@ As kiss-slam separates `KissSLAM` from its pipeline, `SlamSystem` holds the meth
 (`ssmvpr_slam.pipeline`), the files (`ssmvpr_slam.writers`, `ssmvpr_slam.checkpoint`) and
 the command line (`ssmvpr_slam.runner`) live elsewhere, so the core can be driven by a test,
 a benchmark or a resumed run alike.
+
+``process`` is two halves that share nothing but the configuration: ``front(frame)`` (odometry,
+keyframe selection, what a keyframe keeps) and ``back(item)`` (recognition, registration, the
+pose graph). The pipeline may run the front half in a thread of its own, ahead of the back half
+(`pipeline.overlap`); the back half sees the same keyframes in the same order either way.
 """
 
 from __future__ import annotations
@@ -27,7 +32,9 @@ from loopclosure.encoder import Encoder
 from ssmvpr_slam.backend.g2o_io import from_pose_graph
 from ssmvpr_slam.backend.loop_registration import LoopRegistrar, LoopRegistration, build_local_map
 from ssmvpr_slam.backend.pose_graph import PoseGraph
+from ssmvpr_slam.backend.two_view import reduce_image
 from ssmvpr_slam.config import SlamConfig
+from ssmvpr_slam.mcap_output import thumbnail_jpeg
 from ssmvpr_slam.prior_map import PriorMap
 from ssmvpr_slam.result import (
     Keyframe,
@@ -42,7 +49,11 @@ from ssmvpr_slam.result import (
 
 @dataclass
 class RunState:
-    """What the system has accumulated so far (read it for progress; change it never)."""
+    """What the system has accumulated so far (read it for progress; change it never).
+
+    frames_seen / frames_skipped count the frames whose effects are in the state: with the
+    stages overlapped the front end may be a few keyframes ahead, and a checkpoint must not
+    count frames whose keyframes it does not hold."""
 
     keyframes: list[Keyframe] = field(default_factory=list)
     loops: list[LoopRecord] = field(default_factory=list)
@@ -50,6 +61,30 @@ class RunState:
     frames_skipped: Counter[str] = field(default_factory=Counter)
     rear_keyframes: int = 0  # keyframes queried with a rear image too
     times: StageTimes = field(default_factory=StageTimes)
+
+
+@dataclass
+class FrontCounts:
+    """The front half's own counters (frames read, skipped, keyframes selected)."""
+
+    frames_seen: int = 0
+    frames_skipped: Counter[str] = field(default_factory=Counter)
+    keyframes: int = 0
+    seconds: float = 0.0  # front-end time since the last keyframe (odometry, selection, keeping)
+
+
+@dataclass(frozen=True)
+class KeyframeInput:
+    """A keyframe as the front half hands it to the back half: what the run keeps of it, the
+    full images the detector encodes once (dropped after that), and the front's counts up to
+    and including its frame."""
+
+    keyframe: Keyframe
+    image: np.ndarray
+    rear_image: np.ndarray | None
+    frames_seen: int
+    frames_skipped: dict[str, int]
+    front_seconds: float
 
 
 class SlamSystem:
@@ -76,43 +111,96 @@ class SlamSystem:
         self.registrar = LoopRegistrar(config.backend.registration)
         self.graph = graph if graph is not None else PoseGraph(config.backend.pose_graph.for_odometry(config.frontend.odometry.kind))
         self.state = RunState()
+        self._front = FrontCounts()
         self._result: RunResult | None = None
 
     # ---- per frame ------------------------------------------------------------------------
     def process(self, frame: Frame) -> None:
         """Odometry for every frame; a keyframe also gets recognised, registered and graphed."""
+        item = None
+        try:
+            item = self.front(frame)
+        finally:
+            if item is None:  # a frame that is no keyframe (or failed) still counts as seen
+                self.sync_front_counts()
+        if item is not None:
+            self.back(item)
+
+    def front(self, frame: Frame) -> KeyframeInput | None:
+        """Odometry and keyframe selection: the keyframe's input for `back`, or None.
+
+        Touches only the odometry, the keyframe selector and the front counters, so it may run
+        in another thread than `back` (one frame at a time, in order)."""
         if self._result is not None:
             raise RuntimeError("SlamSystem.process: the run is finished (finish() was called)")
-        self.state.frames_seen += 1
-        pose = self.odometry.update(frame)  # every scan feeds the odometry, camera or not
-        if pose is None or not np.all(np.isfinite(pose)):
-            self.state.frames_skipped["odometry gave no pose"] += 1
-            return
-        if frame.image is None:
-            self.state.frames_skipped["no camera image"] += 1
-            return
-        if not self.selector.select(pose, frame.timestamp):
-            return
-        self._keyframe(frame, pose)
+        start = time.perf_counter()
+        counts = self._front
+        counts.frames_seen += 1
+        try:
+            pose = self.odometry.update(frame)  # every scan feeds the odometry, camera or not
+            if pose is None or not np.all(np.isfinite(pose)):
+                counts.frames_skipped["odometry gave no pose"] += 1
+                return None
+            if frame.image is None:
+                counts.frames_skipped["no camera image"] += 1
+                return None
+            if not self.selector.select(pose, frame.timestamp):
+                return None
+            keyframe = self._keep(frame, pose, counts.keyframes)
+            counts.keyframes += 1
+        finally:
+            counts.seconds += time.perf_counter() - start
+        seconds, counts.seconds = counts.seconds, 0.0
+        assert frame.image is not None  # checked above
+        return KeyframeInput(keyframe, frame.image, frame.rear_image, counts.frames_seen,
+                             dict(counts.frames_skipped), seconds)  # fmt: skip
 
-    def _keyframe(self, frame: Frame, pose: np.ndarray) -> None:
-        scan = self._keep_scan(self._scan_of(frame)) if self.config.pipeline.use_lidar_for_loops else None
-        kf = Keyframe(
-            id=len(self.state.keyframes),
+    def _keep(self, frame: Frame, pose: np.ndarray, keyframe_id: int) -> Keyframe:
+        """What the run keeps of a keyframe: poses, the voxelised scan (float32), a grey copy of
+        the image within the pixel budget (and of the rear image where there is no scan), a
+        JPEG thumbnail for trajectory.mcap; never the full images (megabytes per keyframe)."""
+        assert frame.image is not None
+        pipeline = self.config.pipeline
+        scan = self._keep_scan(self._scan_of(frame)) if pipeline.use_lidar_for_loops else None
+        pixels = pipeline.keyframe_image_pixels
+        rear = None
+        if scan is None and frame.rear_image is not None:
+            rear = reduce_image(frame.rear_image, pixels, f"keyframe {keyframe_id} rear image")
+        thumbnail = None
+        if self.config.results.mcap:
+            thumbnail = thumbnail_jpeg(frame.image, self.config.results.mcap_thumbnail_width)
+        return Keyframe(
+            id=keyframe_id,
             frame_index=frame.index,
             timestamp=frame.timestamp,
             odom_pose=np.array(pose, dtype=np.float64),
             gt_pose=None if frame.gt_pose is None else np.array(frame.gt_pose, dtype=np.float64),
             scan=scan,
-            image=frame.image,
-            rear_image=frame.rear_image if scan is None else None,
+            image=reduce_image(frame.image, pixels, f"keyframe {keyframe_id} image"),
+            rear_image=rear,
+            thumbnail=thumbnail,
         )
-        if frame.rear_image is not None and self.config.detector.rear.enabled:
+
+    def sync_front_counts(self) -> None:
+        """Bring the state's frame counters up to the front's (frames after the last keyframe)."""
+        self.state.frames_seen = self._front.frames_seen
+        self.state.frames_skipped = Counter(self._front.frames_skipped)
+
+    def back(self, item: KeyframeInput) -> None:
+        """Recognise, register and graph a keyframe from `front` (in the order they came)."""
+        if self._result is not None:
+            raise RuntimeError("SlamSystem.process: the run is finished (finish() was called)")
+        kf = item.keyframe
+        if kf.id != len(self.state.keyframes):
+            raise RuntimeError(f"SlamSystem.back: keyframe {kf.id} out of order ({len(self.state.keyframes)} expected)")
+        self.state.frames_seen = item.frames_seen
+        self.state.frames_skipped = Counter(item.frames_skipped)
+        if item.rear_image is not None and self.config.detector.rear.enabled:
             self.state.rear_keyframes += 1
         self.state.keyframes.append(kf)
         t0 = time.perf_counter()
         self.graph.add_keyframe(kf.id, kf.odom_pose)
-        proposal = self.detector.process(frame.image, kf.id, kf.odom_pose[:3, 3], frame.timestamp, frame.rear_image)
+        proposal = self.detector.process(item.image, kf.id, kf.odom_pose[:3, 3], kf.timestamp, item.rear_image)
         t_reg = 0.0
         if proposal is not None:
             self.state.loops.append(LoopRecord(proposal))  # recorded even if registration fails
@@ -130,6 +218,7 @@ class SlamSystem:
             "spatial_matching": timings.spatial_matching, "sequence_matching": timings.sequence_matching,
             "gate": timings.gate,
             "registration": t_reg, "isam2_update": t_graph, "total": time.perf_counter() - t0,
+            "front_end": item.front_seconds,
         })  # fmt: skip
 
     def _add_loop(self, record: LoopRecord) -> LoopRecord:
@@ -159,7 +248,8 @@ class SlamSystem:
         finite = np.asarray(points, dtype=np.float64)
         finite = finite[np.isfinite(finite).all(axis=1)]
         voxel = lidar.voxel_size * lidar.map_downsample_factor
-        return voxel_down_sample(finite, voxel) if len(finite) else None
+        # float32 as a saved map holds them: half the memory, micrometres at 100 m
+        return voxel_down_sample(finite, voxel).astype(np.float32) if len(finite) else None
 
     def _register(self, kf: Keyframe, proposal: LoopProposal) -> LoopRegistration:
         """ICP against a local map around the match when both have scans, else a place prior."""
@@ -178,7 +268,11 @@ class SlamSystem:
         if proposal.camera == "rear":  # the rear image saw what the match's forward camera saw
             if kf.rear_image is None:
                 return self.registrar.yaw_prior(proposal.yaw_guess, "rear camera match: no rear image kept")
+            if match.image is None:
+                return self.registrar.yaw_prior(proposal.yaw_guess, "the matched keyframe kept no image")
             return self.registrar.register_images(kf.rear_image, match.image, proposal.yaw_guess, query_yaw_offset=math.pi)
+        if kf.image is None or match.image is None:
+            return self.registrar.yaw_prior(proposal.yaw_guess, "a keyframe kept no image")
         return self.registrar.register_images(kf.image, match.image, proposal.yaw_guess)
 
     def _register_to_map(self, kf: Keyframe, proposal: LoopProposal) -> LoopRegistration:
@@ -219,9 +313,12 @@ class SlamSystem:
         view: the system goes on afterwards, unchanged). Its `database` is the live one, which
         the next keyframe extends: write it out before processing on."""
         optimised = self.graph.optimized_poses() if self.state.keyframes else {}
-        return self._result_with(optimised, set(self.graph.loop_handles), ending)
+        return self._result_with(optimised, set(self.graph.loop_handles), ending, odometry_stats=False)
 
-    def _result_with(self, by_id: dict[int, np.ndarray], final: set[int], ending: StreamEnd) -> RunResult:
+    def _result_with(self, by_id: dict[int, np.ndarray], final: set[int], ending: StreamEnd,
+                     odometry_stats: bool = True) -> RunResult:  # fmt: skip
+        """odometry_stats: False while the front half may still be updating them (a checkpoint,
+        which does not save them)."""
         state = self.state
         kfs = tuple(state.keyframes)
         stamps, odom = keyframe_poses(kfs)
@@ -246,7 +343,7 @@ class SlamSystem:
             frames_skipped=dict(state.frames_skipped),
             rear_keyframes=state.rear_keyframes,
             timings=tuple(dict(r) for r in state.times.rows),
-            odometry_stats=_odometry_stats(self.odometry),
+            odometry_stats=_odometry_stats(self.odometry) if odometry_stats else {},
             ending=ending,
             pose_graph=pose_graph,
             database=self.detector.database,
@@ -289,6 +386,7 @@ class SlamSystem:
         rows = [dict(r) for r in partial.timings]
         self.state = RunState([], [], partial.frames_seen, Counter(partial.frames_skipped), partial.rear_keyframes,
                               StageTimes(rows))  # fmt: skip
+        self._front = FrontCounts(partial.frames_seen, Counter(partial.frames_skipped), len(partial.keyframes))
         loops: dict[int, list[LoopRecord]] = {}
         for record in partial.loops:
             loops.setdefault(record.proposal.query_id, []).append(record)
@@ -315,6 +413,7 @@ class SlamSystem:
             last = self.state.keyframes[-1]
             self.selector.select(last.odom_pose, last.timestamp)
             self.selector.count = len(self.state.keyframes)
+        self._front.keyframes = len(self.state.keyframes)
 
 
 def _odometry_stats(odometry: Odometry) -> dict[str, Any]:

@@ -53,7 +53,7 @@ def write_results(folder: Path, result: RunResult, report: RunReport, config: Sl
     if config.results.mcap:
         from ssmvpr_slam.mcap_output import write_trajectory_mcap
 
-        write_trajectory_mcap(folder / "trajectory.mcap", result, config.results.mcap_thumbnail_width)
+        write_trajectory_mcap(folder / "trajectory.mcap", result)  # thumbnails were made per keyframe
     return metrics
 
 

@@ -24,8 +24,8 @@ def _result() -> RunResult:
     optimised = odom.copy()
     optimised[:, 1, 3] = 0.1 * np.arange(N)
     rng = np.random.default_rng(0)
-    kfs = tuple(Keyframe(k, 2 * k, 10.0 + k, odom[k], None, None, rng.integers(0, 256, (240, 320, 3), dtype=np.uint8))
-                for k in range(N))  # fmt: skip
+    thumbnail = lambda: mcap_output.thumbnail_jpeg(rng.integers(0, 256, (240, 320, 3), dtype=np.uint8), 80)
+    kfs = tuple(Keyframe(k, 2 * k, 10.0 + k, odom[k], None, None, None, thumbnail=thumbnail()) for k in range(N))
     proposal = LoopProposal(11, 0, 0, 0.8, 0.5, 0, 0.0, True, "accepted", "forward")
     rejected = LoopProposal(6, 1, 1, 0.7, 0.5, 0, 0.0, True, "accepted", "forward")
     not_accepted = LoopProposal(7, 2, 2, 0.3, 0.2, 0, 0.0, False, "sequence score too low", "forward")
@@ -46,7 +46,7 @@ def _read(path: Path) -> dict[str, list[tuple[str, int, object]]]:
 
 def test_every_topic_reads_back(tmp_path: Path) -> None:
     result = _result()
-    path = mcap_output.write_trajectory_mcap(tmp_path / "trajectory.mcap", result, thumbnail_width=80)
+    path = mcap_output.write_trajectory_mcap(tmp_path / "trajectory.mcap", result)
     assert path is not None and not list(tmp_path.glob(".*"))  # no temp file left behind
     topics = _read(path)
     assert set(topics) == set(mcap_output.TOPICS)
@@ -75,6 +75,7 @@ def test_every_topic_reads_back(tmp_path: Path) -> None:
     assert [s for s, _, _ in thumbs] == ["sensor_msgs/msg/CompressedImage"] * N
     image = cv2.imdecode(np.frombuffer(bytes(thumbs[0][2].data), np.uint8), cv2.IMREAD_COLOR)
     assert thumbs[0][2].format == "jpeg" and image.shape == (60, 80, 3)
+    assert bytes(thumbs[0][2].data) == result.keyframes[0].thumbnail  # written as kept, not encoded again
 
 
 def test_a_run_without_keyframes_writes_no_mcap(tmp_path: Path) -> None:

@@ -25,6 +25,7 @@ import hashlib
 import json
 import os
 import signal
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -305,18 +306,26 @@ def test_wrong_loops_barely_move_the_trajectory(injected: Run, clean: Run) -> No
 # ------------------------------------------------------------------------------- interrupt
 
 
+@pytest.mark.parametrize("overlap", [False, True])
 def test_sigint_mid_run_stops_cleanly_and_results_are_consistent(
-    tmp_path: Path, weights_path: Path, backbone: MemoBackbone, camera_frames: list[Frame]
+    tmp_path: Path, weights_path: Path, backbone: MemoBackbone, camera_frames: list[Frame], overlap: bool
 ) -> None:
+    """With overlap the source is read in the producer thread while the handler runs in the
+    main one: the frame source waits until the handler has run, as a Ctrl-C between frames."""
+    cfg = slam_config(weights_path, "logged")
+    cfg.pipeline.overlap = overlap
+    pipeline = SlamPipeline(cfg, make_odometry(cfg.frontend.odometry), backbone)  # type: ignore[arg-type]
+
     def frames() -> Iterator[Frame]:
         for k, frame in enumerate(camera_frames):
             if k == INTERRUPT_AFTER:
                 os.kill(os.getpid(), signal.SIGINT)  # Ctrl-C, delivered to the pipeline's handler
+                deadline = time.monotonic() + 10
+                while not pipeline.stop.requested and time.monotonic() < deadline:
+                    time.sleep(0.01)
             yield frame
 
     previous = signal.getsignal(signal.SIGINT)
-    cfg = slam_config(weights_path, "logged")
-    pipeline = SlamPipeline(cfg, make_odometry(cfg.frontend.odometry), backbone)  # type: ignore[arg-type]
     state = pipeline.run(frames())
     assert signal.getsignal(signal.SIGINT) is previous  # the handler is handed back
     assert pipeline.ending.interrupted

@@ -1,0 +1,180 @@
+"""The stages overlapped (`pipeline.overlap`): a producer thread runs the source, odometry and
+keyframe selection while this thread runs the backbone, recognition, registration and iSAM2.
+It must not change the result: the same keyframes, loops and trajectory as the sequential
+path. And keyframes keep bounded images, never the camera's full ones.
+
+Traverse: the block_grid route in a city of 10 m blocks, 5 Hz, 100 frames, camera only
+(forward and rear), drifting logged odometry; a keyframe every second frame (50), the first
+revisit from keyframe ~33. Small settings keep each run to seconds: input 112 px, 8 PCA
+dimensions, PCA fitted on 15 keyframes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from frontend.frame import Frame
+from frontend.odometry import make_odometry
+from frontend.simulation import SimulationConfig, TraverseSimulator
+from loopclosure.backbone import load_backbone
+from ssmvpr_slam.backend.two_view import ReducedImage
+from ssmvpr_slam.config import SlamConfig, load_config
+from ssmvpr_slam.pipeline import SlamPipeline
+from ssmvpr_slam.result import RunResult
+
+pytestmark = pytest.mark.slow
+
+FRAMES = 100
+CONFIG = {
+    "vpr": {"backbone": {"input_size": 112, "device": "cpu"}, "filtering": {"pca": {"dim": 8}},
+            "spatial": {"pca": {"dim": 8}}},
+    "detector": {"pca_warmup_keyframes": 15},
+    "frontend": {"keyframes": {"min_distance_m": None, "min_angle_deg": None, "max_interval_s": 0.35},
+                 "odometry": {"kind": "logged", "logged": {"pose_source": "logged",
+                              "drift": {"enabled": True, "yaw_bias_per_m": 0.002, "translation_scale_error": 0.02}}}},
+    "pipeline": {"use_lidar_for_loops": False},
+    "results": {"plots": False},
+}  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def frames() -> list[Frame]:
+    sim = SimulationConfig(frame_rate_hz=5.0, city={"block_size_m": 10.0}, route={"preset": "block_grid", "laps": 2},
+                           max_frames=FRAMES, lidar={"enabled": False})  # fmt: skip
+    return list(TraverseSimulator(sim).frames())
+
+
+def _config(weights_path: Path, overlap: bool, **pipeline: object) -> SlamConfig:
+    cfg = load_config(overrides=CONFIG)
+    cfg.vpr.backbone.weights = str(weights_path)
+    cfg.pipeline.overlap = overlap
+    for key, value in pipeline.items():
+        setattr(cfg.pipeline, key, value)
+    return cfg
+
+
+@dataclass
+class Run:
+    pipeline: SlamPipeline
+    result: RunResult
+
+
+def _run(cfg: SlamConfig, frames: list[Frame], backbone: object) -> Run:
+    pipeline = SlamPipeline(cfg, make_odometry(cfg.frontend.odometry), backbone)  # type: ignore[arg-type]
+    pipeline.run(iter(frames))
+    return Run(pipeline, pipeline.finish())
+
+
+@pytest.fixture(scope="module")
+def backbone(weights_path: Path):
+    return load_backbone(_config(weights_path, False).vpr.backbone)
+
+
+@pytest.fixture(scope="module")
+def sequential(weights_path: Path, frames: list[Frame], backbone: object) -> Run:
+    return _run(_config(weights_path, overlap=False), frames, backbone)
+
+
+@pytest.fixture(scope="module")
+def overlapped(weights_path: Path, frames: list[Frame], backbone: object) -> Run:
+    return _run(_config(weights_path, overlap=True, overlap_queue_keyframes=2), frames, backbone)
+
+
+def test_overlap_gives_the_sequential_keyframes_loops_and_trajectory(sequential: Run, overlapped: Run) -> None:
+    a, b = sequential.result, overlapped.result
+    assert a.frames_seen == b.frames_seen == FRAMES and len(a.keyframes) == len(b.keyframes) == FRAMES // 2
+    assert dict(a.frames_skipped) == dict(b.frames_skipped) and a.rear_keyframes == b.rear_keyframes
+    for ka, kb in zip(a.keyframes, b.keyframes):
+        assert (ka.id, ka.frame_index, ka.timestamp) == (kb.id, kb.frame_index, kb.timestamp)
+        assert ka.image == kb.image and ka.rear_image == kb.rear_image and ka.thumbnail == kb.thumbnail
+    np.testing.assert_array_equal(a.odometry, b.odometry)
+    assert any(r.in_graph for r in a.loops)  # the run got to its revisits: there is something to compare
+    assert [(r.proposal, r.factor_handle, r.dropped) for r in a.loops] == [(r.proposal, r.factor_handle, r.dropped)
+                                                                            for r in b.loops]  # fmt: skip
+    for ra, rb in zip(a.loops, b.loops):
+        assert (ra.registration is None) == (rb.registration is None)
+        if ra.registration is not None:
+            np.testing.assert_array_equal(ra.registration.T_mq, rb.registration.T_mq)
+    np.testing.assert_array_equal(a.optimised, b.optimised)
+    # the front end's own time is recorded per keyframe beside the back end's stages
+    assert all(row["front_end"] > 0 for row in b.timings) and len(b.timings) == len(b.keyframes)
+
+
+def test_keyframes_keep_bounded_grey_copies_and_thumbnails_not_the_images(sequential: Run, frames: list[Frame]) -> None:
+    """The simulator's 320 x 240 RGB images (230 kB each) are kept as a grey PNG copy within the
+    pixel budget, the rear one too (no scan here), and a JPEG thumbnail of 160 px."""
+    for kf in sequential.result.keyframes:
+        frame = frames[kf.frame_index]
+        for kept, full in ((kf.image, frame.image), (kf.rear_image, frame.rear_image)):
+            assert isinstance(kept, ReducedImage) and kept.gray.shape == (240, 320)  # 76800 px: the budget
+            assert (kept.full_width, kept.full_height) == (320, 240) and kept.nbytes < 320 * 240
+            assert kept.nbytes < full.nbytes / 3
+        assert kf.thumbnail is not None and len(kf.thumbnail) < 12_000
+        assert kf.nbytes < 150_000
+    assert all(not isinstance(v, np.ndarray) or v.size <= 16 for kf in sequential.result.keyframes
+               for v in vars(kf).values())  # no image array at all, only the poses  # fmt: skip
+
+
+def test_a_smaller_budget_keeps_smaller_copies_and_no_thumbnail_without_mcap(
+    weights_path: Path, frames: list[Frame], backbone: object
+) -> None:
+    cfg = _config(weights_path, overlap=True, keyframe_image_pixels=19200)
+    cfg.results.mcap = False
+    run = _run(cfg, frames[:20], backbone)
+    for kf in run.result.keyframes:
+        assert kf.image is not None and kf.image.gray.shape == (120, 160) and kf.image.scale == (0.5, 0.5)
+        assert kf.thumbnail is None
+
+
+class _FailingOdometry:
+    """Logged odometry that raises on one frame: a front-end failure in the producer thread."""
+
+    def __init__(self, inner: object, fail_at: int) -> None:
+        self.inner, self.fail_at, self.calls = inner, fail_at, 0
+
+    def update(self, frame: Frame):
+        self.calls += 1
+        if self.calls == self.fail_at:
+            raise RuntimeError("odometry broke")
+        return self.inner.update(frame)  # type: ignore[attr-defined]
+
+
+@pytest.mark.parametrize("overlap", [False, True])
+def test_a_front_end_failure_ends_the_run_with_the_frames_before_it(
+    weights_path: Path, frames: list[Frame], backbone: object, overlap: bool
+) -> None:
+    cfg = _config(weights_path, overlap=overlap)
+    odometry = _FailingOdometry(make_odometry(cfg.frontend.odometry), fail_at=21)
+    pipeline = SlamPipeline(cfg, odometry, backbone)  # type: ignore[arg-type]
+    state = pipeline.run(iter(frames))
+    assert isinstance(pipeline.step_error, RuntimeError) and "odometry broke" in str(pipeline.step_error)
+    assert state.frames_seen == 21 and len(state.keyframes) == 10  # frames 0, 2, ..., 18
+    assert pipeline.ending.error is not None and pipeline.finish().keyframes == tuple(state.keyframes)
+
+
+def test_a_back_end_failure_stops_the_producer(weights_path: Path, frames: list[Frame], backbone: object) -> None:
+    cfg = _config(weights_path, overlap=True)
+    pipeline = SlamPipeline(cfg, make_odometry(cfg.frontend.odometry), backbone)  # type: ignore[arg-type]
+    back = pipeline.system.back
+    read: list[int] = []
+
+    def failing_back(item):
+        back(item)
+        if item.keyframe.id == 5:  # e.g. the pose graph failing once the keyframe is in
+            raise ValueError("back end broke")
+
+    def source() -> Iterator[Frame]:
+        for frame in frames:
+            read.append(frame.index)
+            yield frame
+
+    pipeline.system.back = failing_back  # type: ignore[method-assign]
+    state = pipeline.run(source())
+    assert isinstance(pipeline.step_error, ValueError) and len(state.keyframes) == 6  # 0..5, the last failed
+    assert state.frames_seen == 11  # the counts of the failed keyframe's frame, not the producer's
+    assert len(read) <= 11 + 2 * (cfg.pipeline.overlap_queue_keyframes + 2)  # it stopped reading soon after
