@@ -40,16 +40,20 @@ Rows = Callable[[int, int], np.ndarray]  # (start, stop) vector ids -> float32 (
 
 @contextlib.contextmanager
 def faiss_threads(n: int) -> Iterator[None]:
-    """faiss's OpenMP threads for one call: with 2 shared cores, 2 spinning threads were measured
-    10-300x slower than 1 while another process ran."""
+    """faiss's OpenMP threads for one call (with 2 shared cores, 2 spinning threads were measured
+    10-300x slower than 1 while another process ran), and its brute force through BLAS: the
+    wheel's default (128000 queries before BLAS) scans 16 queries 3.4x slower (85 vs 25 ms at
+    160k vectors)."""
     import faiss
 
-    before = faiss.omp_get_max_threads()
+    before = faiss.omp_get_max_threads(), faiss.cvar.distance_compute_blas_threshold
     faiss.omp_set_num_threads(n)
+    faiss.cvar.distance_compute_blas_threshold = 1
     try:
         yield
     finally:
-        faiss.omp_set_num_threads(before)
+        faiss.omp_set_num_threads(before[0])
+        faiss.cvar.distance_compute_blas_threshold = before[1]
 
 
 def auto_nlist(n_vectors: int) -> int:

@@ -87,7 +87,9 @@ class FilteringConfig(_Strict):
     ivf_nlist: int | None = Field(
         default=None, ge=1, description="IVF lists; None: 4*sqrt(vectors) as a power of two in [64, 16384]."
     )
-    ivf_nprobe: int = Field(default=48, ge=1, description="IVF lists searched per query vector.")
+    ivf_nprobe: int = Field(
+        default=64, ge=1, description="IVF lists searched per query vector (4096 lists, street-like codes: recall@N 0.93 at 100k places)."
+    )
     ivf_codes: Literal["flat", "sq8"] = Field(
         default="flat", description="Vectors in the IVF lists: float32 (flat) or 8-bit per dimension (sq8, 4x smaller; "
         "its approximate similarities are re-scored exactly from the database, fetch more with ann_candidates_factor).",

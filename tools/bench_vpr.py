@@ -6,6 +6,8 @@ Usage:
   python tools/bench_vpr.py [--weights PATH|random] [--images DIR] [--device auto|cpu|cuda]
                             [--precision auto|fp32|bf16|int8]
                             [--sizes 1000,10000,100000] [--repeats N] [--quick]
+                            [--index-sizes 10000,100000,1000000 [--nlists 4096] [--only-index]]
+                            [--mapped-places 100000]
 
 What is measured (all through the library's own code paths):
   cnn_encode           Backbone (VGG16 to conv5_2) + cube extraction + PCA projection on real
@@ -21,7 +23,16 @@ What is measured (all through the library's own code paths):
   spatial_matching_ms  `loopclosure.spatial.spatial_scores` on N candidates gathered from a
                        stage-II store in DatabaseConfig.stage2_dtype (float16 by default, the
                        conversion to float32 happens inside), as `Recognizer.query` does.
-  bytes_per_place      `PlaceDatabase.bytes_per_place` (in memory) and the .npy bytes on disk.
+  bytes_per_place      `PlaceDatabase.bytes_per_place` (in memory) and the .npy bytes on disk, for
+                       the default, float32, int8 (scale per vector) and stage-II-only int8 storage;
+                       --mapped-places P: a saved map of P places opened memory-mapped vs read into
+                       RAM (seconds, resident memory), and add + commit of one place in place.
+  stage1_index         (--index-sizes) `loopclosure.ann_index.StageOneIndex` + `filtering.rank_neighbours`
+                       as `PlaceDatabase.filter` runs them, exact vs IVF (--nlists, --nprobes; --hnsw-ef
+                       adds HNSW) on `street_codes` (synthetic codes with Corridor's spectrum and
+                       street-to-street drift; queries keep --query-cosine to their place): query ms,
+                       recall@N of the IVF candidates against exact voting, whether the revisited place
+                       (within 2) is a candidate, build seconds, append ms per place after the build.
   sequence_query_ms    One query of a stream with sequence matching, as `LoopDetector` runs it:
                        stage-I vote over --store-places places (minus the exclusion window),
                        stage II of the N candidates plus the continued places, then
@@ -622,6 +633,10 @@ def bench_spatial(args, config: VPRConfig, counts: list[int], repeats: int) -> d
     # Unnormalised stage-II codes (the default), stored in the database's stage-II dtype.
     store = rng.standard_normal((n_store, gh, gw, d), dtype=np.float32).astype(dtype)
     store32 = store.astype(np.float32)
+    from loopclosure.database import QuantisedArray, code_weights, quantise
+
+    weights = code_weights(random_codebooks(config, 8, 8).stage2)
+    store8 = QuantisedArray(*quantise(store32, weights), weights)  # as int8 storage reads it: q * s * w
     out: dict = {
         "grid": [gh, gw, d],
         "stage2_dtype": str(dtype),
@@ -640,11 +655,13 @@ def bench_spatial(args, config: VPRConfig, counts: list[int], repeats: int) -> d
         cands = [store[p] for p in places_list]
         score = time_ms(lambda i: spatial_scores(queries[i], cands[i], chunk), repeats)
         score32 = time_ms(lambda i: spatial_scores(queries[i], store32[places_list[i]], chunk), repeats)
+        score8 = time_ms(lambda i: spatial_scores(queries[i], store8[places_list[i]], chunk), repeats)
         entry = {
             "gather_and_score": stats(total),
             "gather_only": stats(gather),
             "score_only": stats(score),
             "float32_storage_gather_and_score": stats(score32),
+            "int8_storage_gather_and_score": stats(score8),
         }
         if n in PAPER_SPATIAL_MS:
             entry["speedup_vs_paper"] = round(PAPER_SPATIAL_MS[n] / max(entry["gather_and_score"]["median"], 1e-6), 1)
