@@ -30,6 +30,8 @@ asking for more neighbours and dropping the excluded ones (exact).
 
 from __future__ import annotations
 
+from typing import Any
+
 import contextlib
 import math
 import time
@@ -77,7 +79,7 @@ class StageOneIndex:
         self.max_norm = 0.0  # largest stage-I vector norm seen (the exactness margin needs it)
         self.kind = "exact" if config.index in ("auto", "exact") else config.index
         self._mirror: np.ndarray | None = None  # float32 vectors for exact search (compact storage)
-        self._index = None  # faiss index (ivf, hnsw)
+        self._index: Any = None  # faiss index (ivf, hnsw); faiss's stubs cover little of its API
         self._trained_at = 0  # places when the IVF lists were trained
         self.build_seconds: list[tuple[str, int, float]] = []  # (what, places, seconds), newest last
 
@@ -128,6 +130,7 @@ class StageOneIndex:
 
         n_vectors = n_places * self.per_place
         nlist = min(self.config.ivf_nlist or auto_nlist(n_vectors), n_vectors)
+        index: Any
         quantizer = faiss.IndexHNSWFlat(self.dim, 32, faiss.METRIC_INNER_PRODUCT)
         if self.config.ivf_codes == "sq8":
             index = faiss.IndexIVFScalarQuantizer(
@@ -183,7 +186,9 @@ class StageOneIndex:
     ) -> list[np.ndarray]:
         import faiss
 
-        base = view if view is not None else self._mirror[: self.n_places * self.per_place]
+        mirror = view if view is not None else self._mirror
+        assert mirror is not None  # kept for compact storage, else the database's own view is given
+        base = mirror[: self.n_places * self.per_place]
         if limit is not None:
             base, excluded = base[: limit * self.per_place], excluded[:0]
         excluded_ids = (excluded[:, None] * self.per_place + np.arange(self.per_place)).ravel()
@@ -210,6 +215,8 @@ class StageOneIndex:
     def _approximate(self, query: np.ndarray, k: int, excluded: np.ndarray, limit: int | None) -> list[np.ndarray]:
         import faiss
 
+        selector: Any
+        params: Any
         if limit is not None:
             selector = faiss.IDSelectorRange(0, limit * self.per_place)
             keep_alive: tuple = (selector,)
@@ -221,11 +228,11 @@ class StageOneIndex:
             selector, keep_alive = None, ()
         fetch = int(math.ceil(k * self.config.ann_candidates_factor))
         if self.kind == "ivf":
-            params = faiss.SearchParametersIVF(nprobe=min(self.config.ivf_nprobe, self._index.nlist))
-            quantizer_params = faiss.SearchParametersHNSW(efSearch=max(64, 2 * params.nprobe))
+            params = _faiss_api().SearchParametersIVF(nprobe=min(self.config.ivf_nprobe, self._index.nlist))
+            quantizer_params = _faiss_api().SearchParametersHNSW(efSearch=max(64, 2 * params.nprobe))
             params.quantizer_params = quantizer_params
         else:
-            params = faiss.SearchParametersHNSW(efSearch=max(self.config.hnsw_ef_search, fetch))
+            params = _faiss_api().SearchParametersHNSW(efSearch=max(self.config.hnsw_ef_search, fetch))
         if selector is not None:
             params.sel = selector
         _, ids = self._index.search(query, fetch, params=params)
@@ -251,3 +258,10 @@ def _gather(rows: Rows, picks: np.ndarray, chunk: int = 1 << 18) -> np.ndarray:
         if len(sel):
             parts.append(rows(lo, min(int(picks[-1]) + 1, lo + chunk))[sel - lo])
     return np.concatenate(parts)
+
+
+def _faiss_api() -> Any:
+    """faiss, untyped: its stubs lack the search-parameter classes this module uses."""
+    import faiss
+
+    return faiss

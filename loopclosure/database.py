@@ -27,8 +27,9 @@ from __future__ import annotations
 import json
 import os
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 from pydantic import ValidationError
@@ -231,7 +232,7 @@ class _Codes:
     def view(self) -> np.ndarray | QuantisedArray:
         return self.values.view if self.scales is None else QuantisedArray(self.values.view, self.scales.view, self.weights)
 
-    def flat_rows(self, start: int, stop: int) -> np.ndarray:
+    def flat_rows(self, start: int, stop: int | None) -> np.ndarray:
         """Vectors [start, stop) of the (N, d) flattening, as float32."""
         d = self.row_shape[-1]
         values = self.values.view.reshape(-1, d)[start:stop]
@@ -359,7 +360,7 @@ class PlaceDatabase:
         if self.filtering.index == "numpy":
             if self._max_norm is None:
                 self._max_norm = max_row_norm(stage1.flat_rows(0, None))
-            dense = self.stage1 if stage1.scales is None else np.asarray(self.stage1)
+            dense = np.asarray(self.stage1)  # float storage: the array itself, no copy
             return vote(query_stage1, dense, k_neighbours, num_candidates, excluded, self._max_norm)
         excluded = _checked_excluded(excluded, len(self))
         n_allowed = len(self) - len(excluded)
@@ -417,7 +418,7 @@ class PlaceDatabase:
             if codes is not None and codes.scales is not None:
                 arrays[f"{name}_scale"] = codes.scales.view
             for file, array in arrays.items():
-                atomic_write(folder / f"{file}.npy", lambda handle, a=array: np.save(handle, a, allow_pickle=False))
+                atomic_write(folder / f"{file}.npy", partial(_save_npy, array=array))
         self._write_places_and_manifest(folder, extra)
         return folder
 
@@ -604,3 +605,7 @@ def _load_npy(path: Path, n: int, mmap: bool, writable: bool) -> _GrowingArray |
         del array
         return _MappedArray(path, n, writable)
     return _GrowingArray(array.shape[1:], array.dtype, array[:n])
+
+
+def _save_npy(handle: BinaryIO, array: Any) -> None:  # a stored array or its memory map
+    np.save(handle, array, allow_pickle=False)

@@ -111,7 +111,7 @@ class LoopDetector:
         images = [self.encoder.prepare(image, f"keyframe {keyframe_id} image")]
         # the rear image has nothing to match until the places exist (PCA warm-up)
         use_rear = rear_image is not None and self.config.rear.enabled and self.database is not None
-        if use_rear:
+        if use_rear and rear_image is not None:
             images.append(self.encoder.prepare(rear_image, f"keyframe {keyframe_id} rear image"))
         raw = self.encoder.raw_cubes(images)
         info = PlaceInfo(frame_id=keyframe_id, timestamp=timestamp, extra={"session": "current"})
@@ -231,6 +231,7 @@ class LoopDetector:
         sequence = self.rear_sequence if rear else self.sequence
         # one BLAS thread for the many small products of stage II: right after the backbone pass
         # torch's threads hold the cores, and two BLAS threads were measured several times slower
+        assert self._recognizer is not None  # built with the database
         with threadpool_limits(limits=1, user_api="blas"):
             start = time.perf_counter()
             continued = sequence.continuations(limit)

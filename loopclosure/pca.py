@@ -106,7 +106,7 @@ class Codebooks:
     def save(self, path: str | Path) -> None:
         arrays = {**self.stage1.to_arrays("stage1_"), **self.stage2.to_arrays("stage2_")}
         buffer = io.BytesIO()
-        np.savez(buffer, **arrays)
+        np.savez(buffer, **arrays)  # type: ignore[arg-type]  # numpy's stub reads the first keyword as allow_pickle
         atomic_write_bytes(Path(path), buffer.getvalue())
 
     @classmethod

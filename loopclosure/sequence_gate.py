@@ -45,13 +45,14 @@ class SequenceGate:
             k = missing[0]
             what = "not seen" if (query - k) not in history else "recognised nothing"
             return GateDecision(False, f"keyframe {query - k} {what}")
+        matched = [m for m in predecessors if m is not None]  # all of them, after the check above
         tol = self.config.tolerance
         for direction, sign in (("forward", -1), ("reverse", +1)):
             if direction == "reverse" and not self.config.allow_reverse:
                 continue
-            if all(abs(m - (match + sign * k)) <= tol for k, m in enumerate(predecessors, start=1)):
+            if all(abs(m - (match + sign * k)) <= tol for k, m in enumerate(matched, start=1)):
                 return GateDecision(True, f"accepted: {need} predecessors consistent ({direction})", direction)  # type: ignore[arg-type]
-        k, m = next((k, m) for k, m in enumerate(predecessors, start=1) if abs(m - (match - k)) > tol)
+        k, m = next((k, m) for k, m in enumerate(matched, start=1) if abs(m - (match - k)) > tol)
         return GateDecision(False, f"keyframe {query - k} matched {m}, expected {match - k}±{tol}"
                             + (f" or {match + k}±{tol}" if self.config.allow_reverse else ""))
 

@@ -174,7 +174,7 @@ def sequence_score_matrix(
     n_query, n_places = s.shape
     limits = np.full(n_query, n_places, np.int64) if limits is None else np.asarray(limits, np.int64)
     valid = np.arange(n_places)[None, :] < limits[:, None]
-    out = {}
+    out: dict[tuple[str, int], tuple[np.ndarray, np.ndarray]] = {}
     for direction in directions(config):
         for si, speed in enumerate(config.speeds):
             terms = np.full((config.length, n_query, n_places), np.nan)

@@ -561,7 +561,7 @@ _NDARRAY = _NdarrayToken()
 def _numpy_internals() -> tuple[Any, Any]:
     try:
         from numpy._core.multiarray import _reconstruct
-        from numpy._core.numeric import _frombuffer
+        from numpy._core.numeric import _frombuffer  # type: ignore[attr-defined]  # private, absent from the stubs
     except ImportError:  # numpy < 2 without the numpy._core aliases
         from numpy.core.multiarray import _reconstruct  # type: ignore[no-redef]
         from numpy.core.numeric import _frombuffer  # type: ignore[no-redef]

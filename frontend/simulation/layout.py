@@ -124,7 +124,7 @@ def district_codes(cfg: CityConfig, seed: int, centre_xy: np.ndarray) -> np.ndar
     """District of each centre-line point: smooth noise of position, cut at the quantiles that
     give each kind its configured share of the route."""
     names = [n for n in DISTRICTS if cfg.district_mix.get(n, 0.0) > 0]  # type: ignore[call-overload]
-    shares = np.array([cfg.district_mix[n] for n in names], float)  # type: ignore[index]
+    shares = np.array([cfg.district_mix[n] for n in names], dtype=np.float64)  # type: ignore[index]
     w = cfg.district_scale_m
     noise = value_noise(seed, _DISTRICT_CHANNEL, centre_xy[:, 0] / w, centre_xy[:, 1] / w)
     cuts = np.quantile(noise, np.cumsum(shares / shares.sum())[:-1]) if len(names) > 1 else np.array([])

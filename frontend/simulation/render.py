@@ -181,11 +181,11 @@ class CameraRenderer:
         idx = np.flatnonzero(flat_layer >= 0)
         if len(idx):
             rows, cols = np.divmod(idx, W)
-            k = flat_layer[idx].astype(np.int64)
-            t = tk[cols, k]
-            seg = sk[cols, k]
+            kk = flat_layer[idx].astype(np.int64)
+            t = tk[cols, kk]
+            seg = sk[cols, kk]
             length = np.linalg.norm(scene.p1[seg] - scene.p0[seg], axis=1)
-            u = (scene.u0[seg] + uk[cols, k] * length).astype(np.float32)
+            u = (scene.u0[seg] + uk[cols, kk] * length).astype(np.float32)
             v = (z_cam + t * slope[rows] - scene.z0[seg]).astype(np.float32)
             sid = scene.surface[seg]
             albedo, key = city.wall_albedo(sid, u, v, visit, app.foliage_tint)

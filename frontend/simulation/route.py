@@ -120,7 +120,7 @@ def _fillet_polyline(pts: np.ndarray, radius: float, step: float):
     for k in range(1, len(pts) - 1):
         a = pts[k] - pts[k - 1]
         b = pts[k + 1] - pts[k]
-        la, lb = np.linalg.norm(a), np.linalg.norm(b)
+        la, lb = float(np.linalg.norm(a)), float(np.linalg.norm(b))
         a, b = a / la, b / lb
         cross = a[0] * b[1] - a[1] * b[0]
         theta = math.atan2(cross, float(a @ b))

@@ -162,6 +162,7 @@ class TraverseSimulator:
         if self.lidar is None:
             return None, None
         rng = np.random.default_rng([self.config.seed, _STREAM_LIDAR, k])
+        zs: float | np.ndarray
         if self.config.lidar.motion_distortion:  # every column from where the vehicle was then
             t = self.route_times[k] - self.lidar.period + self.lidar.col_times
             arc = self.route.arc_length_at(t)

@@ -99,9 +99,9 @@ class FolderSource(Source):
                 return stems, True
         except ValueError:
             pass
-        tum = self.pose_file is not None and self.pose_file.timestamps is not None
-        if tum and len(self.pose_file.poses) == count:
-            return self.pose_file.timestamps.copy(), False
+        pose_file = self.pose_file
+        if pose_file is not None and pose_file.timestamps is not None and len(pose_file.poses) == count:
+            return np.array(pose_file.timestamps, dtype=np.float64), False
         return np.arange(count) * self.config.frame_period_s, False
 
     def _match_poses(self, real_times: bool) -> list[np.ndarray | None] | None:

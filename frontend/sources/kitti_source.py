@@ -58,7 +58,7 @@ def read_calib_tr(path: Path) -> np.ndarray | None:
                 raise FrontendInputError(f"{path}:{lineno}: non-numeric value in Tr") from None
             if len(numbers) != KITTI_COLUMNS or not np.all(np.isfinite(numbers)):
                 raise FrontendInputError(f"{path}:{lineno}: Tr needs 12 finite values")
-            return pose_from_kitti_row(numbers)
+            return pose_from_kitti_row(np.array(numbers))
     return None
 
 

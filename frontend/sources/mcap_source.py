@@ -265,13 +265,10 @@ class McapSource(Source):
                 yield from self._frames(ready)
         yield from self._frames(associator.flush())
         if failure is not None:
-            message = (
-                f"{self.path}: log is truncated or corrupt after {self.stats.frames_yielded} "
-                f"frames ({failure})"
-            )
+            why = f"{self.path}: log is truncated or corrupt after {self.stats.frames_yielded} frames ({failure})"
             if cfg.strict:
-                raise FrontendInputError(message)
-            self.stats.skip("truncated", message + "; stopping (strict=False)")
+                raise FrontendInputError(why)
+            self.stats.skip("truncated", why + "; stopping (strict=False)")
 
     # ---------------------------------------------------------------- helpers
 

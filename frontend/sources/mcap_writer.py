@@ -70,7 +70,7 @@ class McapFrameWriter:
 
     def close(self) -> None:
         """Finish the log and move it to its final name."""
-        if self._writer is None:
+        if self._writer is None or self._tmp_path is None:
             return
         try:
             self._writer.finish()
@@ -109,6 +109,7 @@ class McapFrameWriter:
     # ---------------------------------------------------------------- writing
 
     def _schema(self, datatype: str) -> Schema:
+        assert self._writer is not None, "write() checks that the log is open"
         if datatype not in self._schemas:
             self._schemas[datatype] = self._writer.register_msgdef(
                 datatype, ros_msgdefs.MSGDEFS[datatype]
@@ -116,6 +117,7 @@ class McapFrameWriter:
         return self._schemas[datatype]
 
     def _put(self, topic: str, datatype: str, message: dict[str, Any], nanoseconds: int) -> None:
+        assert self._writer is not None, "write() checks that the log is open"
         self._writer.write_message(
             topic, self._schema(datatype), message, log_time=nanoseconds, publish_time=nanoseconds
         )

@@ -7,7 +7,7 @@ error names the topic it came from.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Literal
 
 import cv2
 import numpy as np
@@ -258,7 +258,7 @@ def decode_point_cloud(msg: Any, topic: str) -> tuple[np.ndarray, np.ndarray | N
         )
     time_name = next((name for name in TIME_FIELD_NAMES if name in fields), None)
     wanted = ["x", "y", "z"] + ([time_name] if time_name else [])
-    order = ">" if msg.is_bigendian else "<"
+    order: Literal[">", "<"] = ">" if msg.is_bigendian else "<"
     point_step, height, width = int(msg.point_step), int(msg.height), int(msg.width)
     formats = [_field_dtype(fields[n], topic).newbyteorder(order) for n in wanted]
     offsets = [int(fields[n].offset) for n in wanted]
