@@ -83,9 +83,11 @@ class PipelineConfig(BaseModel):
         "320 x 240) and held as PNG bytes; None keeps them at full size. Full colour images are not kept.",
     )  # fmt: skip
     overlap: bool = Field(
-        default=True,
+        default=False,
         description="Run the source, odometry and keyframe selection in a thread of their own, alongside "
-        "recognition, registration and iSAM2 (same keyframes, loops and trajectory as false).",
+        "recognition, registration and iSAM2 (same keyframes, loops and trajectory as false). Off by default: "
+        "on the shared 2-core machine it did not shorten the wall time per keyframe and the backbone slowed "
+        "(README, \"SLAM demo\"); try it where cores are free.",
     )
     overlap_queue_keyframes: int = Field(
         default=2, ge=1, description="With overlap: keyframes the front end may run ahead of the back end."
