@@ -7,7 +7,15 @@ Errors a user can fix print as one red line and exit with status 2.
 from __future__ import annotations
 
 import functools
+import os
 import sys
+
+# Before torch (imported inside the commands) loads its OpenMP runtime: idle OpenMP threads sleep
+# instead of spinning. kiss-icp's threads, faiss's and the backbone's share the cores of one
+# process, and spinning threads took them from each other: the SLAM stream's backbone measured
+# about 2x slower without this on the shared 2-core machine (README, "SLAM demo"). An explicit
+# OMP_WAIT_POLICY in the environment wins.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Any, Optional
