@@ -159,7 +159,7 @@ def _row(bench: Benchmark, kernel: str, gnc: bool, rate: float, kind: str, resul
         "outlier_precision": scores["outlier_precision"], "outlier_recall": scores["outlier_recall"],
         "flagged_outliers": scores["flagged_outliers"], "seconds": result.seconds,
         "check_removed": result.check_removed, "check_readmitted": result.check_readmitted,
-        "from_kernel": result.from_kernel,
+        "from_kernel": result.from_kernel, "check_seconds": result.check_seconds,
     }  # fmt: skip
 
 

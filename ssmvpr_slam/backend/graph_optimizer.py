@@ -28,12 +28,15 @@ and returns a frozen :class:`OptimizationResult`; the command line writes the ou
   nothing else in the graph measures (leverage >= `verify_leverage`, from GTSAM's Marginals), or
   whose linearised leave-one-out innovation exceeds the chi2 quantile, are each removed in turn:
   if the rest of the graph then gets cheaper by more than the TLS rejection price, the loop is an
-  outlier (the move that lowers the TLS objective). Loops whose residual is below the quantile
+  outlier (the move that lowers the TLS objective). When no single removal pays, the suspects
+  are removed together and each offered back alone (false loops that hold one bend together).
+  Loops whose residual is below the quantile
   at the checked solution are kept again, and a last least-squares solve over odometry and the
   kept loops gives the poses. Last, the kernel solution (least squares over the loops under the
   chi2 quantile) is the answer instead when its TLS objective is lower.
 * Classification of loops: with GNC, the kept set above (GNC weight >= 0.5, minus the loops the
-  check removed, plus those it re-admitted); without GNC, a loop is an outlier when its whitened
+  check removed, plus those it re-admitted; or the chi2 test below when the kernel solution is
+  the answer); without GNC, a loop is an outlier when its whitened
   (Mahalanobis) residual squared after optimisation exceeds the chi2 quantile `outlier_quantile`
   (0.99) with 3 degrees of freedom for 2-D graphs, 6 for 3-D.
 """
@@ -161,6 +164,8 @@ class OptimizationResult:
     """With GNC and the check: loops GNC kept that the leave-one-out check removed."""
     check_readmitted: int = 0
     """With GNC and the check: loops GNC rejected that fit the checked solution (kept again)."""
+    check_seconds: float = 0.0
+    """Of `seconds`: the leave-one-out check and the comparison with the kernel solution."""
     from_kernel: bool = False
     """With GNC and the check: the kernel solution (least squares over the loops it kept) had
     the lower TLS objective and is the answer."""
@@ -375,6 +380,7 @@ def refine_with_gnc(
     keep = weights >= cfg.weight_threshold
     values = _least_squares(factors, keep, values, settings.lm_max_iterations)
     removed = readmitted = 0
+    check_start = time.perf_counter()
     if settings.verify and factors.loops:
         values, checked = _leave_one_out_check(factors, keep, values, threshold, settings)
         removed = int(np.sum(keep & ~checked))
@@ -393,6 +399,7 @@ def refine_with_gnc(
             from_kernel = True
             values = kernel_values
             keep = _loop_chi2(factors, _poses(values, n)) <= threshold
+    check_seconds = time.perf_counter() - check_start
     poses = _poses(values, n)
     return OptimizationResult(
         ids=graph.ids, poses=poses, loop_indices=kernel_result.loop_indices,
@@ -402,6 +409,7 @@ def refine_with_gnc(
         classification=f"outlier if GNC ({cfg.loss}) weight < {cfg.weight_threshold}"
                        + (", then the leave-one-out check" if settings.verify else ""),
         before_gnc=kernel_result, check_removed=removed, check_readmitted=readmitted, from_kernel=from_kernel,
+        check_seconds=check_seconds if settings.verify else 0.0,
     )  # fmt: skip
 
 
