@@ -42,9 +42,7 @@ class McapWriterConfig(_Model):
     lidar_frame_id: str = "lidar"
     chunk_size: int = Field(1024 * 1024, gt=0, description="bytes per MCAP chunk")
     compression: Literal["zstd", "lz4", "none"] = "zstd"
-    rotation_tolerance: float = Field(
-        1e-3, gt=0.0, description="a pose whose |R^T R - I| exceeds this is refused"
-    )
+    rotation_tolerance: float = Field(1e-3, gt=0.0, description="a pose whose |R^T R - I| exceeds this is refused")
 
 
 class McapSourceConfig(_Model):
@@ -73,18 +71,12 @@ class McapSourceConfig(_Model):
     )
     max_pending_frames: int = Field(64, ge=1, description="frames held while waiting")
     max_buffered_messages: int = Field(64, ge=2, description="per-stream look-back buffer")
-    use_header_stamp: bool = Field(
-        True, description="associate by header.stamp (log_time when the stamp is zero)"
-    )
-    strict: bool = Field(
-        True, description="truncated/corrupt log: raise (True) or warn once and stop (False)"
-    )
+    use_header_stamp: bool = Field(True, description="associate by header.stamp (log_time when the stamp is zero)")
+    strict: bool = Field(True, description="truncated/corrupt log: raise (True) or warn once and stop (False)")
     skip_undecodable_images: bool = Field(
         True, description="bad image: count it, keep the frame's other sensors (False: stop)"
     )
-    max_time_gap_s: float = Field(
-        5.0, gt=0.0, description="a stream's time leaping further forward is warned about"
-    )
+    max_time_gap_s: float = Field(5.0, gt=0.0, description="a stream's time leaping further forward is warned about")
 
 
 class KittiSourceConfig(_Model):
@@ -96,9 +88,7 @@ class KittiSourceConfig(_Model):
     gt_frame: Literal["auto", "lidar", "camera"] = Field(
         "auto", description="body frame of gt_pose; auto = lidar when velodyne/ exists"
     )
-    max_time_gap_s: float = Field(
-        5.0, gt=0.0, description="a time leaping further forward is warned about"
-    )
+    max_time_gap_s: float = Field(5.0, gt=0.0, description="a time leaping further forward is warned about")
 
 
 class FolderSourceConfig(_Model):
@@ -111,12 +101,8 @@ class FolderSourceConfig(_Model):
     association_tolerance_s: float = Field(
         0.02, ge=0.0, description="image time vs TUM pose time, when both are timestamps"
     )
-    max_time_gap_s: float = Field(
-        5.0, gt=0.0, description="a time leaping further forward is warned about"
-    )
-    frame_period_s: float = Field(
-        0.1, gt=0.0, description="timestamp step when no times are known"
-    )
+    max_time_gap_s: float = Field(5.0, gt=0.0, description="a time leaping further forward is warned about")
+    frame_period_s: float = Field(0.1, gt=0.0, description="timestamp step when no times are known")
 
 
 class SourceConfig(_Model):
@@ -135,9 +121,7 @@ class KissIcpConfig(_Model):
     """kiss-icp's ``KISSConfig`` fields, flattened, plus our input guards."""
 
     max_range: float = Field(100.0, gt=0.0)
-    min_range: float = Field(
-        0.5, ge=0.0, description="nearer returns are the vehicle itself or a driver's placeholder"
-    )
+    min_range: float = Field(0.5, ge=0.0, description="nearer returns are the vehicle itself or a driver's placeholder")
     deskew: bool = Field(True, description="used only when a scan has real per-point times")
     voxel_size: float | None = Field(None, gt=0.0, description="None: max_range / 100")
     max_points_per_voxel: int = Field(20, ge=1)
@@ -147,12 +131,8 @@ class KissIcpConfig(_Model):
     fixed_threshold: float | None = Field(None, gt=0.0)
     initial_threshold: float = Field(2.0, gt=0.0)
     min_motion_th: float = Field(0.1, ge=0.0)
-    min_points: int = Field(
-        20, ge=1, description="fewer valid in-range points: skip the scan, predict the pose"
-    )
-    predict_on_skip: bool = Field(
-        True, description="skipped scan: constant-velocity prediction (else hold the pose)"
-    )
+    min_points: int = Field(20, ge=1, description="fewer valid in-range points: skip the scan, predict the pose")
+    predict_on_skip: bool = Field(True, description="skipped scan: constant-velocity prediction (else hold the pose)")
 
     @model_validator(mode="after")
     def _check_ranges(self) -> KissIcpConfig:

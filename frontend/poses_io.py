@@ -141,9 +141,7 @@ def data_lines(path: Path) -> list[tuple[int, list[str]]]:
 
 def _floats(path: Path, lineno: int, tokens: list[str], expected: int, what: str) -> np.ndarray:
     if len(tokens) != expected:
-        raise FrontendInputError(
-            f"{path}:{lineno}: expected {expected} values ({what}), got {len(tokens)}"
-        )
+        raise FrontendInputError(f"{path}:{lineno}: expected {expected} values ({what}), got {len(tokens)}")
     try:
         values = np.array([float(token) for token in tokens])
     except ValueError:
@@ -193,14 +191,10 @@ def detect_format(path: str | Path) -> PoseFormat:
         return "tum"
     if len(tokens) == KITTI_COLUMNS:
         return "kitti"
-    raise FrontendInputError(
-        f"{path}:{lineno}: {len(tokens)} values; expected 8 (TUM) or 12 (KITTI)"
-    )
+    raise FrontendInputError(f"{path}:{lineno}: {len(tokens)} values; expected 8 (TUM) or 12 (KITTI)")
 
 
-def read_poses(
-    path: str | Path, format: PoseFormat | None = None, config: PoseFileConfig | None = None
-) -> PoseFile:
+def read_poses(path: str | Path, format: PoseFormat | None = None, config: PoseFileConfig | None = None) -> PoseFile:
     """Read a TUM or KITTI file; the format is detected when not given."""
     format = format or detect_format(path)
     return read_tum(path, config) if format == "tum" else read_kitti(path, config)
@@ -238,9 +232,7 @@ def atomic_write_text(path: str | Path, text: str) -> None:
         raise
 
 
-def tum_lines(
-    timestamps: np.ndarray, poses: np.ndarray, stamp_format: str, value_format: str
-) -> list[str]:
+def tum_lines(timestamps: np.ndarray, poses: np.ndarray, stamp_format: str, value_format: str) -> list[str]:
     """``t x y z qx qy qz qw`` per pose (qw >= 0), numbers formatted with ``str.format``."""
     lines = []
     for stamp, pose in zip(timestamps, poses):
@@ -276,9 +268,7 @@ def write_tum(
     poses = _checked_poses(path, poses, config)
     timestamps = np.asarray(timestamps, dtype=np.float64).ravel()
     if len(timestamps) != len(poses) or not np.all(np.isfinite(timestamps)):
-        raise FrontendInputError(
-            f"{path}: need {len(poses)} finite timestamps, got {len(timestamps)}"
-        )
+        raise FrontendInputError(f"{path}: need {len(poses)} finite timestamps, got {len(timestamps)}")
     stamp_format = f"{{:.{config.timestamp_decimals}f}}"
     lines = tum_lines(timestamps, poses, stamp_format, f"{{:.{config.value_digits}g}}")
     atomic_write_text(path, "".join(line + "\n" for line in lines))

@@ -30,12 +30,11 @@ asking for more neighbours and dropping the excluded ones (exact).
 
 from __future__ import annotations
 
-from typing import Any
-
 import contextlib
 import math
 import time
 from collections.abc import Callable, Iterator
+from typing import Any
 
 import numpy as np
 
@@ -95,7 +94,10 @@ class StageOneIndex:
         for lo in range(start_vec, stop_vec, 1 << 18):
             part = rows(lo, min(stop_vec, lo + (1 << 18)))
             if len(part):
-                self.max_norm = max(self.max_norm, float(np.sqrt(np.einsum("ij,ij->i", part, part, dtype=np.float64).max())) * (1 + 1e-6))
+                self.max_norm = max(
+                    self.max_norm,
+                    float(np.sqrt(np.einsum("ij,ij->i", part, part, dtype=np.float64).max())) * (1 + 1e-6),
+                )
         if self.config.index == "auto" and self.kind == "exact" and n_places > self.config.ann_threshold_places:
             self.kind, self._mirror = "ivf", None
         if self.kind == "exact":
@@ -182,7 +184,13 @@ class StageOneIndex:
             return self._approximate(query, k, excluded, limit)
 
     def _exact(
-        self, query: np.ndarray, k: int, n_allowed: int, excluded: np.ndarray, limit: int | None, view: np.ndarray | None
+        self,
+        query: np.ndarray,
+        k: int,
+        n_allowed: int,
+        excluded: np.ndarray,
+        limit: int | None,
+        view: np.ndarray | None,
     ) -> list[np.ndarray]:
         import faiss
 

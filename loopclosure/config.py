@@ -83,15 +83,20 @@ class FilteringConfig(_Strict):
         "hnsw: faiss HNSW graph (no training, slow to build); auto: exact up to ann_threshold_places, "
         "ivf beyond; numpy: the reference brute force without faiss.",
     )
-    ann_threshold_places: int = Field(default=50_000, ge=1, description="auto: places from which IVF replaces exact search.")
+    ann_threshold_places: int = Field(
+        default=50_000, ge=1, description="auto: places from which IVF replaces exact search."
+    )
     ivf_nlist: int | None = Field(
         default=None, ge=1, description="IVF lists; None: 4*sqrt(vectors) as a power of two in [64, 16384]."
     )
     ivf_nprobe: int = Field(
-        default=64, ge=1, description="IVF lists searched per query vector (4096 lists, street-like codes: recall@N 0.93 at 100k places)."
+        default=64,
+        ge=1,
+        description="IVF lists searched per query vector (4096 lists, street-like codes: recall@N 0.93 at 100k places).",
     )
     ivf_codes: Literal["flat", "sq8"] = Field(
-        default="flat", description="Vectors in the IVF lists: float32 (flat) or 8-bit per dimension (sq8, 4x smaller; "
+        default="flat",
+        description="Vectors in the IVF lists: float32 (flat) or 8-bit per dimension (sq8, 4x smaller; "
         "its approximate similarities are re-scored exactly from the database, fetch more with ann_candidates_factor).",
     )
     ivf_train_vectors: int = Field(
@@ -106,7 +111,9 @@ class FilteringConfig(_Strict):
     hnsw_ef_construction: int = Field(default=80, ge=1)
     hnsw_ef_search: int = Field(default=128, ge=1, description="HNSW search breadth (at least k is used).")
     ann_candidates_factor: float = Field(
-        default=1.0, ge=1.0, description="ivf/hnsw: neighbours fetched per query vector, times k, then re-scored exactly."
+        default=1.0,
+        ge=1.0,
+        description="ivf/hnsw: neighbours fetched per query vector, times k, then re-scored exactly.",
     )
     faiss_threads: int = Field(default=1, ge=1, description="OpenMP threads of faiss searches (2 cores shared: 1).")
 
@@ -156,7 +163,7 @@ class VPRConfig(_Strict):
     frame_correlation: FrameCorrelationConfig = FrameCorrelationConfig()
 
     @model_validator(mode="after")
-    def _layers_fit(self) -> "VPRConfig":
+    def _layers_fit(self) -> VPRConfig:
         for name, cubes in (("filtering", self.filtering.cubes), ("spatial", self.spatial.cubes)):
             layer = self.backbone.stage1_layer if name == "filtering" else self.backbone.stage2_layer
             side = feature_side(layer, self.backbone.input_size)
@@ -168,7 +175,15 @@ class VPRConfig(_Strict):
         return self
 
 
-LAYER_DOWNSAMPLING = {"conv3_3": 4, "conv4_1": 8, "conv4_2": 8, "conv4_3": 8, "conv5_1": 16, "conv5_2": 16, "conv5_3": 16}
+LAYER_DOWNSAMPLING = {
+    "conv3_3": 4,
+    "conv4_1": 8,
+    "conv4_2": 8,
+    "conv4_3": 8,
+    "conv5_1": 16,
+    "conv5_2": 16,
+    "conv5_3": 16,
+}
 
 
 def feature_side(layer: str, input_size: int) -> int:
@@ -192,7 +207,8 @@ class SequenceMatchConfig(_Strict):
 
     length: int = Field(default=1, ge=1, description="L: frames per sequence; 1 is single-frame recognition.")
     direction: Literal["forward", "reverse", "both"] = Field(
-        default="forward", description="forward: r-k follows q-k (same driving direction); reverse: r+k; both: the better."
+        default="forward",
+        description="forward: r-k follows q-k (same driving direction); reverse: r+k; both: the better.",
     )
     speeds: list[float] = Field(
         default=[1.0],
@@ -220,7 +236,7 @@ class SequenceMatchConfig(_Strict):
     )
 
     @model_validator(mode="after")
-    def _positive_speeds(self) -> "SequenceMatchConfig":
+    def _positive_speeds(self) -> SequenceMatchConfig:
         if any(not (0.0 < v <= 4.0) for v in self.speeds):
             raise ValueError(f"speeds must lie in (0, 4], got {self.speeds}")
         return self
@@ -247,9 +263,15 @@ class RearCameraConfig(_Strict):
     own (chosen on the simulator's demo traverse, tools/bench_sequence_sim.py)."""
 
     enabled: bool = Field(default=True, description="Query with the rear image when a keyframe has one.")
-    min_score: float = Field(default=0.2, ge=0.0, le=1.0, description="Rear sequence score below which nothing is proposed.")
-    accept_score: float = Field(default=0.27, ge=0.0, le=1.0, description="Rear sequence score from which a proposal is accepted.")
-    min_single_score: float = Field(default=0.2, ge=0.0, le=1.0, description="The rear image's own stage-II score needed to accept.")
+    min_score: float = Field(
+        default=0.2, ge=0.0, le=1.0, description="Rear sequence score below which nothing is proposed."
+    )
+    accept_score: float = Field(
+        default=0.27, ge=0.0, le=1.0, description="Rear sequence score from which a proposal is accepted."
+    )
+    min_single_score: float = Field(
+        default=0.2, ge=0.0, le=1.0, description="The rear image's own stage-II score needed to accept."
+    )
 
 
 class DetectorConfig(_Strict):
@@ -257,14 +279,18 @@ class DetectorConfig(_Strict):
 
     exclusion_keyframes: int = Field(default=30, ge=0, description="The most recent keyframes are never candidates.")
     exclusion_distance: float = Field(
-        default=15.0, ge=0.0, description="Keyframes within this travelled distance (m) of the query are never candidates."
+        default=15.0,
+        ge=0.0,
+        description="Keyframes within this travelled distance (m) of the query are never candidates.",
     )
     min_score: float = Field(
         default=0.3, ge=0.0, le=1.0,
         description="Sequence score (the stage-II score when sequence.length is 1) below which nothing is proposed.",
     )  # fmt: skip
     accept_score: float | None = Field(
-        default=0.45, ge=0.0, le=1.0,
+        default=0.45,
+        ge=0.0,
+        le=1.0,
         description="Sequence score from which a proposal is accepted (None: min_score). Demo stream, L=3: wrong "
         "sequences <= 0.39, right ones median 0.62.",
     )
@@ -278,11 +304,14 @@ class DetectorConfig(_Strict):
     pca_warmup_keyframes: int = Field(
         default=40, ge=2, description="Without codebooks, fit PCA on the first keyframes, then start querying."
     )
-    codebooks: str | None = Field(default=None, description="Codebooks (.npz from fit-pca) to use from the first keyframe.")
-    camera_hfov_deg: float = Field(default=90.0, gt=0.0, lt=180.0, description="Turns a grid column shift into a yaw guess.")
+    codebooks: str | None = Field(
+        default=None, description="Codebooks (.npz from fit-pca) to use from the first keyframe."
+    )
+    camera_hfov_deg: float = Field(
+        default=90.0, gt=0.0, lt=180.0, description="Turns a grid column shift into a yaw guess."
+    )
     rear: RearCameraConfig = RearCameraConfig()
 
     @property
     def accept_threshold(self) -> float:
         return self.min_score if self.accept_score is None else self.accept_score
-

@@ -81,7 +81,7 @@ class _GrowingArray:
     def view(self) -> np.ndarray:
         return self._data[: self._size]
 
-    def copy(self) -> "_GrowingArray":
+    def copy(self) -> _GrowingArray:
         return _GrowingArray(self.row_shape, self._data.dtype, self.view.copy())
 
 
@@ -117,11 +117,19 @@ class _MappedArray:
         import io
 
         header = io.BytesIO()
-        d = {"descr": np.lib.format.dtype_to_descr(self.dtype), "fortran_order": False, "shape": (rows, *self.row_shape)}
-        write = np.lib.format.write_array_header_1_0 if self._version == (1, 0) else np.lib.format.write_array_header_2_0
+        d = {
+            "descr": np.lib.format.dtype_to_descr(self.dtype),
+            "fortran_order": False,
+            "shape": (rows, *self.row_shape),
+        }
+        write = (
+            np.lib.format.write_array_header_1_0 if self._version == (1, 0) else np.lib.format.write_array_header_2_0
+        )
         write(header, d)  # the padding rule np.save uses: room for a 21-digit row count
         if header.tell() != self._offset:
-            raise LoopClosureInputError(f"{self.path}: its header cannot grow in place ({header.tell()} != {self._offset} bytes)")
+            raise LoopClosureInputError(
+                f"{self.path}: its header cannot grow in place ({header.tell()} != {self._offset} bytes)"
+            )
         with open(self.path, "r+b") as handle:
             handle.write(header.getvalue())
             handle.flush()
@@ -210,7 +218,7 @@ class _Codes:
         self.values, self.scales, self.weights = values, scales, weights
 
     @classmethod
-    def empty(cls, row_shape: tuple[int, ...], dtype: str, weights: np.ndarray) -> "_Codes":
+    def empty(cls, row_shape: tuple[int, ...], dtype: str, weights: np.ndarray) -> _Codes:
         if dtype == "int8":
             scales = _GrowingArray(row_shape[:-1], np.dtype(np.float32))
             return cls(_GrowingArray(row_shape, np.dtype(np.int8)), scales, weights)
@@ -230,7 +238,11 @@ class _Codes:
 
     @property
     def view(self) -> np.ndarray | QuantisedArray:
-        return self.values.view if self.scales is None else QuantisedArray(self.values.view, self.scales.view, self.weights)
+        return (
+            self.values.view
+            if self.scales is None
+            else QuantisedArray(self.values.view, self.scales.view, self.weights)
+        )
 
     def flat_rows(self, start: int, stop: int | None) -> np.ndarray:
         """Vectors [start, stop) of the (N, d) flattening, as float32."""
@@ -249,7 +261,7 @@ class _Codes:
         row = int(np.prod(self.row_shape)) * self.values.view.dtype.itemsize
         return row + (int(np.prod(self.row_shape[:-1])) * 4 if self.scales is not None else 0)
 
-    def copy(self) -> "_Codes":
+    def copy(self) -> _Codes:
         return _Codes(self.values.copy(), None if self.scales is None else self.scales.copy(), self.weights)
 
 
@@ -308,10 +320,17 @@ class PlaceDatabase:
         self._check_codes(codes)
         if not self._codes:
             self._codes = {
-                "stage1": _Codes.empty(codes.stage1.shape[1:], self.config.stage1_dtype, code_weights(self.codebooks.stage1)),
-                "stage2": _Codes.empty(codes.stage2.shape[1:], self.config.stage2_dtype, code_weights(self.codebooks.stage2)),
+                "stage1": _Codes.empty(
+                    codes.stage1.shape[1:], self.config.stage1_dtype, code_weights(self.codebooks.stage1)
+                ),
+                "stage2": _Codes.empty(
+                    codes.stage2.shape[1:], self.config.stage2_dtype, code_weights(self.codebooks.stage2)
+                ),
             }
-        elif codes.stage1.shape[1:] != self._codes["stage1"].row_shape or codes.stage2.shape[1:] != self._codes["stage2"].row_shape:
+        elif (
+            codes.stage1.shape[1:] != self._codes["stage1"].row_shape
+            or codes.stage2.shape[1:] != self._codes["stage2"].row_shape
+        ):
             raise LoopClosureInputError(
                 f"codes of shape {codes.stage1.shape[1:]}/{codes.stage2.shape[1:]} do not fit a database of "
                 f"{self._codes['stage1'].row_shape}/{self._codes['stage2'].row_shape}"
@@ -320,10 +339,12 @@ class PlaceDatabase:
         self._codes["stage2"].extend(codes.stage2)
         self.places.extend(infos)
         if self._max_norm is not None:
-            self._max_norm = max(self._max_norm, max_row_norm(self._codes["stage1"].flat_rows(first * codes.stage1.shape[1], None)))
+            self._max_norm = max(
+                self._max_norm, max_row_norm(self._codes["stage1"].flat_rows(first * codes.stage1.shape[1], None))
+            )
         return list(range(first, len(self)))
 
-    def copy(self) -> "PlaceDatabase":
+    def copy(self) -> PlaceDatabase:
         """An independent database holding the same places, in RAM: a session grows its own copy
         of a prior map, so the loaded map (and what is reported of it) stays as it was read."""
         other = PlaceDatabase(self.codebooks, self.config)
@@ -335,9 +356,13 @@ class PlaceDatabase:
 
     def _check_codes(self, codes: PlaceCodes) -> None:
         if codes.stage1.ndim != 3 or codes.stage1.shape[-1] != self.codebooks.stage1.dim:
-            raise LoopClosureInputError(f"stage-I codes must be (B, n, {self.codebooks.stage1.dim}), got {codes.stage1.shape}")
+            raise LoopClosureInputError(
+                f"stage-I codes must be (B, n, {self.codebooks.stage1.dim}), got {codes.stage1.shape}"
+            )
         if codes.stage2.ndim != 4 or codes.stage2.shape[-1] != self.codebooks.stage2.dim:
-            raise LoopClosureInputError(f"stage-II codes must be (B, gh, gw, {self.codebooks.stage2.dim}), got {codes.stage2.shape}")
+            raise LoopClosureInputError(
+                f"stage-II codes must be (B, gh, gw, {self.codebooks.stage2.dim}), got {codes.stage2.shape}"
+            )
         if not (np.isfinite(codes.stage1).all() and np.isfinite(codes.stage2).all()):
             raise LoopClosureInputError("place codes contain NaN or inf")
 
@@ -400,7 +425,9 @@ class PlaceDatabase:
         }
 
     def _write_places_and_manifest(self, folder: Path, extra: dict[str, Any] | None) -> None:
-        places = [{"frame_id": p.frame_id, "timestamp": p.timestamp, "name": p.name, "extra": p.extra} for p in self.places]
+        places = [
+            {"frame_id": p.frame_id, "timestamp": p.timestamp, "name": p.name, "extra": p.extra} for p in self.places
+        ]
         atomic_write_text(folder / "places.json", json.dumps(places, allow_nan=True))
         write_manifest(folder / MANIFEST, self._manifest(extra))
 
@@ -439,7 +466,7 @@ class PlaceDatabase:
         return self._folder
 
     @classmethod
-    def open(cls, folder: str | Path) -> "PlaceDatabase":
+    def open(cls, folder: str | Path) -> PlaceDatabase:
         """A saved map, memory-mapped, that grows in its folder: `add` writes the codes to the
         files, `commit` (or `save` to the same folder) records them in the manifest."""
         db = cls.load(folder, mmap=True, writable=True)
@@ -447,7 +474,7 @@ class PlaceDatabase:
         return db
 
     @classmethod
-    def load(cls, folder: str | Path, mmap: bool = False, writable: bool = False) -> "PlaceDatabase":
+    def load(cls, folder: str | Path, mmap: bool = False, writable: bool = False) -> PlaceDatabase:
         """Read a saved folder; anything malformed is a `LoopClosureInputError` naming its file.
 
         mmap: map the code files instead of reading them (checked for NaN chunk by chunk)."""
@@ -490,7 +517,9 @@ class PlaceDatabase:
             scales = None
             if dtype == "int8":
                 if values.view.dtype != np.int8:
-                    raise LoopClosureInputError(f"{folder / name}.npy: {values.view.dtype} codes, its manifest says int8")
+                    raise LoopClosureInputError(
+                        f"{folder / name}.npy: {values.view.dtype} codes, its manifest says int8"
+                    )
                 scales = _load_npy(folder / f"{name}_scale.npy", n, mmap, writable)
                 if scales.row_shape != tuple(wanted[:-1]) or scales.view.dtype != np.float32:
                     raise LoopClosureInputError(
@@ -503,8 +532,12 @@ class PlaceDatabase:
                 if not mmap:
                     values = _GrowingArray(values.row_shape, np.dtype(dtype), values.view)
                 elif values.view.dtype != np.dtype(dtype):
-                    raise LoopClosureInputError(f"{folder / name}.npy: {values.view.dtype} codes, its manifest says {dtype}")
-            db._codes[name] = _Codes(values, scales, code_weights(getattr(db.codebooks, name)) if scales is not None else None)
+                    raise LoopClosureInputError(
+                        f"{folder / name}.npy: {values.view.dtype} codes, its manifest says {dtype}"
+                    )
+            db._codes[name] = _Codes(
+                values, scales, code_weights(getattr(db.codebooks, name)) if scales is not None else None
+            )
         if len(places) < n:
             raise LoopClosureInputError(f"{folder / 'places.json'} lists {len(places)} places, manifest says {n}")
         db.places = places[:n]

@@ -259,7 +259,11 @@ class LoopDetector:
         if accepted and self.config.gate.enabled:  # the top-1 consistency check, on request
             decision = self.gate.decide(query_place, match.place)
             accepted = decision.accepted
-            reason = f"{reason}; top-1 gate: {decision.reason}" if accepted else f"top-1 gate rejects: {decision.reason}; {reason}"
+            reason = (
+                f"{reason}; top-1 gate: {decision.reason}"
+                if accepted
+                else f"top-1 gate rejects: {decision.reason}; {reason}"
+            )
         self.gate.observe(query_place, top1)  # the gate judges each keyframe's own top-1 recognition
         timings.gate = time.perf_counter() - start
         return self._proposal(match, recognition, candidates, keyframe_id, accepted, reason)

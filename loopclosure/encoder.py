@@ -29,13 +29,13 @@ class PlaceCodes:
     def __len__(self) -> int:
         return int(self.stage1.shape[0])
 
-    def __getitem__(self, index: int | slice) -> "PlaceCodes":
+    def __getitem__(self, index: int | slice) -> PlaceCodes:
         if isinstance(index, int):
             index = slice(index, index + 1)
         return PlaceCodes(self.stage1[index], self.stage2[index])
 
     @staticmethod
-    def concatenate(parts: Sequence["PlaceCodes"]) -> "PlaceCodes":
+    def concatenate(parts: Sequence[PlaceCodes]) -> PlaceCodes:
         return PlaceCodes(np.concatenate([p.stage1 for p in parts]), np.concatenate([p.stage2 for p in parts]))
 
 
@@ -70,7 +70,9 @@ class Encoder:
         """Backbone + cube extraction for one batch of prepared (square RGB) images."""
         maps1, maps2 = self.backbone(np.stack(images))
         stage1 = extract_cubes(maps1, self.config.filtering.cubes)
-        return RawCubes(stage1.reshape(stage1.shape[0], -1, stage1.shape[-1]), extract_cubes(maps2, self.config.spatial.cubes))
+        return RawCubes(
+            stage1.reshape(stage1.shape[0], -1, stage1.shape[-1]), extract_cubes(maps2, self.config.spatial.cubes)
+        )
 
     def project(self, raw: RawCubes) -> PlaceCodes:
         if self.codebooks is None:
@@ -94,9 +96,7 @@ class Encoder:
             if on_batch is not None:
                 on_batch(len(batch))
 
-    def fit_codebooks(
-        self, images: Iterable[np.ndarray], on_batch: Callable[[int], None] | None = None
-    ) -> Codebooks:
+    def fit_codebooks(self, images: Iterable[np.ndarray], on_batch: Callable[[int], None] | None = None) -> Codebooks:
         """Fit both PCA codebooks on prepared images (e.g. the reference set) and keep them."""
         return self._fit(images, on_batch, keep_raw=False)[0]
 

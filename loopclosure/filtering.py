@@ -109,7 +109,9 @@ def allowed_mask(n_places: int, excluded: np.ndarray | None) -> np.ndarray:
     if excluded is not None and len(excluded):
         excluded = np.asarray(excluded, dtype=np.int64)
         if excluded.min() < 0 or excluded.max() >= n_places:
-            raise ValueError(f"excluded place indices must lie in [0, {n_places}), got {excluded.min()}..{excluded.max()}")
+            raise ValueError(
+                f"excluded place indices must lie in [0, {n_places}), got {excluded.min()}..{excluded.max()}"
+            )
         allowed[excluded] = False
     return allowed
 

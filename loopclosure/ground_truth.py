@@ -48,14 +48,10 @@ class GroundTruth:
 
     def __post_init__(self) -> None:
         if len(self.refs) != self.n_query:
-            raise LoopClosureInputError(
-                f"ground truth: {len(self.refs)} query entries for n_query={self.n_query}"
-            )
+            raise LoopClosureInputError(f"ground truth: {len(self.refs)} query entries for n_query={self.n_query}")
         for q, r in enumerate(self.refs):
             if r.ndim != 1 or (r.size > 1 and np.any(np.diff(r) <= 0)):
-                raise LoopClosureInputError(
-                    f"ground truth: query {q} reference indices are not a sorted 1-D set"
-                )
+                raise LoopClosureInputError(f"ground truth: query {q} reference indices are not a sorted 1-D set")
             if r.size and (r[0] < 0 or r[-1] >= self.n_ref):
                 raise LoopClosureInputError(
                     f"ground truth: query {q} has reference indices outside 0..{self.n_ref - 1}"
@@ -67,9 +63,7 @@ class GroundTruth:
         return np.fromiter((r.size > 0 for r in self.refs), dtype=bool, count=self.n_query)
 
     @classmethod
-    def from_sets(
-        cls, sets: Sequence[Iterable[int]], n_ref: int, source: str = ""
-    ) -> GroundTruth:
+    def from_sets(cls, sets: Sequence[Iterable[int]], n_ref: int, source: str = "") -> GroundTruth:
         """Build from one iterable of reference indices per query (sorted, deduplicated)."""
         refs = tuple(np.unique(np.asarray(list(s), dtype=np.int64)) for s in sets)
         return cls(refs=refs, n_ref=int(n_ref), n_query=len(refs), source=source)
@@ -247,9 +241,7 @@ def _read_rows(path: Path) -> tuple[list[str], list[list[str]]]:
     return rows[0], rows[1:]
 
 
-def from_csv(
-    path: str | Path, ref_files: Sequence[object], query_files: Sequence[object]
-) -> GroundTruth:
+def from_csv(path: str | Path, ref_files: Sequence[object], query_files: Sequence[object]) -> GroundTruth:
     """CSV ground truth: SSM-VPR ``Reference,Live`` or Berlin ``Serial No,Query,Ref`` columns.
 
     Cells hold filenames (matched by basename, extension optional) or 0-based indices; one
@@ -333,9 +325,7 @@ def correct_mask(gt: GroundTruth, matches: np.ndarray, tolerance: int) -> np.nda
     tol = _check_tolerance(tolerance)
     m = np.asarray(matches)
     if m.ndim not in (1, 2) or m.shape[0] != gt.n_query:
-        raise LoopClosureInputError(
-            f"matches: expected shape ({gt.n_query},) or ({gt.n_query}, k), got {m.shape}"
-        )
+        raise LoopClosureInputError(f"matches: expected shape ({gt.n_query},) or ({gt.n_query}, k), got {m.shape}")
     if m.size and not np.issubdtype(m.dtype, np.integer):
         if not np.all(np.isfinite(m)) or not np.all(m == np.round(m)):
             raise LoopClosureInputError("matches: reference indices must be integers")

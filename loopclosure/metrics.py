@@ -151,9 +151,7 @@ def recall_at_n(
     """
     cands = np.asarray(candidate_lists)
     if cands.ndim != 2 or cands.shape[0] != gt.n_query or cands.shape[1] == 0:
-        raise LoopClosureInputError(
-            f"candidate_lists: expected shape ({gt.n_query}, N) with N >= 1, got {cands.shape}"
-        )
+        raise LoopClosureInputError(f"candidate_lists: expected shape ({gt.n_query}, N) with N >= 1, got {cands.shape}")
     big_n = cands.shape[1]
     wanted = sorted({n for n in (1, 5, 10, big_n) if n <= big_n} if ns is None else set(ns))
     for n in wanted:

@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from loopclosure.config import PCAConfig
 from loopclosure.atomic import atomic_write_bytes
+from loopclosure.config import PCAConfig
 from loopclosure.errors import LoopClosureInputError
 
 
@@ -56,7 +56,7 @@ class PCAProjection:
         }
 
     @classmethod
-    def from_arrays(cls, arrays: dict[str, np.ndarray], prefix: str) -> "PCAProjection":
+    def from_arrays(cls, arrays: dict[str, np.ndarray], prefix: str) -> PCAProjection:
         flags = arrays[f"{prefix}flags"]
         return cls(
             mean=arrays[f"{prefix}mean"].astype(np.float32),
@@ -110,7 +110,7 @@ class Codebooks:
         atomic_write_bytes(Path(path), buffer.getvalue())
 
     @classmethod
-    def load(cls, path: str | Path) -> "Codebooks":
+    def load(cls, path: str | Path) -> Codebooks:
         try:
             with np.load(path, allow_pickle=False) as data:
                 arrays = dict(data)

@@ -53,8 +53,11 @@ class SequenceGate:
             if all(abs(m - (match + sign * k)) <= tol for k, m in enumerate(matched, start=1)):
                 return GateDecision(True, f"accepted: {need} predecessors consistent ({direction})", direction)  # type: ignore[arg-type]
         k, m = next((k, m) for k, m in enumerate(matched, start=1) if abs(m - (match - k)) > tol)
-        return GateDecision(False, f"keyframe {query - k} matched {m}, expected {match - k}±{tol}"
-                            + (f" or {match + k}±{tol}" if self.config.allow_reverse else ""))
+        return GateDecision(
+            False,
+            f"keyframe {query - k} matched {m}, expected {match - k}±{tol}"
+            + (f" or {match + k}±{tol}" if self.config.allow_reverse else ""),
+        )
 
     def reset(self) -> None:
         self._recent.clear()

@@ -106,9 +106,7 @@ def _top_k(places: np.ndarray, scores: np.ndarray, k: int | None) -> np.ndarray:
     return places[np.argsort(-scores, kind="stable")[:k]]
 
 
-def _continued(
-    config: SequenceMatchConfig, previous: dict[str, np.ndarray] | None, limit: int
-) -> np.ndarray:
+def _continued(config: SequenceMatchConfig, previous: dict[str, np.ndarray] | None, limit: int) -> np.ndarray:
     """Places that continue the previous query's best sequences by one query step."""
     if config.length < 2 or not previous:
         return np.empty(0, np.int64)
@@ -131,7 +129,9 @@ def _decide(
     by_line[(direction, speed index)] = (scores (C,), existing terms (C,)) in candidate order."""
     if not len(cand):
         empty = np.empty(0)
-        return SequenceMatch(None, 0.0, None, 1.0, 0.0, 0, cand, empty, {d: np.empty(0, np.int64) for d in directions(config)})
+        return SequenceMatch(
+            None, 0.0, None, 1.0, 0.0, 0, cand, empty, {d: np.empty(0, np.int64) for d in directions(config)}
+        )
     best = np.full(len(cand), -np.inf)
     best_line = np.zeros(len(cand), np.int64)
     lines = list(by_line)
@@ -347,7 +347,9 @@ class SequenceMatcher:
         for i in range(int(arrays[f"{prefix}recent"])):
             places = arrays[f"{prefix}q{i}_places"].tolist()
             cache = dict(zip(places, arrays[f"{prefix}q{i}_scores"].tolist()))
-            self._recent.append(_Query(np.array(arrays[f"{prefix}q{i}_token"]), int(arrays[f"{prefix}q{i}_limit"]), cache))
+            self._recent.append(
+                _Query(np.array(arrays[f"{prefix}q{i}_token"]), int(arrays[f"{prefix}q{i}_limit"]), cache)
+            )
         previous = {name.removeprefix(f"{prefix}previous_"): np.array(value, np.int64)
                     for name, value in arrays.items() if name.startswith(f"{prefix}previous_")}  # fmt: skip
         self._previous = previous or None

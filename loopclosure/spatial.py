@@ -81,14 +81,14 @@ def spatial_score_literal(query: np.ndarray, candidate: np.ndarray) -> int:
     best = {}
     for i in range(gh):
         for j in range(gw):
-            dists = [[float(np.sum((candidate[i, j] - query[k, l]) ** 2)) for l in range(gw)] for k in range(gh)]
+            dists = [[float(np.sum((candidate[i, j] - query[k, m]) ** 2)) for m in range(gw)] for k in range(gh)]
             flat = int(np.argmin(np.asarray(dists)))
             best[i, j] = divmod(flat, gw)
     score = 0
     for i in range(gh):
         for j in range(gw):
-            k, l = best[i, j]
-            offset = (k - i, l - j)
+            k, m = best[i, j]
+            offset = (k - i, m - j)
             for jj in range(gw):  # along the anchor's row
                 kk, ll = best[i, jj]
                 if (kk - i, ll - jj) == offset:

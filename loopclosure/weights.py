@@ -279,8 +279,7 @@ def _not_found_message(cached: Path, source: str, failures: list[str]) -> str:
         "  1. pass a file: `--weights PATH` on the command line, `backbone.weights: PATH` in the config,"
         " or the path argument of resolve_weights()/load_backbone();",
         f"  2. set the environment variable {ENV_WEIGHTS}=PATH;",
-        f"  3. put the file in the cache: {cached}"
-        f" (move the cache with {ENV_CACHE} or XDG_CACHE_HOME);",
+        f"  3. put the file in the cache: {cached} (move the cache with {ENV_CACHE} or XDG_CACHE_HOME);",
         "  4. run `ssmvpr-slam weights fetch` (on any machine with internet access; copy the cache file"
         " over to an offline one).",
         "The file must be a torchvision-layout VGG16 state dict (features.N.weight / features.N.bias;"

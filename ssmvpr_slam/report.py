@@ -81,7 +81,8 @@ class LoopReport:
     def to_dict(self) -> dict[str, Any]:
         out = copy.deepcopy(self.evaluation.to_dict())  # its by_direction is extended below, not the evaluation's
         out.update(proposed=self.proposed, gate_accepted=self.gate_accepted, in_graph=self.in_graph)
-        for name, counts in out["by_direction"].items():
+        by_direction: dict[str, dict[str, Any]] = out["by_direction"]  # type: ignore[assignment]  # to_dict's values are plain JSON
+        for name, counts in by_direction.items():
             counts["loops_in_graph_by_sequence_direction"] = self.in_graph_by_sequence_direction.get(name, 0)
         out["rear_camera_keyframes"] = self.rear_camera_keyframes
         out["in_graph_by_camera"] = dict(self.in_graph_by_camera)
@@ -174,10 +175,18 @@ def evaluate(
     odom, optimised = result.odometry[keep], result.optimised[keep]
     trajectory = _trajectory_report(gt, odom, optimised, config.trajectory) if len(keep) >= 3 else None
     index = {int(old): new for new, old in enumerate(keep)}
-    judged = [_reindexed(r, index) for r in result.session_loops if r.proposal.query_id in index and r.proposal.match_id in index]
+    judged = [
+        _reindexed(r, index)
+        for r in result.session_loops
+        if r.proposal.query_id in index and r.proposal.match_id in index
+    ]
     loops = _loop_report(gt, judged, result, config.loops, partial=not covered.all())
     pr_auc_single, pr_auc_sequence = _stream_pr_auc(gt, judged, config.loops)
-    complete = covered.all() and trajectory is not None
+    complete = bool(covered.all()) and trajectory is not None
+    aligned = errors = None
+    if complete and trajectory is not None:
+        aligned = (trajectory.ate_odometry.aligned_poses, trajectory.ate_optimised.aligned_poses)
+        errors = (trajectory.ate_odometry.errors, trajectory.ate_optimised.errors)
     return RunReport(
         keyframes=len(kfs),
         ground_truth_keyframes=len(keep),
@@ -188,8 +197,8 @@ def evaluate(
         prior_map=prior,
         # the aligned poses and per-pose errors of a partial ground truth cover only some
         # keyframes: the plots then show the full run unaligned
-        aligned_poses=(trajectory.ate_odometry.aligned_poses, trajectory.ate_optimised.aligned_poses) if complete else None,
-        translation_errors=(trajectory.ate_odometry.errors, trajectory.ate_optimised.errors) if complete else None,
+        aligned_poses=aligned,
+        translation_errors=errors,
         ground_truth_complete=gt if covered.all() else None,
     )
 
@@ -199,20 +208,24 @@ def _reindexed(record: LoopRecord, index: dict[int, int]) -> LoopRecord:
     return replace(record, proposal=replace(p, query_id=index[p.query_id], match_id=index[p.match_id]))
 
 
-def _trajectory_report(gt: np.ndarray, odom: np.ndarray, optimised: np.ndarray, cfg: TrajectoryMetricsConfig) -> TrajectoryReport:
-    kitti = {"lengths": tuple(cfg.kitti_lengths_m), "step_frames": cfg.kitti_step_frames}
+def _trajectory_report(
+    gt: np.ndarray, odom: np.ndarray, optimised: np.ndarray, cfg: TrajectoryMetricsConfig
+) -> TrajectoryReport:
+    lengths, step = tuple(cfg.kitti_lengths_m), cfg.kitti_step_frames
     return TrajectoryReport(
         ate_odometry=ate(gt, odom, cfg.alignment),
         ate_optimised=ate(gt, optimised, cfg.alignment),
         rpe_odometry=rpe(gt, odom, cfg.rpe_delta, cfg.rpe_unit),
         rpe_optimised=rpe(gt, optimised, cfg.rpe_delta, cfg.rpe_unit),
         drift_odometry=drift_per_100m(gt, odom, cfg.drift_segment_m),
-        kitti_odometry=kitti_relative_error(gt, odom, **kitti),
-        kitti_optimised=kitti_relative_error(gt, optimised, **kitti),
+        kitti_odometry=kitti_relative_error(gt, odom, lengths=lengths, step_frames=step),
+        kitti_optimised=kitti_relative_error(gt, optimised, lengths=lengths, step_frames=step),
     )
 
 
-def _loop_report(gt: np.ndarray, judged: list[LoopRecord], result: RunResult, cfg: LoopMetricsConfig, partial: bool) -> LoopReport:
+def _loop_report(
+    gt: np.ndarray, judged: list[LoopRecord], result: RunResult, cfg: LoopMetricsConfig, partial: bool
+) -> LoopReport:
     in_graph = [r for r in judged if r.in_graph]
     evaluation = evaluate_loops(gt, [(r.proposal.query_id, r.proposal.match_id) for r in in_graph], cfg,
                                 rear_camera=result.rear_keyframes > 0)  # fmt: skip
@@ -225,13 +238,17 @@ def _loop_report(gt: np.ndarray, judged: list[LoopRecord], result: RunResult, cf
         judged_in_graph=len(in_graph) if partial else None,
         # evaluate_loops splits recall by direction and camera visibility; beside it, what the
         # detector itself called each loop in the graph (the direction of its winning sequence)
-        in_graph_by_sequence_direction={d: sum(r.proposal.direction == d for r in in_graph) for d in ("forward", "reverse")},
+        in_graph_by_sequence_direction={
+            d: sum(r.proposal.direction == d for r in in_graph) for d in ("forward", "reverse")
+        },
         rear_camera_keyframes=result.rear_keyframes,
         in_graph_by_camera={c: sum(r.proposal.camera == c for r in in_graph) for c in CAMERAS},
     )
 
 
-def _stream_pr_auc(gt: np.ndarray, session: list[LoopRecord], cfg: LoopMetricsConfig) -> tuple[float | None, float | None]:
+def _stream_pr_auc(
+    gt: np.ndarray, session: list[LoopRecord], cfg: LoopMetricsConfig
+) -> tuple[float | None, float | None]:
     """The paper's PR-AUC over the stream: each keyframe's best proposal and its score; and the
     same proposals ranked by their sequence score, the detector's decision score."""
     n = len(gt)
@@ -256,7 +273,11 @@ def _prior_map_report(result: RunResult, gt: list[np.ndarray | None], cfg: LoopM
     prior = result.prior_map
     assert prior is not None
     loops = [r for r in result.loops if r.proposal.prior_map]
-    judged = [r for r in loops if r.in_graph and r.proposal.match_place in prior.gt_poses and gt[r.proposal.query_id] is not None]
+    judged = [
+        r
+        for r in loops
+        if r.in_graph and r.proposal.match_place in prior.gt_poses and gt[r.proposal.query_id] is not None
+    ]
     correct = None
     if judged:
         distances = [np.linalg.norm(gt[r.proposal.query_id][:3, 3] - prior.gt_poses[r.proposal.match_place][:3, 3])  # type: ignore[index]

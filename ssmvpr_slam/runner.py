@@ -22,7 +22,7 @@ from frontend.frame import Frame
 from frontend.odometry import choose_odometry, make_odometry
 from frontend.sources import Source, open_source
 from loopclosure.backbone import load_backbone
-from ssmvpr_slam.checkpoint import Checkpoint, CheckpointMeta, Checkpointer, check_log, log_fingerprint
+from ssmvpr_slam.checkpoint import Checkpoint, Checkpointer, CheckpointMeta, check_log, log_fingerprint
 from ssmvpr_slam.config import SlamConfig
 from ssmvpr_slam.pipeline import SlamPipeline
 from ssmvpr_slam.prior_map import PriorMap
@@ -199,7 +199,9 @@ def summary_table(metrics: dict[str, Any]) -> Table:
             table.add_row("loops in graph: front / rear camera", f"{by_camera['front']} / {by_camera['rear']}")
     if "ground_truth_coverage" in metrics:  # evaluated on the keyframes with ground truth only
         covered, total = metrics["ground_truth_keyframes"], metrics["keyframes"]
-        table.add_row("ground truth coverage", f"{covered} / {total} keyframes ({100 * metrics['ground_truth_coverage']:.0f}%)")
+        table.add_row(
+            "ground truth coverage", f"{covered} / {total} keyframes ({100 * metrics['ground_truth_coverage']:.0f}%)"
+        )
     if "ate_odometry" in metrics:
         table.add_row("ATE RMSE odometry", f"{metrics['ate_odometry']['rmse']:.2f} m")
         table.add_row("ATE RMSE optimised", f"{metrics['ate_optimised']['rmse']:.2f} m")

@@ -109,7 +109,11 @@ class SlamSystem:
         database = prior_map.database.copy() if prior_map is not None else None
         self.detector = LoopDetector(config.vpr, config.detector, Encoder(config.vpr, backbone), database)
         self.registrar = LoopRegistrar(config.backend.registration)
-        self.graph = graph if graph is not None else PoseGraph(config.backend.pose_graph.for_odometry(config.frontend.odometry.kind))
+        self.graph = (
+            graph
+            if graph is not None
+            else PoseGraph(config.backend.pose_graph.for_odometry(config.frontend.odometry.kind))
+        )
         self.state = RunState()
         self._front = FrontCounts()
         self._result: RunResult | None = None
@@ -229,6 +233,7 @@ class SlamSystem:
         if proposal.prior_map:
             assert self.prior_map is not None  # a prior-map proposal needs a prior map
             place_pose = self.prior_map.pose(proposal.match_place)
+            assert place_pose is not None  # a place without a pose never registers (see _register_to_map)
             handle = self.graph.add_map_loop(proposal.match_place, place_pose, proposal.query_id, reg.T_mq, reg.sigmas)
         else:
             handle = self.graph.add_loop(proposal.match_id, proposal.query_id, reg.T_mq, sigmas=reg.sigmas)
@@ -259,9 +264,9 @@ class SlamSystem:
         if kf.scan is not None and match.scan is not None:
             half = self.config.backend.registration.lidar.local_map_half_window
             window = self.state.keyframes[max(0, match.id - half) : match.id + half + 1]
-            window = [k for k in window if k.scan is not None]
+            with_scans = [(k.scan, k.odom_pose) for k in window if k.scan is not None]
             local_map = build_local_map(
-                [k.scan for k in window], [k.odom_pose for k in window], match.odom_pose,
+                [scan for scan, _ in with_scans], [pose for _, pose in with_scans], match.odom_pose,
                 self.config.backend.registration.lidar.max_range,
             )  # fmt: skip
             return self.registrar.register_scans(kf.scan, local_map, proposal.yaw_guess)
@@ -270,7 +275,9 @@ class SlamSystem:
                 return self.registrar.yaw_prior(proposal.yaw_guess, "rear camera match: no rear image kept")
             if match.image is None:
                 return self.registrar.yaw_prior(proposal.yaw_guess, "the matched keyframe kept no image")
-            return self.registrar.register_images(kf.rear_image, match.image, proposal.yaw_guess, query_yaw_offset=math.pi)
+            return self.registrar.register_images(
+                kf.rear_image, match.image, proposal.yaw_guess, query_yaw_offset=math.pi
+            )
         if kf.image is None or match.image is None:
             return self.registrar.yaw_prior(proposal.yaw_guess, "a keyframe kept no image")
         return self.registrar.register_images(kf.image, match.image, proposal.yaw_guess)
@@ -322,7 +329,8 @@ class SlamSystem:
         state = self.state
         kfs = tuple(state.keyframes)
         stamps, odom = keyframe_poses(kfs)
-        optimised, in_map, pose_graph = odom, odom, None
+        optimised, pose_graph = odom, None
+        in_map: np.ndarray | None = odom
         if kfs:
             optimised = frozen_array([by_id[k.id] for k in kfs])
             in_map = self._in_map_frame(optimised)
@@ -394,7 +402,9 @@ class SlamSystem:
             self.state.keyframes.append(kf)
             self.graph.add_keyframe(kf.id, kf.odom_pose)
             for record in loops.get(kf.id, []):
-                restored = self._add_loop(replace(record, factor_handle=None)) if record.factor_handle is not None else record
+                restored = (
+                    self._add_loop(replace(record, factor_handle=None)) if record.factor_handle is not None else record
+                )
                 if restored.factor_handle != record.factor_handle:
                     raise ValueError(f"restore: keyframe {kf.id}'s loop factor came back as handle "
                                      f"{restored.factor_handle}, the checkpoint says {record.factor_handle}")  # fmt: skip
@@ -420,4 +430,7 @@ def _odometry_stats(odometry: Odometry) -> dict[str, Any]:
     stats = getattr(odometry, "stats", None)
     if stats is None:
         return {}
-    return {k: (Counter(v) if isinstance(v, Counter) else set(v) if isinstance(v, set) else v) for k, v in vars(stats).items()}
+    return {
+        k: (Counter(v) if isinstance(v, Counter) else set(v) if isinstance(v, set) else v)
+        for k, v in vars(stats).items()
+    }

@@ -39,7 +39,9 @@ LOOP_COLUMNS = [
 ]  # fmt: skip
 
 
-def write_results(folder: Path, result: RunResult, report: RunReport, config: SlamConfig, extra: dict[str, Any]) -> dict[str, Any]:
+def write_results(
+    folder: Path, result: RunResult, report: RunReport, config: SlamConfig, extra: dict[str, Any]
+) -> dict[str, Any]:
     """Every output of a finished run into `folder`; returns what metrics.json holds."""
     write_trajectories(folder, result)
     write_pose_graph(folder, result)
@@ -68,7 +70,11 @@ def write_trajectories(folder: Path, result: RunResult) -> None:
     write_kitti(folder / "optimised.kitti", result.optimised)
     covered = has_ground_truth(kfs)
     if covered.any():  # TUM has stamps, so a partial ground truth is still one file evo reads
-        write_tum(folder / "ground_truth.tum", result.stamps[covered], np.array([k.gt_pose for k, ok in zip(kfs, covered) if ok]))
+        write_tum(
+            folder / "ground_truth.tum",
+            result.stamps[covered],
+            np.array([k.gt_pose for k, ok in zip(kfs, covered) if ok]),
+        )
     if covered.all():  # KITTI lines are matched by position: only a complete one
         write_kitti(folder / "ground_truth.kitti", np.array([k.gt_pose for k in kfs]))
 
@@ -82,7 +88,9 @@ def write_config(folder: Path, config: SlamConfig) -> None:
     atomic_write_text(folder / "config.yaml", dump_config(config))
 
 
-def write_loop_csv(path: Path, keyframes: tuple[Keyframe, ...] | list[Keyframe], loops: tuple[LoopRecord, ...] | list[LoopRecord]) -> None:
+def write_loop_csv(
+    path: Path, keyframes: tuple[Keyframe, ...] | list[Keyframe], loops: tuple[LoopRecord, ...] | list[LoopRecord]
+) -> None:
     """One row per proposal; `in_graph` is whether its factor is in the graph at the end (GNC may drop it)."""
     buffer = io.StringIO()
     writer = csv.writer(buffer)
@@ -179,6 +187,8 @@ def write_plots(folder: Path, result: RunResult, report: RunReport, config: Slam
     plot_trajectories(folder / "trajectory_top_view.png", gt, odom, optimised, edges, correct, title, plot_cfg)
     if report.translation_errors is not None and gt is not None:
         errors = report.translation_errors
-        plot_translation_error(folder / "translation_error.png", errors[0], errors[1], path_lengths(gt), config=plot_cfg)
+        plot_translation_error(
+            folder / "translation_error.png", errors[0], errors[1], path_lengths(gt), config=plot_cfg
+        )
     if report.loops is not None:
         plot_loop_summary(folder / "loop_closures.png", report.loops.evaluation, config=plot_cfg)

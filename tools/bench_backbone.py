@@ -42,7 +42,7 @@ sys.path.insert(0, str(TOOLS))
 
 from bench_vpr import DEFAULT_IMAGES, load_images, loadavg, log, machine_info, pick_weights, stats  # noqa: E402
 
-from loopclosure.backbone import CONV_INDEX, Backbone, cpu_has_fast_bf16  # noqa: E402
+from loopclosure.backbone import Backbone, cpu_has_fast_bf16  # noqa: E402
 from loopclosure.config import BackboneConfig  # noqa: E402
 from loopclosure.errors import LoopClosureInputError  # noqa: E402
 
@@ -122,15 +122,20 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--precisions", default="fp32,bf16,int8", help="comma list of fp32, bf16, int8, auto")
     ap.add_argument("--batch-sizes", default="1,8")
-    ap.add_argument("--repeats", type=int, default=None, help="timed passes per precision and batch (default 7, quick 2)")
+    ap.add_argument(
+        "--repeats", type=int, default=None, help="timed passes per precision and batch (default 7, quick 2)"
+    )
     ap.add_argument("--weights", default=None, help="VGG16 weights file, or 'random' (default: resolve, then shared)")
     ap.add_argument("--images", default=str(DEFAULT_IMAGES), help="image folder timed on")
     ap.add_argument("--calibration", default=None, help="int8 calibration folder (default: --images)")
     ap.add_argument("--calibration-images", type=int, default=32)
     ap.add_argument("--input-size", type=int, default=224)
     ap.add_argument("--threads", type=int, default=None, help="torch / ONNX Runtime threads (default: all cores)")
-    ap.add_argument("--peak-gflops", default=None, help="ISA peak of all cores, e.g. fp32=530,bf16=1060,int8=2110 "
-                    "(default: measure with tools/peak_flops.c)")
+    ap.add_argument(
+        "--peak-gflops",
+        default=None,
+        help="ISA peak of all cores, e.g. fp32=530,bf16=1060,int8=2110 (default: measure with tools/peak_flops.c)",
+    )
     ap.add_argument("--no-gemm", action="store_true", help="skip the torch GEMM peak")
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--output", default=None, help="also write the JSON to this file")
@@ -176,7 +181,10 @@ def main(argv: list[str] | None = None) -> dict:
             sections[precision] = {"skipped": str(exc)}
             log(f"{precision}: skipped ({exc})")
             continue
-        sections[precision] = {"resolved": backbones[precision].precision, "build_s": round(time.perf_counter() - t0, 2)}
+        sections[precision] = {
+            "resolved": backbones[precision].precision,
+            "build_s": round(time.perf_counter() - t0, 2),
+        }
         log(f"{precision}: built in {sections[precision]['build_s']} s")
     del state
 

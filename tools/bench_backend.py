@@ -37,7 +37,6 @@ import json
 import math
 import os
 import sys
-import time
 from dataclasses import dataclass, replace
 from pathlib import Path
 
@@ -106,7 +105,14 @@ def _false_measurement(rng: np.random.Generator, dim: int) -> np.ndarray:
         return planar_pose(rng.normal(0, 0.3), rng.normal(0, 0.3), rng.normal(0, math.radians(10)))
     t = rng.normal(0, 0.3, 3)
     roll, pitch, yaw = rng.normal(0, math.radians(10), 3)
-    cr, sr, cp, sp, cy, sy = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch), math.cos(yaw), math.sin(yaw)
+    cr, sr, cp, sp, cy, sy = (
+        math.cos(roll),
+        math.sin(roll),
+        math.cos(pitch),
+        math.sin(pitch),
+        math.cos(yaw),
+        math.sin(yaw),
+    )
     rx = np.array([[1, 0, 0], [0, cr, -sr], [0, sr, cr]])
     ry = np.array([[cp, 0, sp], [0, 1, 0], [-sp, 0, cp]])
     rz = np.array([[cy, -sy, 0], [sy, cy, 0], [0, 0, 1]])
@@ -147,8 +153,18 @@ def inject_false_loops(graph: PoseGraphData, rate: float, kind: str, seed: int) 
     return graph.with_edges(edges, f"{graph.source}+{kind}{rate:g}"), flags
 
 
-def _row(bench: Benchmark, kernel: str, gnc: bool, rate: float, kind: str, result, truth: np.ndarray,
-         reference_ate: float, n_false: int, optimum: np.ndarray) -> dict:  # noqa: ANN001
+def _row(
+    bench: Benchmark,
+    kernel: str,
+    gnc: bool,
+    rate: float,
+    kind: str,
+    result,
+    truth: np.ndarray,
+    reference_ate: float,
+    n_false: int,
+    optimum: np.ndarray,
+) -> dict:  # noqa: ANN001
     ate = trajectory_ate(bench.gt, result.poses, bench.graph.dim).stats.rmse
     scores = loop_classification_scores(~result.loop_inlier, truth[result.loop_indices])
     return {
@@ -167,8 +183,18 @@ def _cell_seed(seed: int, name: str, rate: float, kind: str) -> int:
     return seed + 1000 * RATES_INDEX.get(rate, 9) + 100 * KINDS.index(kind) + GRAPHS.index(name)
 
 
-def _solve_cell(name: str, rate: float, kind: str, kernel: str, gnc_modes: tuple[bool, ...], batch: bool, seed: int,
-                refine_scales: tuple[float, ...], reference: float, optimum: np.ndarray) -> list[dict]:
+def _solve_cell(
+    name: str,
+    rate: float,
+    kind: str,
+    kernel: str,
+    gnc_modes: tuple[bool, ...],
+    batch: bool,
+    seed: int,
+    refine_scales: tuple[float, ...],
+    reference: float,
+    optimum: np.ndarray,
+) -> list[dict]:
     """Rows of one (graph, rate, kind, kernel): the kernel solve, and GNC (with the leave-one-out
     check, the default) started from it. Runs in a worker process with --jobs."""
     bench = _load_cached(name)
@@ -194,9 +220,20 @@ def _load_cached(name: str) -> Benchmark:
     return _LOADED[name]
 
 
-def run_benchmark(graphs, rates, kinds, kernels, gnc_modes=(False, True), batch=True, seed=0,
-                  kernels_by_graph=None, log=None, refine_scales=DEFAULT_REFINE_SCALES,
-                  checkpoint=None, jobs=1) -> dict:  # noqa: ANN001
+def run_benchmark(
+    graphs,
+    rates,
+    kinds,
+    kernels,
+    gnc_modes=(False, True),
+    batch=True,
+    seed=0,
+    kernels_by_graph=None,
+    log=None,
+    refine_scales=DEFAULT_REFINE_SCALES,
+    checkpoint=None,
+    jobs=1,
+) -> dict:  # noqa: ANN001
     """Rows for every (graph, kernel, gnc, rate, kind); see the module docstring. `checkpoint`
     (a callable) gets the results so far after every finished cell, so a run cut short keeps its
     rows. `jobs` > 1 solves cells in that many worker processes (GTSAM solves on one core)."""
@@ -267,7 +304,9 @@ def markdown_tables(results: dict) -> str:
     kernels = list(dict.fromkeys(r["kernel"] for r in rows))
     for kernel in kernels:
         out.append(f"### Kernel `{kernel}`\n")
-        out.append("| graph | outliers | rate | ATE/opt | prec | recall | s | ATE/opt GNC | prec GNC | recall GNC | s GNC |")
+        out.append(
+            "| graph | outliers | rate | ATE/opt | prec | recall | s | ATE/opt GNC | prec GNC | recall GNC | s GNC |"
+        )
         out.append("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
         keyed: dict[tuple, dict[bool, dict]] = {}
         for r in rows:
@@ -313,17 +352,32 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--rates", nargs="+", type=float, default=list(RATES))
     parser.add_argument("--kinds", nargs="+", default=list(KINDS), choices=KINDS)
     parser.add_argument("--kernels", nargs="+", default=list(KERNELS), choices=[k for k in KERNEL_NAMES if k != "none"])
-    parser.add_argument("--graph-kernels", action="append", default=[], metavar="GRAPH=K1,K2",
-                        help="limit the kernels of one graph (e.g. city10000=cauchy,dcs)")
+    parser.add_argument(
+        "--graph-kernels",
+        action="append",
+        default=[],
+        metavar="GRAPH=K1,K2",
+        help="limit the kernels of one graph (e.g. city10000=cauchy,dcs)",
+    )
     parser.add_argument("--gnc", choices=("both", "on", "off"), default="both")
     parser.add_argument("--isam2", action="store_true", help="iSAM2 in vertex order instead of batch LM (slow)")
-    parser.add_argument("--refine-scales", nargs="*", type=float, default=list(DEFAULT_REFINE_SCALES),
-                        help="batch re-solves after the kernel solve (optimize's default: 1); none = off")
+    parser.add_argument(
+        "--refine-scales",
+        nargs="*",
+        type=float,
+        default=list(DEFAULT_REFINE_SCALES),
+        help="batch re-solves after the kernel solve (optimize's default: 1); none = off",
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--jobs", type=int, default=1, help="cells solved in parallel worker processes")
     parser.add_argument("--output", type=Path, help="also write the JSON here")
-    parser.add_argument("--markdown", nargs="?", const="-", metavar="RESULTS_JSON",
-                        help="print markdown tables: of a saved JSON, or (no value) of this run instead of JSON")
+    parser.add_argument(
+        "--markdown",
+        nargs="?",
+        const="-",
+        metavar="RESULTS_JSON",
+        help="print markdown tables: of a saved JSON, or (no value) of this run instead of JSON",
+    )
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
     if args.markdown not in (None, "-"):

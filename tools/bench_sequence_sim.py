@@ -142,7 +142,9 @@ def main(argv: list[str] | None = None) -> dict:
     first = int(codes["warmup"])
     pos = codes["gt"][:, :3, 3]
     kinds = revisit_kinds(pos, loops.revisit_radius, loops.min_frame_gap)
-    scores, limits, cands = queries(codes, det.exclusion_keyframes, det.exclusion_distance, cfg.vpr.filtering.num_candidates)
+    scores, limits, cands = queries(
+        codes, det.exclusion_keyframes, det.exclusion_distance, cfg.vpr.filtering.num_candidates
+    )
     qs = np.arange(first, len(pos))
 
     def decided(accepted: list[tuple[int, int]]) -> dict:
@@ -167,7 +169,9 @@ def main(argv: list[str] | None = None) -> dict:
                   for k in ("forward", "reverse") if any(v == k for v in kinds.values())}  # fmt: skip
         return {
             "stream_pr_auc": pr_auc(precision_recall_curve(values, ok & truth, truth)),
-            "stream_pr_auc_forward_revisits": pr_auc(precision_recall_curve(values[forward], (ok & truth)[forward], truth[forward])),
+            "stream_pr_auc_forward_revisits": pr_auc(
+                precision_recall_curve(values[forward], (ok & truth)[forward], truth[forward])
+            ),
             "top_wrong_score": top_wrong,
             "recall_at_precision_1": recall,
         }
@@ -179,7 +183,9 @@ def main(argv: list[str] | None = None) -> dict:
     }  # fmt: skip
     rear = None
     if "rear_stage1" in codes and det.rear.enabled:
-        rear = queries(codes, det.exclusion_keyframes, det.exclusion_distance, cfg.vpr.filtering.num_candidates, "rear_")
+        rear = queries(
+            codes, det.exclusion_keyframes, det.exclusion_distance, cfg.vpr.filtering.num_candidates, "rear_"
+        )
         out["rear_thresholds"] = det.rear.model_dump()
     for length in [int(v) for v in args.lengths.split(",") if v.strip()]:
         seq_cfg = det.sequence.model_copy(update={"length": length, "direction": args.direction})

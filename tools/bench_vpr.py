@@ -479,7 +479,7 @@ def bench_filtering(args, config: VPRConfig, sizes: list[int], repeats: int) -> 
             "argpartition_int64": round(n_vec * 8 / 2**20, 1),
         }
         out["sizes"][str(n_places)] = entry
-        del db
+        db = None  # freed before the next size (the lambdas above ran already)
     return out
 
 
@@ -559,12 +559,19 @@ def bench_stage1_index(args, config: VPRConfig, sizes: list[int], repeats: int) 
         view = flat[: n_places * per]
         truth = [run(exact, q, view) for q in queries[: args.exact_repeats]]
         entry["exact_true_place_in_candidates"] = round(float(np.mean([found(c, i) for i, c in enumerate(truth)])), 4)
-        entry["exact_query_ms"] = stats(time_ms(lambda i: run(exact, queries[i], view), min(repeats, args.exact_repeats)))
-        del exact
+        entry["exact_query_ms"] = stats(
+            time_ms(lambda i: run(exact, queries[i], view), min(repeats, args.exact_repeats))
+        )
+        exact = None  # freed before the next size (the lambdas above ran already)
         gc.collect()
         for nlist in (_ints(args.nlists) or [None]) if args.nprobes else []:
             cfg = config.filtering.model_copy(
-                update={"index": "ivf", "ivf_nlist": nlist, "faiss_threads": args.build_threads, "ivf_codes": args.ivf_codes}
+                update={
+                    "index": "ivf",
+                    "ivf_nlist": nlist,
+                    "faiss_threads": args.build_threads,
+                    "ivf_codes": args.ivf_codes,
+                }
             )
             ivf = StageOneIndex(cfg, d, per)
             log(f"stage-I index P={n_places}: IVF nlist={nlist or 'auto'} train + add")
@@ -574,7 +581,9 @@ def bench_stage1_index(args, config: VPRConfig, sizes: list[int], repeats: int) 
             res: dict = {"build_s": round(time.perf_counter() - t0, 1), "build_threads": args.build_threads,
                          "train_vectors": min(n_places * per, cfg.ivf_train_vectors * ivf._index.nlist), "nprobe": {}}  # fmt: skip
             for nprobe in nprobes:
-                ivf.config = cfg.model_copy(update={"ivf_nprobe": nprobe, "faiss_threads": config.filtering.faiss_threads})
+                ivf.config = cfg.model_copy(
+                    update={"ivf_nprobe": nprobe, "faiss_threads": config.filtering.faiss_threads}
+                )
                 recall, hits = [], []
                 for i, (q, ref) in enumerate(zip(queries, truth)):
                     got = run(ivf, q)
@@ -585,7 +594,9 @@ def bench_stage1_index(args, config: VPRConfig, sizes: list[int], repeats: int) 
                     "recall_at_n_mean": round(float(np.mean(recall)), 4), "recall_at_n_min": round(float(np.min(recall)), 4),
                     "true_place_in_candidates": round(float(np.mean(hits)), 4),
                 }  # fmt: skip
-                log(f"  nprobe {nprobe}: {res['nprobe'][str(nprobe)]['query_ms']['median']} ms, recall {np.mean(recall):.3f}")
+                log(
+                    f"  nprobe {nprobe}: {res['nprobe'][str(nprobe)]['query_ms']['median']} ms, recall {np.mean(recall):.3f}"
+                )
             # streaming appends between retrains: one place at a time
             ivf.config = cfg.model_copy(update={"faiss_threads": config.filtering.faiss_threads})
             appends = Samples()
@@ -595,7 +606,7 @@ def bench_stage1_index(args, config: VPRConfig, sizes: list[int], repeats: int) 
                 appends.append((time.perf_counter() - t0) * 1e3)
             res["append_ms_per_place"] = stats(appends) if appends else None
             entry[key] = res
-            del ivf
+            ivf = None  # freed before the next size (the lambdas above ran already)
             gc.collect()
         if args.hnsw_ef:
             cfg = config.filtering.model_copy(update={"index": "hnsw", "faiss_threads": args.build_threads})
@@ -606,20 +617,25 @@ def bench_stage1_index(args, config: VPRConfig, sizes: list[int], repeats: int) 
             res = {"build_s": round(time.perf_counter() - t0, 1), "build_threads": args.build_threads, "m": cfg.hnsw_m,
                    "ef_construction": cfg.hnsw_ef_construction, "ef_search": {}}  # fmt: skip
             for ef in _ints(args.hnsw_ef):
-                hnsw.config = cfg.model_copy(update={"hnsw_ef_search": ef, "faiss_threads": config.filtering.faiss_threads})
+                hnsw.config = cfg.model_copy(
+                    update={"hnsw_ef_search": ef, "faiss_threads": config.filtering.faiss_threads}
+                )
                 recall = [
-                    len(np.intersect1d(run(hnsw, q).places, ref.places)) / max(1, len(ref.places)) for q, ref in zip(queries, truth)
+                    len(np.intersect1d(run(hnsw, q).places, ref.places)) / max(1, len(ref.places))
+                    for q, ref in zip(queries, truth)
                 ]
                 res["ef_search"][str(ef)] = {
                     "query_ms": stats(time_ms(lambda i: run(hnsw, queries[i]), repeats)),
                     "recall_at_n_mean": round(float(np.mean(recall)), 4), "recall_at_n_min": round(float(np.min(recall)), 4),
                 }  # fmt: skip
-                log(f"  efSearch {ef}: {res['ef_search'][str(ef)]['query_ms']['median']} ms, recall {np.mean(recall):.3f}")
+                log(
+                    f"  efSearch {ef}: {res['ef_search'][str(ef)]['query_ms']['median']} ms, recall {np.mean(recall):.3f}"
+                )
             entry["hnsw"] = res
-            del hnsw
+            hnsw = None  # freed before the next size (the lambdas above ran already)
         entry["loadavg_end"] = loadavg()
         out["sizes"][str(n_places)] = entry
-        del db, flat
+        db = flat = None  # freed before the next size (the lambdas above ran already)
     return out
 
 
@@ -731,11 +747,16 @@ def bench_sequence(args, config: VPRConfig, lengths: list[int], repeats: int) ->
                         places = np.concatenate([cands.places, extra])
                         scores = scorer(q2[t], places)
                         t2 = time.perf_counter()
-                        m = matcher.step(q2[t], cands.places, scores[: len(cands)], limit, extra, scores[len(cands):])
+                        m = matcher.step(q2[t], cands.places, scores[: len(cands)], limit, extra, scores[len(cands) :])
                         t3 = time.perf_counter()
                         if t < n_stream - repeats:
                             continue  # the sequence warms up
-                        for name, ms in (("filter", t1 - t0), ("spatial", t2 - t1), ("matcher", t3 - t2), ("total", t3 - t0)):
+                        for name, ms in (
+                            ("filter", t1 - t0),
+                            ("spatial", t2 - t1),
+                            ("matcher", t3 - t2),
+                            ("total", t3 - t0),
+                        ):
                             rows[name].append(ms * 1e3)
                         rows["total"].cpu.append((time.process_time() - c0) * 1e3)
                         scored.append(len(places) + matcher.scored_last_step)
@@ -835,7 +856,7 @@ def bench_mapped_map(config: VPRConfig, n_places: int, dtype: str, folder: Path)
                           rng.standard_normal((m, *shapes["stage2"]), dtype=np.float32)))  # fmt: skip
     db.save(folder)
     write_s = time.perf_counter() - t0
-    del db
+    db = None  # freed before the next size (the lambdas above ran already)
     gc.collect()
     rss = lambda: int(Path("/proc/self/statm").read_text().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20  # noqa: E731 - MB now
     out: dict = {"places": n_places, "dtypes": [dbc.stage1_dtype, dbc.stage2_dtype], "write_s": round(write_s, 1),
@@ -878,8 +899,12 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--max-images", type=int, default=32, help="images read from --images")
     ap.add_argument("--device", choices=("auto", "cpu", "cuda"), default="auto")
     ap.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's)")
-    ap.add_argument("--precision", choices=("auto", "fp32", "bf16", "int8"), default=None,
-                    help="backbone precision (default: the config's, auto)")
+    ap.add_argument(
+        "--precision",
+        choices=("auto", "fp32", "bf16", "int8"),
+        default=None,
+        help="backbone precision (default: the config's, auto)",
+    )
     ap.add_argument("--sizes", default=None, help="database sizes for filtering (default 1000,10000,100000)")
     ap.add_argument("--candidates", default="5,15,50", help="N for spatial matching")
     ap.add_argument("--batch-sizes", default="1,8", help="CNN batch sizes")
@@ -891,7 +916,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--ab-repeats", type=int, default=None, help="repeats of the BLAS-threads A/B (0: skip)")
     ap.add_argument("--skip-encode", action="store_true", help="no CNN timing")
     ap.add_argument("--sequence-lengths", default="3,5", help="L for the sequence matcher timing ('' to skip)")
-    ap.add_argument("--index-sizes", default="", help="stage I exact vs IVF at these place counts, e.g. 10000,100000,1000000")
+    ap.add_argument(
+        "--index-sizes", default="", help="stage I exact vs IVF at these place counts, e.g. 10000,100000,1000000"
+    )
     ap.add_argument("--nlists", default="", help="IVF lists for --index-sizes (default: auto, 4 sqrt(vectors))")
     ap.add_argument("--nprobes", default="8,16,32,64,128", help="IVF lists probed, swept")
     ap.add_argument("--exact-repeats", type=int, default=20, help="queries whose exact votes are the recall reference")
@@ -901,7 +928,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--build-threads", type=int, default=2, help="faiss threads while training/adding")
     ap.add_argument("--query-cosine", type=float, default=0.71, help="query vector to its place (Corridor: 0.71)")
     ap.add_argument("--only-index", action="store_true", help="only the --index-sizes section (and machine info)")
-    ap.add_argument("--mapped-places", type=int, default=0, help="also time a saved map of this many places opened mapped")
+    ap.add_argument(
+        "--mapped-places", type=int, default=0, help="also time a saved map of this many places opened mapped"
+    )
     ap.add_argument("--mapped-dtype", choices=("float32", "int8"), default="int8", help="codes of that map")
     ap.add_argument("--quick", action="store_true", help="~30 s: sizes 1000,10000 and few repeats")
     ap.add_argument("--output", default=None, help="also write the JSON to this file")
@@ -956,7 +985,9 @@ def main(argv: list[str] | None = None) -> dict:
         result["stage1_index"] = bench_stage1_index(args, config, _ints(args.index_sizes), repeats)
         if args.mapped_places:
             with tempfile.TemporaryDirectory() as tmp:
-                result["mapped_map"] = bench_mapped_map(config, args.mapped_places, args.mapped_dtype, Path(tmp) / "map")
+                result["mapped_map"] = bench_mapped_map(
+                    config, args.mapped_places, args.mapped_dtype, Path(tmp) / "map"
+                )
         machine["loadavg_end"] = loadavg()
         result["wall_s"] = round(time.perf_counter() - t_start, 1)
         text = json.dumps(result, indent=2)
@@ -983,7 +1014,9 @@ def main(argv: list[str] | None = None) -> dict:
                     config, args.mapped_places, args.mapped_dtype, Path(tmp) / "map"
                 )
         seq_lengths = _ints(args.sequence_lengths)
-        result["sequence_query_ms"] = bench_sequence(args, config, seq_lengths, repeats) if seq_lengths else {"skipped": True}
+        result["sequence_query_ms"] = (
+            bench_sequence(args, config, seq_lengths, repeats) if seq_lengths else {"skipped": True}
+        )
         if args.ab_repeats:
             log(f"BLAS threads A/B: {args.ab_repeats} repeats")
             ab_size = 10000 if 10000 in sizes else sizes[-1]
@@ -1001,11 +1034,14 @@ def main(argv: list[str] | None = None) -> dict:
         # L = 5, N = 50 as configured by default (the best K candidates get sequence terms), the
         # worse of one direction and both
         "sequence_query_L5_N50_ms": _sequence_total(
-            result["sequence_query_ms"], tuple(f"L5_{d}_K{SequenceMatchConfig().sequence_candidates}" for d in ("forward", "both"))
+            result["sequence_query_ms"],
+            tuple(f"L5_{d}_K{SequenceMatchConfig().sequence_candidates}" for d in ("forward", "both")),
         ),
     }
     # not a target: every one of the N candidates scored along its sequence (L x N spatial scores)
-    result["sequence_query_L5_N50_all_candidates_forward_ms"] = _sequence_total(result["sequence_query_ms"], ("L5_forward_Kall",))
+    result["sequence_query_L5_N50_all_candidates_forward_ms"] = _sequence_total(
+        result["sequence_query_ms"], ("L5_forward_Kall",)
+    )
     result["targets"] = {
         "targets_ms": TARGETS,
         "measured_median_ms": measured,

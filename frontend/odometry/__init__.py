@@ -35,9 +35,7 @@ def choose_odometry(config: OdometryConfig, topics: dict[str, str], log: str) ->
     return config.model_copy(update={"kind": kind})
 
 
-def make_odometry(
-    config: OdometryConfig | None = None, pose_config: PoseFileConfig | None = None
-) -> Odometry:
+def make_odometry(config: OdometryConfig | None = None, pose_config: PoseFileConfig | None = None) -> Odometry:
     """The odometry ``config.kind`` names (``auto`` must first be resolved by `choose_odometry`)."""
     config = config or OdometryConfig(kind="kiss_icp")
     if config.kind == "auto":

@@ -33,12 +33,8 @@ def kiss_config(config: KissIcpConfig):  # -> kiss_icp.config.KISSConfig
     # kiss-icp's rule of thumb when no voxel size is given (see kiss_icp.config.load_config).
     voxel_size = config.voxel_size or config.max_range / 100.0
     return KISSConfig(
-        data=DataConfig(
-            max_range=config.max_range, min_range=config.min_range, deskew=config.deskew
-        ),
-        mapping=MappingConfig(
-            voxel_size=voxel_size, max_points_per_voxel=config.max_points_per_voxel
-        ),
+        data=DataConfig(max_range=config.max_range, min_range=config.min_range, deskew=config.deskew),
+        mapping=MappingConfig(voxel_size=voxel_size, max_points_per_voxel=config.max_points_per_voxel),
         registration=RegistrationConfig(
             max_num_iterations=config.max_num_iterations,
             convergence_criterion=config.convergence_criterion,
@@ -79,9 +75,7 @@ class KissIcpOdometry:
         previous_pose, previous_delta = self._kiss.last_pose.copy(), self._kiss.last_delta.copy()
         deskewed, _ = self._kiss.register_frame(points, times)
         if not np.all(np.isfinite(self._kiss.last_pose)):
-            self.stats.skip(
-                "registration_failed", f"frame {frame.index}: kiss-icp returned a non-finite pose"
-            )
+            self.stats.skip("registration_failed", f"frame {frame.index}: kiss-icp returned a non-finite pose")
             self._kiss.last_pose, self._kiss.last_delta = previous_pose, previous_delta
             return self._predict()
         self.last_scan = np.asarray(deskewed)

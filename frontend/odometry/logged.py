@@ -57,9 +57,7 @@ class LoggedPoseOdometry:
     previous output is held; the motion across the gap is applied at the next good pose.
     """
 
-    def __init__(
-        self, config: LoggedOdometryConfig | None = None, pose_config: PoseFileConfig | None = None
-    ) -> None:
+    def __init__(self, config: LoggedOdometryConfig | None = None, pose_config: PoseFileConfig | None = None) -> None:
         self.config = config or LoggedOdometryConfig()
         self.stats = OdometryStats()
         self._tolerance = (pose_config or PoseFileConfig()).rotation_tolerance

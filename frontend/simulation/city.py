@@ -72,9 +72,29 @@ _MARKING = np.array([0.90, 0.90, 0.86], np.float32)
 
 # Wall materials (index into each surface's colour table) and ground materials.
 (
-    M_WALL, M_COURSE, M_CORNICE, M_FRAME, M_GLASS, M_MULLION, M_PLINTH, M_SHOP, M_SIGN, M_LETTER,
-    M_AWNING_A, M_AWNING_B, M_DOOR, M_DOOR_FRAME, M_POLE, M_LAMP, M_CAR, M_CAR_GLASS, M_TYRE, M_ALLEY,
-    M_BARK, M_LEAF, M_RAIL,
+    M_WALL,
+    M_COURSE,
+    M_CORNICE,
+    M_FRAME,
+    M_GLASS,
+    M_MULLION,
+    M_PLINTH,
+    M_SHOP,
+    M_SIGN,
+    M_LETTER,
+    M_AWNING_A,
+    M_AWNING_B,
+    M_DOOR,
+    M_DOOR_FRAME,
+    M_POLE,
+    M_LAMP,
+    M_CAR,
+    M_CAR_GLASS,
+    M_TYRE,
+    M_ALLEY,
+    M_BARK,
+    M_LEAF,
+    M_RAIL,
 ) = range(23)
 N_MATERIALS = 23
 _GRAINY = np.zeros(N_MATERIALS, bool)
@@ -165,9 +185,7 @@ class City:
 
     # -- texture -----------------------------------------------------------------------------
 
-    def wall_albedo(
-        self, sid: np.ndarray, u: np.ndarray, v: np.ndarray, visit: int = 0, foliage_tint=(1.0, 1.0, 1.0)
-    ):
+    def wall_albedo(self, sid: np.ndarray, u: np.ndarray, v: np.ndarray, visit: int = 0, foliage_tint=(1.0, 1.0, 1.0)):
         """Texture of walls: (surface ids, u metres along the wall, v metres above ground).
 
         Returns (rgb float32 (N, 3) in [0, 1], window_key float32 (N,): a uniform [0, 1) value
@@ -297,7 +315,6 @@ class City:
             ),
         ).astype(np.float32)
         return _GROUND_COLOURS[mat] * factor[:, None]
-
 
     def ground_z(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """World height of the ground at (x, y): the terrain of the nearest road plus the relief."""

@@ -213,9 +213,7 @@ class RouteConfig(_Model):
         if v in ROUTE_PRESETS:
             return v
         if not Path(v).is_file():
-            raise ValueError(
-                f"route preset {v!r} is neither a known preset {ROUTE_PRESETS} nor an existing poses file"
-            )
+            raise ValueError(f"route preset {v!r} is neither a known preset {ROUTE_PRESETS} nor an existing poses file")
         return v
 
     @property
@@ -229,7 +227,8 @@ class CameraConfig(_Model):
 
     enabled: bool = True
     rear: bool = Field(
-        True, description="also render a rear camera: at a street driven the other way it sees what the "
+        True,
+        description="also render a rear camera: at a street driven the other way it sees what the "
         "forward camera saw, so reverse revisits can be recognised",
     )
     width: int = Field(320, ge=8)
@@ -265,7 +264,9 @@ class LidarConfig(_Model):
     )
     range_bias_sigma_m: float = Field(0.02, ge=0.0, description="sigma of each beam's constant range offset")
     beam_azimuth_error_deg: float = Field(
-        0.15, ge=0.0, lt=5.0,
+        0.15,
+        ge=0.0,
+        lt=5.0,
         description="sigma of each beam's azimuth (rotational) calibration error; it makes kiss-icp's heading drift",
     )
     range_scale_error: float = Field(0.0, gt=-0.1, lt=0.1, description="relative range error of the unit")
@@ -388,9 +389,7 @@ class SimulationConfig(_Model):
     def _check_schedule(self):
         unknown = [n for n in self.appearance_schedule if n not in self.appearances]
         if unknown:
-            raise ValueError(
-                f"appearance_schedule names {unknown} not in appearances {sorted(self.appearances)}"
-            )
+            raise ValueError(f"appearance_schedule names {unknown} not in appearances {sorted(self.appearances)}")
         return self
 
     @property
@@ -398,7 +397,7 @@ class SimulationConfig(_Model):
         return self.lidar.scan_period_s or 1.0 / self.frame_rate_hz
 
     @classmethod
-    def from_yaml(cls, path: str | Path) -> "SimulationConfig":
+    def from_yaml(cls, path: str | Path) -> SimulationConfig:
         """Read a YAML mapping; raises FrontendInputError naming the file when unreadable or invalid."""
         import yaml
 

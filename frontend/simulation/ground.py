@@ -36,7 +36,7 @@ class GroundMap:
         district: np.ndarray,
         centre_z: np.ndarray | None = None,
         resolution_m: float = 0.5,
-    ) -> "GroundMap":
+    ) -> GroundMap:
         lo = centre_xy.min(axis=0) - _FAR_M
         hi = centre_xy.max(axis=0) + _FAR_M
         res = resolution_m
@@ -62,12 +62,19 @@ class GroundMap:
     def height_at(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
         """Terrain height at world (x, y): bilinear in the raster, the edge value outside it."""
         h, w = self.height.shape
-        fx = np.clip((np.asarray(x, np.float32) - np.float32(self.origin[0])) / np.float32(self.resolution), 0, w - 1.001)
-        fy = np.clip((np.asarray(y, np.float32) - np.float32(self.origin[1])) / np.float32(self.resolution), 0, h - 1.001)
+        fx = np.clip(
+            (np.asarray(x, np.float32) - np.float32(self.origin[0])) / np.float32(self.resolution), 0, w - 1.001
+        )
+        fy = np.clip(
+            (np.asarray(y, np.float32) - np.float32(self.origin[1])) / np.float32(self.resolution), 0, h - 1.001
+        )
         ix, iy = fx.astype(np.int64), fy.astype(np.int64)
         ax, ay = fx - ix, fy - iy
         g = self.height
-        return ((g[iy, ix] * (1 - ax) + g[iy, ix + 1] * ax) * (1 - ay) + (g[iy + 1, ix] * (1 - ax) + g[iy + 1, ix + 1] * ax) * ay).astype(np.float32)
+        return (
+            (g[iy, ix] * (1 - ax) + g[iy, ix + 1] * ax) * (1 - ay)
+            + (g[iy + 1, ix] * (1 - ax) + g[iy + 1, ix + 1] * ax) * ay
+        ).astype(np.float32)
 
     def lookup(self, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(distance to the street centre, arc length along it, district) at world (x, y)."""

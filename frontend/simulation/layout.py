@@ -17,7 +17,18 @@ import math
 import numpy as np
 from scipy.spatial import cKDTree
 
-from frontend.simulation.city import ALLEY, CAR, FACADE, FOLIAGE, POLE, RAIL, TRUNK, City, _box_segments, _surface_params
+from frontend.simulation.city import (
+    ALLEY,
+    CAR,
+    FACADE,
+    FOLIAGE,
+    POLE,
+    RAIL,
+    TRUNK,
+    City,
+    _box_segments,
+    _surface_params,
+)
 from frontend.simulation.config import CityConfig, TrafficConfig
 from frontend.simulation.ground import GroundMap
 from frontend.simulation.noise import hash01, value_noise
@@ -104,7 +115,9 @@ class _Builder:
         self.u0.append(u0)
         self.slot.append(slot)
 
-    def box(self, centre, half_len: float, half_wid: float, angle: float, z0: float, z1: float, sid: int, slot: int = -1):
+    def box(
+        self, centre, half_len: float, half_wid: float, angle: float, z0: float, z1: float, sid: int, slot: int = -1
+    ):
         for q0, q1, n in zip(*_box_segments(centre[0], centre[1], half_len, half_wid, angle)):
             self.wall(q0, q1, n, z0, z1, sid, slot=slot)
 
@@ -132,9 +145,7 @@ def district_codes(cfg: CityConfig, seed: int, centre_xy: np.ndarray) -> np.ndar
     return np.array([DISTRICTS.index(n) for n in names])[idx]
 
 
-def build_city(
-    config: CityConfig, seed: int, centre: np.ndarray, traffic: TrafficConfig | None = None
-) -> City:
+def build_city(config: CityConfig, seed: int, centre: np.ndarray, traffic: TrafficConfig | None = None) -> City:
     """Lay out the city for ``seed`` along the street centre line ``centre`` (M, 3): x, y, z."""
     cfg = config
     traffic = traffic or TrafficConfig()
@@ -366,7 +377,9 @@ def _lay_furniture(cfg: CityConfig, B: _Builder, rng, s, district, length, half,
                     p0, p1, e, m, _ = f
                     q0, q1 = p0 + m * (rh + 0.8), p1 + m * (rh + 0.8)
                     mid = (q0 + q1) / 2
-                    if B.clear_of_streets(np.array([q0, q1, mid]), rh + 0.5) and B.claim(np.array([q0, mid, q1]), dilate=1):
+                    if B.clear_of_streets(np.array([q0, q1, mid]), rh + 0.5) and B.claim(
+                        np.array([q0, mid, q1]), dilate=1
+                    ):
                         sid = B.surface(RAIL, d, top=cfg.guard_rail_height_m)
                         base = B.ground_z(np.array([q0, q1]))
                         B.wall(q0, q1, -m, base + 0.3, base + cfg.guard_rail_height_m, sid)
@@ -376,7 +389,7 @@ def _lay_furniture(cfg: CityConfig, B: _Builder, rng, s, district, length, half,
                 f = frame(a, a + 4.0, side)
                 if f is not None:
                     p0, _, e, m, _ = f
-                    offset = rh + 3.0 + 3.0 * (hash01(seed, _FENCE_CHANNEL, int(a // 200), int(side)) )
+                    offset = rh + 3.0 + 3.0 * (hash01(seed, _FENCE_CHANNEL, int(a // 200), int(side)))
                     pos = p0 + m * offset
                     if B.clear_of_streets(pos[None], offset - 0.5) and B.claim(pos[None], dilate=1):
                         sid = B.surface(POLE, d, top=1.3)

@@ -42,7 +42,7 @@ class Scene:
     normal: np.ndarray
 
     @classmethod
-    def of(cls, city: City, mask: np.ndarray | None = None, extra: "Scene | None" = None) -> "Scene":
+    def of(cls, city: City, mask: np.ndarray | None = None, extra: Scene | None = None) -> Scene:
         fields = ("p0", "p1", "z0", "z1", "surface", "u0", "normal")
         parts = {f: getattr(city, f) if mask is None else getattr(city, f)[mask] for f in fields}
         if extra is not None and len(extra.p0):
@@ -375,7 +375,9 @@ class LidarRenderer:
         through = draw < cfg.glass_pass_probability
         # The room behind a window stays where it is: its depth is a property of the window.
         out[b[through], c[through]] = t[through] + np.float32(1.5) + np.float32(4.5) * key[through]
-        lost = (draw >= cfg.glass_pass_probability) & (draw < cfg.glass_pass_probability + cfg.glass_dropout_probability)
+        lost = (draw >= cfg.glass_pass_probability) & (
+            draw < cfg.glass_pass_probability + cfg.glass_dropout_probability
+        )
         out[b[lost], c[lost]] = np.nan
         return out
 

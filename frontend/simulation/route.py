@@ -104,7 +104,9 @@ def _box_smooth(v: np.ndarray, half: int) -> np.ndarray:
     return np.convolve(np.pad(v, half, mode="edge"), k, mode="valid")
 
 
-def read_poses_file(path: str | Path, fmt: str = "auto", frame: PosesFrame = "auto") -> tuple[np.ndarray | None, np.ndarray]:
+def read_poses_file(
+    path: str | Path, fmt: str = "auto", frame: PosesFrame = "auto"
+) -> tuple[np.ndarray | None, np.ndarray]:
     """(timestamps or None, z-up positions (N, 3)) of a TUM or KITTI poses file; see route_files."""
     route = read_route_file(path, fmt, frame)
     return route.timestamps, route.positions
@@ -254,9 +256,7 @@ def build_route(
     tangent = np.gradient(centre, axis=0)
     tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
     left = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
-    offset = cfg.lane_offset_m + cfg.lateral_wander_m * _smooth_noise(
-        s_c, cfg.wander_wavelength_m, wander_phases
-    )
+    offset = cfg.lane_offset_m + cfg.lateral_wander_m * _smooth_noise(s_c, cfg.wander_wavelength_m, wander_phases)
     lane = centre + left * offset[:, None]
     s_l = _arclength(lane)
     s = np.arange(0.0, s_l[-1], step)

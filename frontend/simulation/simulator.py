@@ -48,9 +48,7 @@ class TraverseSimulator:
 
     def __init__(self, config: SimulationConfig):
         if not isinstance(config, SimulationConfig):
-            raise FrontendInputError(
-                f"simulation config must be a SimulationConfig, got {type(config).__name__}"
-            )
+            raise FrontendInputError(f"simulation config must be a SimulationConfig, got {type(config).__name__}")
         self.config = config
         cfg = config
         self.route_file = (
@@ -150,12 +148,21 @@ class TraverseSimulator:
         x, y, yaw = self.xy_yaw[k]
         app = self.config.appearances[self.appearance_name(k)]
         # the rear camera's noise is its own stream, so adding it leaves the forward images as they were
-        rng = np.random.default_rng([self.config.seed, _STREAM_IMAGE, k, 1] if rear else [self.config.seed, _STREAM_IMAGE, k])
+        rng = np.random.default_rng(
+            [self.config.seed, _STREAM_IMAGE, k, 1] if rear else [self.config.seed, _STREAM_IMAGE, k]
+        )
         sign = -1.0 if rear else 1.0  # looking backwards, the road ahead of the lens falls as the car climbs
         return self.camera.render(
-            x, y, yaw + (math.pi if rear else 0.0), app, rng,
-            road_z=float(self.road_z[k]), pitch=sign * float(self.pitch[k]), grade=sign * float(self.grade[k]),
-            scene=scene or self.scene(k), visit=int(self.route_times[k] // _FOLIAGE_EPOCH_S),
+            x,
+            y,
+            yaw + (math.pi if rear else 0.0),
+            app,
+            rng,
+            road_z=float(self.road_z[k]),
+            pitch=sign * float(self.pitch[k]),
+            grade=sign * float(self.grade[k]),
+            scene=scene or self.scene(k),
+            visit=int(self.route_times[k] // _FOLIAGE_EPOCH_S),
         )
 
     def render_scan(self, k: int, scene: Scene | None = None) -> tuple[np.ndarray, np.ndarray] | tuple[None, None]:
@@ -172,8 +179,13 @@ class TraverseSimulator:
             xs, ys, yaws = self.xy_yaw[k]
             zs = float(self.road_z[k])
         return self.lidar.scan(
-            xs, ys, yaws, rng,
-            road_z=zs, pitch=float(self.pitch[k]), grade=float(self.grade[k]),
+            xs,
+            ys,
+            yaws,
+            rng,
+            road_z=zs,
+            pitch=float(self.pitch[k]),
+            grade=float(self.grade[k]),
             scene=scene or self.scene(k),
         )
 

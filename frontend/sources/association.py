@@ -96,9 +96,7 @@ class StreamAssociator:
 
     def _drain(self) -> list[Associated]:
         ready = []
-        while self._pending and (
-            len(self._pending) > self.max_pending or self._ready(self._pending[0][0])
-        ):
+        while self._pending and (len(self._pending) > self.max_pending or self._ready(self._pending[0][0])):
             ready.append(self._decide())
         return ready
 

@@ -40,9 +40,7 @@ class SourceStats:
         """One line for logs and reports."""
         skips = ", ".join(f"{k}={v}" for k, v in sorted(self.skipped.items())) or "none"
         notes = ", ".join(f"{k}={v}" for k, v in sorted(self.notes.items()))
-        return f"{self.frames_yielded} frames yielded; skipped: {skips}" + (
-            f"; {notes}" if notes else ""
-        )
+        return f"{self.frames_yielded} frames yielded; skipped: {skips}" + (f"; {notes}" if notes else "")
 
 
 class Source(ABC):

@@ -28,9 +28,7 @@ def detect_kind(path: Path) -> str:
     has_camera = any((path / c).is_dir() for c in CAMERA_FOLDERS)
     if (path / "velodyne").is_dir() or ((path / "times.txt").is_file() and has_camera):
         return "kitti"
-    if list_images(path) or any(
-        (path / name).is_dir() and list_images(path / name) for name in IMAGE_DIR_NAMES
-    ):
+    if list_images(path) or any((path / name).is_dir() and list_images(path / name) for name in IMAGE_DIR_NAMES):
         return "folder"
     raise FrontendInputError(
         f"{path}: not recognised: expected a .mcap file, a KITTI sequence folder "

@@ -50,9 +50,7 @@ class FolderSource(Source):
         if not self.images:
             raise FrontendInputError(f"{self.image_dir}: no image files")
         self.poses_path = self._find(self.config.poses_file, POSES_NAMES, "poses file")
-        self.pose_file: PoseFile | None = (
-            read_poses(self.poses_path, config=pose_config) if self.poses_path else None
-        )
+        self.pose_file: PoseFile | None = read_poses(self.poses_path, config=pose_config) if self.poses_path else None
         self.times_path = self._find(self.config.times_file, (TIMES_NAME,), "times file")
         self.times, real_times = self._times()
         self.poses = self._match_poses(real_times)
@@ -89,8 +87,7 @@ class FolderSource(Source):
                 raise FrontendInputError(f"{self.times_path}: unreadable ({error})") from None
             if times.ndim != 1 or len(times) != count or not np.all(np.isfinite(times)):
                 raise FrontendInputError(
-                    f"{self.times_path}: need {count} finite times (one per image), "
-                    f"got {times.size}"
+                    f"{self.times_path}: need {count} finite times (one per image), got {times.size}"
                 )
             return times, True
         try:

@@ -80,13 +80,9 @@ class KittiSource(Source):
         self.camera_folder = self._camera_folder()
         self.images = list_images(self.path / self.camera_folder) if self.camera_folder else []
         velodyne = self.path / "velodyne"
-        self.scans = (
-            sorted(velodyne.glob("*.bin")) if self.config.load_points and velodyne.is_dir() else []
-        )
+        self.scans = sorted(velodyne.glob("*.bin")) if self.config.load_points and velodyne.is_dir() else []
         if not self.images and not self.scans:
-            raise FrontendInputError(
-                f"{self.path}: no images ({'/'.join(CAMERA_FOLDERS)}) and no velodyne/*.bin scans"
-            )
+            raise FrontendInputError(f"{self.path}: no images ({'/'.join(CAMERA_FOLDERS)}) and no velodyne/*.bin scans")
         self._check_count(self.images, self.camera_folder)
         self._check_count(self.scans, "velodyne")
         self.tr = read_calib_tr(self.path / "calib.txt")
@@ -118,8 +114,7 @@ class KittiSource(Source):
     def _check_count(self, files: list[Path], what: str | None) -> None:
         if files and len(files) != len(self.times):
             raise FrontendInputError(
-                f"{self.path / str(what)}: {len(files)} files but times.txt has "
-                f"{len(self.times)} lines"
+                f"{self.path / str(what)}: {len(files)} files but times.txt has {len(self.times)} lines"
             )
 
     def _gt_frame(self) -> str:
@@ -146,9 +141,7 @@ class KittiSource(Source):
             return None
         poses = read_kitti(self.poses_path, pose_config).poses
         if len(poses) != len(self.times):
-            raise FrontendInputError(
-                f"{self.poses_path}: {len(poses)} poses but times.txt has {len(self.times)} lines"
-            )
+            raise FrontendInputError(f"{self.poses_path}: {len(poses)} poses but times.txt has {len(self.times)} lines")
         if self.gt_frame == "lidar":
             tr = self.tr if self.tr is not None else np.eye(4)
             poses = np.linalg.inv(tr) @ poses @ tr

@@ -17,12 +17,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
+from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError
 from mcap.reader import NonSeekingReader, SeekingReader
-from mcap.data_stream import ReadDataStream
 from mcap.records import Channel, Message, MessageIndex, Schema
-from mcap.summary import Summary
 from mcap.stream_reader import StreamReader
+from mcap.summary import Summary
 from mcap_ros2.decoder import DecoderFactory
 
 from frontend.config import McapSourceConfig, McapWriterConfig, PoseFileConfig
@@ -123,10 +123,7 @@ class McapSource(Source):
                 log.debug("%s: no usable summary (%s)", self.path, error)
                 summary = None
             if summary is not None and summary.chunk_indexes:
-                channels = [
-                    (c, self._type(summary.schemas.get(c.schema_id)))
-                    for c in summary.channels.values()
-                ]
+                channels = [(c, self._type(summary.schemas.get(c.schema_id))) for c in summary.channels.values()]
                 counts: dict[str, int] = {}
                 if summary.statistics is not None:
                     for cid, n in summary.statistics.channel_message_counts.items():
@@ -163,8 +160,7 @@ class McapSource(Source):
             if requested is not None:
                 if requested not in present:
                     raise FrontendInputError(
-                        f"{self.path}: {role} topic '{requested}' not found; "
-                        f"topics present: {listing}"
+                        f"{self.path}: {role} topic '{requested}' not found; topics present: {listing}"
                     )
                 if present[requested] not in accepted:
                     raise FrontendInputError(
@@ -200,9 +196,7 @@ class McapSource(Source):
         if drive == "auto":
             return "camera" if "camera" in self._roles else "lidar"
         if drive not in self._roles:
-            raise FrontendInputError(
-                f"{self.path}: drive='{drive}' but the log has no {drive} topic"
-            )
+            raise FrontendInputError(f"{self.path}: drive='{drive}' but the log has no {drive} topic")
         return drive
 
     # ---------------------------------------------------------------- Source API
@@ -272,9 +266,7 @@ class McapSource(Source):
 
     # ---------------------------------------------------------------- helpers
 
-    def _raw_messages(
-        self, stream: IO[bytes], topics: list[str]
-    ) -> Iterator[tuple[Schema | None, Channel, Message]]:
+    def _raw_messages(self, stream: IO[bytes], topics: list[str]) -> Iterator[tuple[Schema | None, Channel, Message]]:
         if self._indexed:
             reader = SeekingReader(stream)
             back = _goes_back_in_file_order(stream, reader.get_summary(), set(topics))
@@ -291,9 +283,7 @@ class McapSource(Source):
         # File order: sorting an unindexed log by time would load all of it into memory.
         return NonSeekingReader(stream).iter_messages(topics=topics, log_time_order=False)
 
-    def _decode(
-        self, factory: DecoderFactory, schema: Schema | None, channel: Channel, message: Message
-    ) -> Any:
+    def _decode(self, factory: DecoderFactory, schema: Schema | None, channel: Channel, message: Message) -> Any:
         try:
             decoder = factory.decoder_for(channel.message_encoding, schema)
             if decoder is None:
@@ -367,9 +357,7 @@ class McapSource(Source):
             yield frame
 
 
-def _goes_back_in_file_order(
-    stream: IO[bytes], summary: Summary | None, topics: set[str]
-) -> tuple[str, float] | None:
+def _goes_back_in_file_order(stream: IO[bytes], summary: Summary | None, topics: set[str]) -> tuple[str, float] | None:
     """(topic, seconds) of the largest backward step of a topic's log time in file order.
 
     Read from the chunks' message index records (times and offsets, no decompression), so

@@ -56,9 +56,7 @@ class McapFrameWriter:
 
     def open(self) -> McapFrameWriter:
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(
-            dir=self.path.parent, prefix=f".{self.path.name}.", suffix=".tmp"
-        )
+        fd, tmp = tempfile.mkstemp(dir=self.path.parent, prefix=f".{self.path.name}.", suffix=".tmp")
         self._tmp_path = Path(tmp)
         self._file = os.fdopen(fd, "wb")
         self._writer = Writer(
@@ -111,9 +109,7 @@ class McapFrameWriter:
     def _schema(self, datatype: str) -> Schema:
         assert self._writer is not None, "write() checks that the log is open"
         if datatype not in self._schemas:
-            self._schemas[datatype] = self._writer.register_msgdef(
-                datatype, ros_msgdefs.MSGDEFS[datatype]
-            )
+            self._schemas[datatype] = self._writer.register_msgdef(datatype, ros_msgdefs.MSGDEFS[datatype])
         return self._schemas[datatype]
 
     def _put(self, topic: str, datatype: str, message: dict[str, Any], nanoseconds: int) -> None:
@@ -160,9 +156,7 @@ class McapFrameWriter:
             self._put(cfg.lidar_topic, ros_msgdefs.POINT_CLOUD2, msg, ns)
         if frame.logged_pose is not None:
             self._check_pose(frame, frame.logged_pose, "logged_pose")
-            msg = ros_convert.odometry_message(
-                frame.logged_pose, t, cfg.world_frame_id, cfg.body_frame_id
-            )
+            msg = ros_convert.odometry_message(frame.logged_pose, t, cfg.world_frame_id, cfg.body_frame_id)
             self._put(cfg.odom_topic, ros_msgdefs.ODOMETRY, msg, ns)
         if frame.gt_pose is not None:
             self._check_pose(frame, frame.gt_pose, "gt_pose")
@@ -196,9 +190,7 @@ class McapFrameWriter:
         self._put(topic, ros_msgdefs.COMPRESSED_IMAGE, msg, ns)
 
 
-def write_frames(
-    frames: Iterable[Frame], path: str | Path, config: McapWriterConfig | None = None
-) -> int:
+def write_frames(frames: Iterable[Frame], path: str | Path, config: McapWriterConfig | None = None) -> int:
     """Write every frame of an iterable (e.g. a Source) to one MCAP log; returns the count."""
     with McapFrameWriter(path, config) as writer:
         for frame in frames:

@@ -87,9 +87,7 @@ def compressed_image_message(
     return {"header": header_dict(seconds, frame_id), "format": fmt, "data": buffer.tobytes()}
 
 
-def point_cloud_message(
-    points: np.ndarray, times: np.ndarray | None, seconds: float, frame_id: str
-) -> dict[str, Any]:
+def point_cloud_message(points: np.ndarray, times: np.ndarray | None, seconds: float, frame_id: str) -> dict[str, Any]:
     """sensor_msgs/PointCloud2 with float32 x, y, z and, when given, float32 ``t``."""
     names = ["x", "y", "z"] + (["t"] if times is not None else [])
     cloud = np.empty(len(points), dtype=[(name, np.float32) for name in names])
@@ -104,8 +102,7 @@ def point_cloud_message(
         "height": 1,
         "width": len(points),
         "fields": [
-            {"name": name, "offset": i * itemsize, "datatype": FLOAT32, "count": 1}
-            for i, name in enumerate(names)
+            {"name": name, "offset": i * itemsize, "datatype": FLOAT32, "count": 1} for i, name in enumerate(names)
         ],
         "is_bigendian": False,
         "point_step": point_step,
@@ -125,9 +122,7 @@ def pose_dict(pose: np.ndarray) -> dict[str, Any]:
     }
 
 
-def odometry_message(
-    pose: np.ndarray, seconds: float, world_frame: str, body_frame: str
-) -> dict[str, Any]:
+def odometry_message(pose: np.ndarray, seconds: float, world_frame: str, body_frame: str) -> dict[str, Any]:
     """nav_msgs/Odometry carrying the pose (covariance and twist left at zero)."""
     zeros = [0.0] * 36
     return {
@@ -199,16 +194,14 @@ def decode_image(msg: Any, topic: str) -> np.ndarray:
     channels = IMAGE_CHANNELS.get(encoding)
     if channels is None:
         raise FrontendInputError(
-            f"{topic}: image encoding '{msg.encoding}' is not supported "
-            f"(supported: {', '.join(IMAGE_CHANNELS)})"
+            f"{topic}: image encoding '{msg.encoding}' is not supported (supported: {', '.join(IMAGE_CHANNELS)})"
         )
     height, width, step = int(msg.height), int(msg.width), int(msg.step)
     data = np.frombuffer(bytes(msg.data), dtype=np.uint8)
     row_bytes = width * channels
     if step < row_bytes or data.size < step * height:
         raise FrontendInputError(
-            f"{topic}: {encoding} image {width}x{height} with step {step} "
-            f"has only {data.size} data bytes"
+            f"{topic}: {encoding} image {width}x{height} with step {step} has only {data.size} data bytes"
         )
     rows = data[: step * height].reshape(height, step)[:, :row_bytes]
     pixels = rows.reshape(height, width, channels)
@@ -237,9 +230,7 @@ def decode_compressed_image(msg: Any, topic: str) -> np.ndarray | None:
 def _field_dtype(field: Any, topic: str) -> np.dtype:
     scalar = POINT_FIELD_DTYPES.get(int(field.datatype))
     if scalar is None:
-        raise FrontendInputError(
-            f"{topic}: PointCloud2 field '{field.name}' has unknown datatype {field.datatype}"
-        )
+        raise FrontendInputError(f"{topic}: PointCloud2 field '{field.name}' has unknown datatype {field.datatype}")
     return np.dtype(scalar)
 
 
@@ -253,9 +244,7 @@ def decode_point_cloud(msg: Any, topic: str) -> tuple[np.ndarray, np.ndarray | N
     fields = {str(f.name): f for f in msg.fields}
     missing = [axis for axis in "xyz" if axis not in fields]
     if missing:
-        raise FrontendInputError(
-            f"{topic}: PointCloud2 lacks field(s) {missing}; fields are {sorted(fields)}"
-        )
+        raise FrontendInputError(f"{topic}: PointCloud2 lacks field(s) {missing}; fields are {sorted(fields)}")
     time_name = next((name for name in TIME_FIELD_NAMES if name in fields), None)
     wanted = ["x", "y", "z"] + ([time_name] if time_name else [])
     order: Literal[">", "<"] = ">" if msg.is_bigendian else "<"
@@ -263,12 +252,8 @@ def decode_point_cloud(msg: Any, topic: str) -> tuple[np.ndarray, np.ndarray | N
     formats = [_field_dtype(fields[n], topic).newbyteorder(order) for n in wanted]
     offsets = [int(fields[n].offset) for n in wanted]
     if any(o + f.itemsize > point_step for o, f in zip(offsets, formats)):
-        raise FrontendInputError(
-            f"{topic}: PointCloud2 field offsets exceed point_step {point_step}"
-        )
-    dtype = np.dtype(
-        {"names": wanted, "formats": formats, "offsets": offsets, "itemsize": point_step}
-    )
+        raise FrontendInputError(f"{topic}: PointCloud2 field offsets exceed point_step {point_step}")
+    dtype = np.dtype({"names": wanted, "formats": formats, "offsets": offsets, "itemsize": point_step})
     row_step = max(int(msg.row_step), width * point_step)
     data = bytes(msg.data)
     if height * width == 0:

@@ -122,9 +122,7 @@ uint8[] data
         _HEADER,
         _TIME,
     ),
-    COMPRESSED_IMAGE: _compose(
-        "std_msgs/Header header\nstring format\nuint8[] data", _HEADER, _TIME
-    ),
+    COMPRESSED_IMAGE: _compose("std_msgs/Header header\nstring format\nuint8[] data", _HEADER, _TIME),
     POINT_CLOUD2: _compose(
         """
 std_msgs/Header header

@@ -87,9 +87,7 @@ class GncConfig(_Strict):
 
     enabled: bool = False
     loss: Literal["tls", "gm"] = "tls"
-    inlier_probability: float = Field(
-        0.99, gt=0, lt=1, description="chi2 quantile that sets the inlier cost threshold"
-    )
+    inlier_probability: float = Field(0.99, gt=0, lt=1, description="chi2 quantile that sets the inlier cost threshold")
     weight_threshold: float = Field(
         0.5, ge=0, le=1, description="loops whose final GNC weight is at least this are inliers"
     )
@@ -107,7 +105,7 @@ class PoseGraphConfig(_Strict):
         OdometryNoiseConfig(), description="odometry factors of a source without its own entry in odometry_by_source"
     )
     odometry_by_source: dict[Literal["kiss_icp", "logged"], OdometryNoiseConfig] = Field(
-        default_factory=lambda: {"kiss_icp": OdometryNoiseConfig(rot_sigma=1e-3, trans_sigma=0.05)},
+        default_factory=lambda: {"kiss_icp": OdometryNoiseConfig(rot_sigma=1e-3, trans_sigma=0.05)},  # type: ignore[arg-type,dict-item]
         description=(
             "odometry sigmas per source (frontend.odometry.kind). LiDAR odometry turns far more "
             "accurately than wheels: with wheel-like rotation sigmas the graph bends the trajectory to "
@@ -122,7 +120,7 @@ class PoseGraphConfig(_Strict):
         1e-4, gt=0, description="max |R^T R - I| and |det R - 1| accepted for an input pose"
     )
 
-    def for_odometry(self, source: str) -> "PoseGraphConfig":
+    def for_odometry(self, source: str) -> PoseGraphConfig:
         """This config with the odometry sigmas of `source` (a `frontend.odometry.kind`)."""
         noise = self.odometry_by_source.get(source)  # type: ignore[call-overload]
         return self if noise is None else self.model_copy(update={"odometry": noise})
@@ -166,15 +164,11 @@ class LidarRegistrationConfig(_Strict):
     early_stop_inlier_ratio: float = Field(
         0.9, ge=0, le=1, description="a screened seed this good ends screening; only it is refined"
     )
-    inlier_distance: float = Field(
-        0.5, gt=0, description="m; distance to the nearest raw map point counted as inlier"
-    )
+    inlier_distance: float = Field(0.5, gt=0, description="m; distance to the nearest raw map point counted as inlier")
     min_inlier_ratio: float = Field(0.8, ge=0, le=1)  # demo: true loops >= 0.89, aliased streets <= 0.69
     max_rmse: float = Field(0.3, gt=0, description="m; RMSE of the inlier distances")
     min_points: int = Field(50, ge=3, description="after down-sampling, per cloud")
-    local_map_half_window: int = Field(
-        2, ge=0, description="keyframes m-k..m+k make the target local map"
-    )
+    local_map_half_window: int = Field(2, ge=0, description="keyframes m-k..m+k make the target local map")
     rot_sigma: float = Field(0.02, gt=0, description="rad; factor sigma of an accepted ICP loop")
     trans_sigma: float = Field(0.1, gt=0, description="m; factor sigma of an accepted ICP loop")
 
@@ -204,9 +198,7 @@ class TwoViewConfig(_Strict):
         2.0, gt=0, description="homography transfer error; 2-D, so looser than the epipolar one"
     )
     min_inliers: int = Field(30, ge=5, description="below this the yaw guess is used")
-    homography_share: float = Field(
-        0.8, gt=0, description="H inliers / E inliers above which pure rotation is tested"
-    )
+    homography_share: float = Field(0.8, gt=0, description="H inliers / E inliers above which pure rotation is tested")
     rotation_singular_tol: float = Field(
         0.05, gt=0, description="K^-1 H K counts as a rotation if s_min/s_max >= 1 - tol"
     )

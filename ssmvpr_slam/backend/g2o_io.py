@@ -130,7 +130,7 @@ class PoseGraphData:
 
 def planar_pose(x: float, y: float, theta: float) -> np.ndarray:
     """4x4 pose of a planar (x, y, theta)."""
-    return make_pose(rot_z(theta), (x, y, 0.0))
+    return make_pose(rot_z(theta), np.array([x, y, 0.0]))
 
 
 def planar_of(pose: np.ndarray) -> tuple[float, float, float]:
@@ -484,13 +484,15 @@ def read_times(path: str | os.PathLike[str], graph: PoseGraphData) -> np.ndarray
         if not tokens or tokens[0].startswith("#"):
             continue
         if len(tokens) == 2:
-            by_id[_vertex_id(str(path), lineno, tokens[0])] = float(_numbers(str(path), lineno, "time", tokens[1:], 1)[0])
+            by_id[_vertex_id(str(path), lineno, tokens[0])] = float(
+                _numbers(str(path), lineno, "time", tokens[1:], 1)[0]
+            )
         else:
             plain.append(float(_numbers(str(path), lineno, "time", tokens, 1)[0]))
     if plain and by_id:
         raise PoseGraphFileError(f"{path}: mixes 't' and 'id t' lines")
     if by_id:
-        stamps = _in_graph_order(path, graph, {k: np.float64(v) for k, v in by_id.items()})
+        stamps = _in_graph_order(path, graph, {k: np.asarray(v, dtype=np.float64) for k, v in by_id.items()})
         return np.asarray(stamps, dtype=np.float64)
     if len(plain) != len(graph.ids):
         raise PoseGraphFileError(f"{path}: {len(plain)} times for {len(graph.ids)} vertices")

@@ -183,7 +183,9 @@ def _key(index: int) -> int:
     return gtsam.symbol("x", index)
 
 
-def make_loop_kernel(settings: OptimizerSettings, scale: float | None = None) -> gtsam.noiseModel.mEstimator.Base | None:
+def make_loop_kernel(
+    settings: OptimizerSettings, scale: float | None = None
+) -> gtsam.noiseModel.mEstimator.Base | None:
     """The loop kernel at `scale` (default: the settings' scale)."""
     scale = settings.kernel_scale if scale is None else scale
     return noise.make_kernel(RobustKernelConfig(kind=KERNEL_NAMES[settings.kernel], scale=scale))
@@ -295,7 +297,7 @@ def _loop_chi2(factors: _Factors, poses: np.ndarray) -> np.ndarray:
         keys = plain.keys()
         i, j = gtsam.Symbol(keys[0]).index(), gtsam.Symbol(keys[1]).index()
         pred = gtsam.Pose3(poses[i]).between(gtsam.Pose3(poses[j]))
-        err = plain.measured().localCoordinates(pred)
+        err = plain.measured().localCoordinates(pred)  # type: ignore[attr-defined]  # a BetweenFactorPose3
         white = np.asarray(factors.loop_noise[k].whiten(err))
         out[k] = float(white @ white)
     return out
@@ -319,7 +321,7 @@ def optimize_graph(graph: PoseGraphData, settings: OptimizerSettings | None = No
             poses = _solve_batch(factors, poses, settings)
     dof, threshold = chi2_threshold(graph, settings.outlier_quantile)
     chi2 = _loop_chi2(factors, poses)
-    weights = np.array([1.0 if kernel is None else float(kernel.weight(np.sqrt(c))) for c in chi2])
+    weights = np.array([1.0 if kernel is None else float(kernel.weight(np.sqrt(c))) for c in chi2])  # type: ignore[attr-defined]
     kernel_result = OptimizationResult(
         ids=graph.ids, poses=poses, loop_indices=np.asarray(factors.loop_indices, dtype=int),
         loop_inlier=chi2 <= threshold, loop_weight=weights, loop_chi2=chi2,
@@ -417,7 +419,9 @@ def tls_cost(factors: _Factors, values: gtsam.Values, threshold: float) -> float
     """The truncated-least-squares objective GNC (TLS) minimises, in GTSAM's 0.5 * chi2 units:
     prior and odometry in full, each loop capped at 0.5 * `threshold`."""
     cap = 0.5 * threshold
-    return float(_known_graph(factors).error(values) + sum(min(plain.error(values), cap) for _, _, plain in factors.loops))
+    return float(
+        _known_graph(factors).error(values) + sum(min(plain.error(values), cap) for _, _, plain in factors.loops)
+    )
 
 
 def check_kept_loops(
@@ -447,7 +451,9 @@ def _known_graph(factors: _Factors) -> gtsam.NonlinearFactorGraph:
     return known
 
 
-def _inlier_graph(factors: _Factors, keep: np.ndarray, skip: int | None = None) -> tuple[gtsam.NonlinearFactorGraph, dict[int, int]]:
+def _inlier_graph(
+    factors: _Factors, keep: np.ndarray, skip: int | None = None
+) -> tuple[gtsam.NonlinearFactorGraph, dict[int, int]]:
     """Least-squares graph of the known inliers and the kept loops (but `skip`); loop -> slot."""
     graph = _known_graph(factors)
     slots: dict[int, int] = {}
@@ -464,7 +470,9 @@ def _least_squares(factors: _Factors, keep: np.ndarray, values: gtsam.Values, it
     return gtsam.LevenbergMarquardtOptimizer(_inlier_graph(factors, keep)[0], values, params).optimize()
 
 
-def _leverage_and_innovation(graph: gtsam.NonlinearFactorGraph, slots: dict[int, int], values: gtsam.Values) -> dict[int, tuple[float, float]]:
+def _leverage_and_innovation(
+    graph: gtsam.NonlinearFactorGraph, slots: dict[int, int], values: gtsam.Values
+) -> dict[int, tuple[float, float]]:
     """Per loop: leverage (mean eigenvalue of the whitened hat-matrix block H = A Sigma A^T, with
     Sigma the joint marginal covariance of its two poses) and the linearised leave-one-out
     innovation e^T (I - H)^-1 e. Leverage near 1: nothing else in the graph measures this
@@ -514,7 +522,9 @@ def _leave_one_out_check(
         if not slots:
             break
         stats = _leverage_and_innovation(graph, slots, values)
-        levered = sorted((k for k, (lev, _) in stats.items() if lev >= settings.verify_leverage), key=lambda k: -stats[k][0])
+        levered = sorted(
+            (k for k, (lev, _) in stats.items() if lev >= settings.verify_leverage), key=lambda k: -stats[k][0]
+        )
         strained = sorted((k for k, (lev, inn) in stats.items() if lev < settings.verify_leverage and inn > threshold),
                           key=lambda k: -stats[k][1])  # fmt: skip
         suspects = (levered + strained)[: settings.verify_max_suspects]
@@ -575,7 +585,9 @@ def trajectory_ate(gt: np.ndarray, est: np.ndarray, dim: int) -> AteResult:
     return ate(gt, est, "se3")
 
 
-def loop_classification_scores(predicted_outlier: np.ndarray, true_outlier: np.ndarray) -> dict[str, float | int | None]:
+def loop_classification_scores(
+    predicted_outlier: np.ndarray, true_outlier: np.ndarray
+) -> dict[str, float | int | None]:
     """Precision / recall of the outlier class (true positive = a false loop flagged outlier)."""
     pred = np.asarray(predicted_outlier, dtype=bool)
     truth = np.asarray(true_outlier, dtype=bool)

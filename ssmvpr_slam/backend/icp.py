@@ -129,9 +129,7 @@ class SeededIcp:
         assert best is not None
         return best
 
-    def _quality(
-        self, tree: cKDTree, source: np.ndarray, pose: np.ndarray
-    ) -> tuple[float, float]:
+    def _quality(self, tree: cKDTree, source: np.ndarray, pose: np.ndarray) -> tuple[float, float]:
         """Share of source points with a target neighbour within inlier_distance, and the RMSE
         of those inlier distances."""
         dist, _ = tree.query(transform_points(pose, source), k=1)

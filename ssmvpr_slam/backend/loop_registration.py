@@ -122,8 +122,7 @@ class LoopRegistrar:
             n_dense = len(self._icp.downsample(cloud)[0]) if len(cloud) else 0
             if n_dense < cfg.min_points:
                 return self._rejected(
-                    f"{name} has {n_dense} points after cleaning and down-sampling "
-                    f"(< {cfg.min_points})",
+                    f"{name} has {n_dense} points after cleaning and down-sampling (< {cfg.min_points})",
                     yaw_guess,
                 )
         seeds_yaw = [yaw_guess + math.radians(off) for off in cfg.yaw_seed_offsets_deg]
@@ -194,7 +193,6 @@ class LoopRegistrar:
             sigmas=sigmas6(cfg.rot_sigma, cfg.translation_sigma),
             method=f"two_view_{est.model}",
         )
-
 
     def yaw_prior(self, yaw_guess: float, why: str, inlier_ratio: float = 0.0) -> LoopRegistration:
         """Place prior from the visual match alone: zero translation within the place radius,

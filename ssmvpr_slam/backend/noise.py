@@ -68,12 +68,10 @@ def make_kernel(cfg: RobustKernelConfig) -> gtsam.noiseModel.mEstimator.Base | N
     scale = cfg.resolved_scale()
     if scale is None:
         return None
-    return factories[cfg.kind].Create(float(scale))
+    return factories[cfg.kind].Create(float(scale))  # type: ignore[attr-defined]  # gtsam's stubs lack Create
 
 
-def robustify(
-    base: gtsam.noiseModel.Base, kernel: gtsam.noiseModel.mEstimator.Base | None
-) -> gtsam.noiseModel.Base:
+def robustify(base: gtsam.noiseModel.Base, kernel: gtsam.noiseModel.mEstimator.Base | None) -> gtsam.noiseModel.Base:
     """Wrap a Gaussian in the robust kernel (no-op for None)."""
     if kernel is None:
         return base

@@ -154,9 +154,7 @@ class PoseGraph:
         if kf_id in self._odom:
             raise ValueError(f"kf_id: keyframe {kf_id} was already added")
         if self._order and kf_id <= self._order[-1]:
-            raise ValueError(
-                f"kf_id: keyframe ids must increase, got {kf_id} after {self._order[-1]}"
-            )
+            raise ValueError(f"kf_id: keyframe ids must increase, got {kf_id} after {self._order[-1]}")
         key = _key(kf_id)
         if not self._order:
             pcfg = self.config.prior
@@ -301,7 +299,7 @@ class PoseGraph:
             white = np.asarray(loop.gaussian.whiten(err))
             chi2 = float(white @ white)
             norm = float(np.sqrt(chi2))
-            weight = 1.0 if self._kernel is None else float(self._kernel.weight(norm))
+            weight = 1.0 if self._kernel is None else float(self._kernel.weight(norm))  # type: ignore[attr-defined]
             out.append(LoopResidual(handle, loop.i, loop.j, chi2, norm, weight))
         return out
 
@@ -324,8 +322,10 @@ class PoseGraph:
             known.append(self._anchor_link_factor())
             known += [gtsam.BetweenFactorPose3(_ANCHOR_KEY, _map_key(p), gtsam.Pose3(pose), rigid)
                       for p, (pose, rigid) in self._map_places.items()]  # fmt: skip
-        loops = {h: gtsam.BetweenFactorPose3(lp.key_i, _key(lp.j), gtsam.Pose3(lp.measured), lp.gaussian)
-                 for h, lp in self._loops.items()}  # fmt: skip
+        loops: dict[int, gtsam.NonlinearFactor] = {
+            h: gtsam.BetweenFactorPose3(lp.key_i, _key(lp.j), gtsam.Pose3(lp.measured), lp.gaussian)
+            for h, lp in self._loops.items()
+        }
         return run_gnc(known, loops, self._initial_for_gnc(), {kf: _key(kf) for kf in self._order}, self.config.gnc)
 
     def finalize(self) -> dict[int, np.ndarray]:
@@ -373,7 +373,9 @@ class PoseGraph:
         return noise.gaussian(noise.check_sigmas("sigmas", sigmas))
 
     def _queue_loop(self, i: int, j: int, measured: np.ndarray, base: gtsam.noiseModel.Base, on_map: bool) -> int:
-        factor = gtsam.BetweenFactorPose3(_loop_key(i, on_map), _key(j), gtsam.Pose3(measured), noise.robustify(base, self._kernel))
+        factor = gtsam.BetweenFactorPose3(
+            _loop_key(i, on_map), _key(j), gtsam.Pose3(measured), noise.robustify(base, self._kernel)
+        )
         handle = self._next_handle
         self._next_handle += 1
         self._loops[handle] = _Loop(i, j, measured, base, factor, on_map=on_map)
@@ -381,8 +383,11 @@ class PoseGraph:
         return handle
 
     def _anchor_link_factor(self) -> gtsam.BetweenFactorPose3:
+        assert self._anchor_link is not None, "set by the first prior-map loop"
         kf, measured = self._anchor_link
-        return gtsam.BetweenFactorPose3(_key(kf), _ANCHOR_KEY, gtsam.Pose3(measured), noise.gaussian(_ANCHOR_PRIOR_SIGMAS))
+        return gtsam.BetweenFactorPose3(
+            _key(kf), _ANCHOR_KEY, gtsam.Pose3(measured), noise.gaussian(_ANCHOR_PRIOR_SIGMAS)
+        )
 
     def _anchor_pose(self) -> np.ndarray:
         if self._pending_values.exists(_ANCHOR_KEY):

@@ -134,19 +134,15 @@ def intrinsics(config: TwoViewConfig, width: int, height: int, scale: tuple[floa
     return np.array([[fx * sx, 0.0, (cx + 0.5) * sx - 0.5], [0.0, fy * sy, (cy + 0.5) * sy - 0.5], [0.0, 0.0, 1.0]])
 
 
-def _matches(
-    gray_m: np.ndarray, gray_q: np.ndarray, cfg: TwoViewConfig
-) -> tuple[np.ndarray, np.ndarray]:
+def _matches(gray_m: np.ndarray, gray_q: np.ndarray, cfg: TwoViewConfig) -> tuple[np.ndarray, np.ndarray]:
     """Pixel coordinates of ORB matches that pass Lowe's ratio test."""
-    orb = cv2.ORB_create(nfeatures=cfg.orb_features)
+    orb = cv2.ORB_create(nfeatures=cfg.orb_features)  # type: ignore[attr-defined]  # absent from cv2's stubs
     kp_m, des_m = orb.detectAndCompute(gray_m, None)
     kp_q, des_q = orb.detectAndCompute(gray_q, None)
     if des_m is None or des_q is None or len(kp_m) < 2 or len(kp_q) < 2:
         return np.zeros((0, 2)), np.zeros((0, 2))
     pairs = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(des_m, des_q, k=2)
-    good = [
-        p[0] for p in pairs if len(p) == 2 and p[0].distance < cfg.ratio_test * p[1].distance
-    ]
+    good = [p[0] for p in pairs if len(p) == 2 and p[0].distance < cfg.ratio_test * p[1].distance]
     pts_m = np.array([kp_m[g.queryIdx].pt for g in good], dtype=np.float64).reshape(-1, 2)
     pts_q = np.array([kp_q[g.trainIdx].pt for g in good], dtype=np.float64).reshape(-1, 2)
     return pts_m, pts_q
@@ -181,7 +177,9 @@ def _sampson(e_px: np.ndarray, pts_m: np.ndarray, pts_q: np.ndarray) -> np.ndarr
     return np.sqrt(num / np.maximum(den, np.finfo(float).tiny))
 
 
-def _gray_and_size(name: str, image: np.ndarray | ReducedImage) -> tuple[np.ndarray, tuple[int, int], tuple[float, float]]:
+def _gray_and_size(
+    name: str, image: np.ndarray | ReducedImage
+) -> tuple[np.ndarray, tuple[int, int], tuple[float, float]]:
     """(grey pixels, full (width, height), kept/full scale) of a camera image or a kept copy."""
     if isinstance(image, ReducedImage):
         return to_gray(name, image.gray), (image.full_width, image.full_height), image.scale

@@ -38,12 +38,12 @@ class LoopMetricsConfig(_Strict):
     """When a keyframe is a revisit, and when an accepted loop counts as correct."""
 
     revisit_radius: float = Field(5.0, gt=0, description="m; ground-truth revisit distance")
-    correct_radius: float = Field(
-        10.0, gt=0, description="m; an accepted loop within this distance is correct"
-    )
+    correct_radius: float = Field(10.0, gt=0, description="m; an accepted loop within this distance is correct")
     min_frame_gap: int = Field(50, ge=1, description="keyframes; q - m must be at least this")
     view_angle_deg: float = Field(
-        45.0, gt=0, le=180,
+        45.0,
+        gt=0,
+        le=180,
         description="deg; a revisit is camera-visible when an earlier visit looked within this of its heading",
     )
 

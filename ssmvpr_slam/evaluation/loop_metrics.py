@@ -196,9 +196,7 @@ def _loop_ids(k: int, loop: tuple[int, int], n: int) -> tuple[int, int]:
     try:
         q, m = (int(v) for v in loop)
     except (TypeError, ValueError):
-        raise ValueError(
-            f"loops[{k}]: expected a (query, match) pair of ints, got {loop!r}"
-        ) from None
+        raise ValueError(f"loops[{k}]: expected a (query, match) pair of ints, got {loop!r}") from None
     for name, idx in (("query", q), ("match", m)):
         if not 0 <= idx < n:
             raise ValueError(f"loops[{k}]: {name} keyframe {idx} outside 0..{n - 1}")

@@ -174,9 +174,7 @@ def _pair(
     ref_arr = as_pose_array(ref_name, ref)
     est_arr = as_pose_array(est_name, est)
     if len(ref_arr) != len(est_arr):
-        raise ValueError(
-            f"{est_name}: {len(est_arr)} poses for {len(ref_arr)} reference poses; associate first"
-        )
+        raise ValueError(f"{est_name}: {len(est_arr)} poses for {len(ref_arr)} reference poses; associate first")
     if len(ref_arr) < 2:
         raise ValueError(f"{ref_name}: need at least 2 poses, got {len(ref_arr)}")
     return ref_arr, est_arr
@@ -215,9 +213,7 @@ def pairs_by_frames(n: int, delta: int, all_pairs: bool = False) -> list[tuple[i
     return [(i, i + delta) for i in starts]
 
 
-def pairs_by_path(
-    lengths: np.ndarray, delta_m: float, all_pairs: bool = False
-) -> list[tuple[int, int]]:
+def pairs_by_path(lengths: np.ndarray, delta_m: float, all_pairs: bool = False) -> list[tuple[int, int]]:
     """Index pairs whose path distance first reaches `delta_m` metres."""
     if delta_m <= 0:
         raise ValueError(f"delta: path delta must be > 0 m, got {delta_m}")
@@ -232,9 +228,7 @@ def pairs_by_path(
     return pairs
 
 
-def _relative_errors(
-    ref: np.ndarray, est: np.ndarray, pairs: list[tuple[int, int]]
-) -> tuple[np.ndarray, np.ndarray]:
+def _relative_errors(ref: np.ndarray, est: np.ndarray, pairs: list[tuple[int, int]]) -> tuple[np.ndarray, np.ndarray]:
     trans, rot = [], []
     for i, j in pairs:
         rel_ref = invert(ref[i]) @ ref[j]
@@ -268,9 +262,7 @@ def rpe(
     return RpeResult(error_stats(trans), error_stats(rot), float(delta), unit, pairs)
 
 
-def drift_per_100m(
-    ref_poses: np.ndarray, est_poses: np.ndarray, segment_m: float = PER_100M
-) -> DriftResult:
+def drift_per_100m(ref_poses: np.ndarray, est_poses: np.ndarray, segment_m: float = PER_100M) -> DriftResult:
     """Mean translational (m) and rotational (deg) error per 100 m of reference path."""
     ref, est = _pair(ref_poses, est_poses)
     lengths = path_lengths(ref)

@@ -37,9 +37,7 @@ def new_figure(config: PlotConfig, height_scale: float = 1.0) -> Figure:
     return fig
 
 
-def save_figure(
-    fig: Figure, path: str | os.PathLike[str], config: PlotConfig | None = None
-) -> Path:
+def save_figure(fig: Figure, path: str | os.PathLike[str], config: PlotConfig | None = None) -> Path:
     """Lay out `fig` and render it to PNG atomically (on an Agg canvas, no pyplot)."""
     if not isinstance(fig.canvas, FigureCanvasAgg):
         FigureCanvasAgg(fig)
@@ -89,14 +87,14 @@ def plot_trajectories(
         if pos is not None:
             ax.plot(pos[:, 0], pos[:, 1], color=colour, label=label)
     order = ("odometry", "ground truth", "optimised")
-    anchor = next(series[name][0] for name in order if series[name][0] is not None)
+    anchor = next(pos for pos, _ in (series[name] for name in order) if pos is not None)
     drawn: set[str] = set()
     for k, (q, m) in enumerate(loops):
         if not (0 <= q < len(anchor) and 0 <= m < len(anchor)):
             raise ValueError(f"loops[{k}]: keyframe index outside 0..{len(anchor) - 1}")
         ok = True if loop_correct is None else bool(loop_correct[k])
         kind = "correct" if ok else "wrong"
-        label = f"{kind} loop" if kind not in drawn else None
+        loop_label = f"{kind} loop" if kind not in drawn else None
         drawn.add(kind)
         ax.plot(
             [anchor[q, 0], anchor[m, 0]],
@@ -105,7 +103,7 @@ def plot_trajectories(
             alpha=LOOP_ALPHA,
             linewidth=LOOP_WIDTH,
             marker=".",
-            label=label,
+            label=loop_label,
         )
     ax.set_xlabel("x [m]")
     ax.set_ylabel("y [m]")

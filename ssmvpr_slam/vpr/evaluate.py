@@ -180,7 +180,10 @@ def compute_metrics(outcome: QueryOutcome, gt: GroundTruth, config: SlamConfig) 
     if outcome.sequences:
         # single frames (stage II) and each sequence length side by side, same truth and tolerance
         metrics["single_frame"] = {"pr_auc": stage2["pr_auc"], "top1_accuracy": stage2["top1_accuracy"]}
-        metrics["sequence"] = {str(L): _sequence_metrics(seq, gt, tol, stage2["pr_auc"]) for L, seq in outcome.sequences.items()}
+        single_auc = float(stage2["pr_auc"])  # type: ignore[arg-type]
+        metrics["sequence"] = {
+            str(L): _sequence_metrics(seq, gt, tol, single_auc) for L, seq in outcome.sequences.items()
+        }
     return metrics
 
 
@@ -190,7 +193,7 @@ def _sequence_metrics(seq: SequenceOutcome, gt: GroundTruth, tol: int, single_au
         "length": seq.length,
         "direction": seq.direction,
         "pr_auc": summary["pr_auc"],
-        "pr_auc_minus_single_frame": summary["pr_auc"] - single_auc,
+        "pr_auc_minus_single_frame": float(summary["pr_auc"]) - single_auc,  # type: ignore[arg-type]
         "top1_accuracy": summary["top1_accuracy"],
         "precision_at_full_recall": summary["precision_at_full_recall"],
         "recall_at_full_precision": summary["recall_at_full_precision"],
@@ -225,14 +228,18 @@ def write_matches_csv(
     atomic_write_text(path, buffer.getvalue())
 
 
-def write_plots(folder: Path, outcome: QueryOutcome, gt: GroundTruth, metrics: dict[str, Any], config: SlamConfig) -> None:
+def write_plots(
+    folder: Path, outcome: QueryOutcome, gt: GroundTruth, metrics: dict[str, Any], config: SlamConfig
+) -> None:
     from ssmvpr_slam.vpr.plots import plot_pr_curves, plot_recall_at_n
 
     def curve(scores: np.ndarray, matches: np.ndarray, tol: int):  # noqa: ANN202
         return precision_recall_curve(scores, correct_mask(gt, matches, tol), gt.has_truth)
 
     tol = config.vpr_eval.tolerance
-    by_tol = {f"±{t} frames": curve(outcome.stage2_score, outcome.stage2_match, t) for t in config.vpr_eval.plot_tolerances}
+    by_tol = {
+        f"±{t} frames": curve(outcome.stage2_score, outcome.stage2_match, t) for t in config.vpr_eval.plot_tolerances
+    }
     plot_pr_curves(by_tol, folder / "pr_tolerances.png", "SSM-VPR precision-recall by frame tolerance")
     by_stage = {
         "stage I (filtering)": curve(outcome.stage1_score, outcome.stage1_match, tol),
@@ -294,8 +301,11 @@ def run_vpr_eval(
     if codebooks_path is not None:
         encoder.codebooks = Codebooks.load(codebooks_path)
     with _progress(console) as progress:
-        ref_codes, ref_s = encode_folder(encoder, ref_files, progress, "encoding references", fit=codebooks_path is None)
+        ref_codes, ref_s = encode_folder(
+            encoder, ref_files, progress, "encoding references", fit=codebooks_path is None
+        )
         query_codes, query_s = encode_folder(encoder, query_files, progress, "encoding queries", fit=False)
+        assert encoder.codebooks is not None  # fitted on the references, or loaded
         database = PlaceDatabase(encoder.codebooks, config.vpr.database)
         database.add(ref_codes, [PlaceInfo(frame_id=i, name=p.name) for i, p in enumerate(ref_files)])
         # one BLAS thread for the many small stage-II products (two contend on a shared 2-core CPU)
@@ -306,7 +316,8 @@ def run_vpr_eval(
     metrics = compute_metrics(outcome, gt, config)
     metrics["sequential"] = sequential
     metrics["timing"] = {
-        "encode_s_per_image": (ref_s * len(ref_files) + query_s * len(query_files)) / (len(ref_files) + len(query_files)),
+        "encode_s_per_image": (ref_s * len(ref_files) + query_s * len(query_files))
+        / (len(ref_files) + len(query_files)),
         "query_s_median": float(np.median(outcome.query_seconds)),
         "query_s_mean": float(np.mean(outcome.query_seconds)),
         "device": str(encoder.backbone.device),
@@ -324,6 +335,7 @@ def run_vpr_eval(
             database.save(folder / "database", extra={"encoder": encoder_signature(config.vpr)})
         if config.results.plots:
             write_plots(folder, outcome, gt, metrics, config)
+    assert staged.final is not None  # set when the block above completed
     folder = staged.final
     console.print(summary_table(metrics))
     console.print(f"results in [bold]{escape(str(folder))}[/bold]")

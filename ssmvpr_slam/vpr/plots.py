@@ -19,9 +19,7 @@ from ssmvpr_slam.evaluation.plots import save_figure
 __all__ = ["plot_pr_curves", "plot_recall_at_n"]
 
 
-def plot_pr_curves(
-    curves: Mapping[str, PRCurve], path: str | Path, title: str = "Precision-recall"
-) -> Path:
+def plot_pr_curves(curves: Mapping[str, PRCurve], path: str | Path, title: str = "Precision-recall") -> Path:
     """All curves on one axes, each labelled with its AUC (trapezoid, see ``pr_auc``)."""
     if not curves:
         raise ValueError("plot_pr_curves: no curves given")

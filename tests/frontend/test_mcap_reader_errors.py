@@ -12,8 +12,7 @@ from mcap_ros2.writer import Writer
 from frontend.config import McapSourceConfig, McapWriterConfig
 from frontend.errors import FrontendInputError
 from frontend.frame import Frame
-from frontend.sources import McapSource, write_frames
-from frontend.sources import ros_convert, ros_msgdefs
+from frontend.sources import McapSource, ros_convert, ros_msgdefs, write_frames
 
 
 def _frame(i: float, t: float, rng: np.random.Generator) -> Frame:
@@ -59,8 +58,11 @@ def test_missing_topic_lists_topics_present(tmp_path: Path) -> None:
         McapSource(path, McapSourceConfig(lidar_topic="/velodyne_points"))
     message = str(info.value)
     assert "/velodyne_points" in message and "\n" not in message
-    for topic, kind in [("/camera/image_raw", "sensor_msgs/msg/Image"), ("/odom", "nav_msgs/msg/Odometry"),
-                        ("/lidar/points", "sensor_msgs/msg/PointCloud2")]:
+    for topic, kind in [
+        ("/camera/image_raw", "sensor_msgs/msg/Image"),
+        ("/odom", "nav_msgs/msg/Odometry"),
+        ("/lidar/points", "sensor_msgs/msg/PointCloud2"),
+    ]:
         assert f"{topic} ({kind})" in message
 
 
@@ -164,8 +166,11 @@ def test_a_bad_rear_image_keeps_the_rest_of_its_frame(tmp_path: Path) -> None:
 
 def test_undecodable_compressed_image_is_counted(tmp_path: Path) -> None:
     path = tmp_path / "jpeg.mcap"
-    write_frames([Frame(i, 1.0 + i, image=np.zeros((8, 8, 3), np.uint8)) for i in range(3)], path,
-                 McapWriterConfig(image_format="jpeg"))
+    write_frames(
+        [Frame(i, 1.0 + i, image=np.zeros((8, 8, 3), np.uint8)) for i in range(3)],
+        path,
+        McapWriterConfig(image_format="jpeg"),
+    )
     log = _RawLog(tmp_path / "broken.mcap")
     good = ros_convert.compressed_image_message(np.zeros((8, 8, 3), np.uint8), 1.0, "cam", "jpeg", [])
     log.put("/cam/compressed", ros_msgdefs.COMPRESSED_IMAGE, good, 1.0)

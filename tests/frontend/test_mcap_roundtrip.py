@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import logging
 import re
-
 from pathlib import Path
 
 import numpy as np
@@ -15,8 +14,7 @@ from mcap_ros2.writer import Writer
 from frontend.config import McapSourceConfig, McapWriterConfig
 from frontend.errors import FrontendInputError
 from frontend.frame import Frame
-from frontend.sources import McapFrameWriter, McapSource, open_source, write_frames
-from frontend.sources import ros_convert, ros_msgdefs
+from frontend.sources import McapFrameWriter, McapSource, open_source, ros_convert, ros_msgdefs, write_frames
 
 
 def _pose(x: float, yaw: float = 0.0) -> np.ndarray:
@@ -150,16 +148,19 @@ def test_image_encodings_become_rgb(tmp_path: Path, encoding: str) -> None:
     assert np.array_equal(frame.image, expected)
 
 
-def _cloud(fields: list[tuple[str, int, np.dtype]], values: np.ndarray, point_step: int, t: float,
-           big_endian: bool = False) -> dict:
+def _cloud(
+    fields: list[tuple[str, int, np.dtype]], values: np.ndarray, point_step: int, t: float, big_endian: bool = False
+) -> dict:
     """PointCloud2 with arbitrary field offsets/types and padding."""
     order = ">" if big_endian else "<"
-    dtype = np.dtype({
-        "names": [f[0] for f in fields],
-        "formats": [np.dtype(f[2]).newbyteorder(order) for f in fields],
-        "offsets": [f[1] for f in fields],
-        "itemsize": point_step,
-    })
+    dtype = np.dtype(
+        {
+            "names": [f[0] for f in fields],
+            "formats": [np.dtype(f[2]).newbyteorder(order) for f in fields],
+            "offsets": [f[1] for f in fields],
+            "itemsize": point_step,
+        }
+    )
     cloud = np.zeros(len(values), dtype=dtype)
     for i, (name, _, _) in enumerate(fields):
         cloud[name] = values[:, i]
@@ -168,9 +169,7 @@ def _cloud(fields: list[tuple[str, int, np.dtype]], values: np.ndarray, point_st
         "header": ros_convert.header_dict(t, "lidar"),
         "height": 1,
         "width": len(values),
-        "fields": [
-            {"name": n, "offset": o, "datatype": codes[np.dtype(d)], "count": 1} for n, o, d in fields
-        ],
+        "fields": [{"name": n, "offset": o, "datatype": codes[np.dtype(d)], "count": 1} for n, o, d in fields],
         "is_bigendian": big_endian,
         "point_step": point_step,
         "row_step": point_step * len(values),
@@ -188,8 +187,13 @@ def test_point_cloud_layouts(tmp_path: Path, time_name: str, time_type, scale: f
     xyz = rng.normal(size=(40, 3))
     raw_times = (np.arange(40) * 1000).astype(time_type) if scale != 1.0 else np.linspace(0, 0.1, 40)
     # float64 xyz, intensity in between, time at the end, 4 bytes of padding
-    fields = [("x", 0, np.float64), ("y", 8, np.float64), ("intensity", 16, np.float32),
-              ("z", 20, np.float64), (time_name, 28, time_type)]
+    fields = [
+        ("x", 0, np.float64),
+        ("y", 8, np.float64),
+        ("intensity", 16, np.float32),
+        ("z", 20, np.float64),
+        (time_name, 28, time_type),
+    ]
     values = np.c_[xyz[:, :2], np.ones(40), xyz[:, 2], raw_times]
     message = _cloud(fields, values, point_step=40, t=5.0, big_endian=big_endian)
     path = tmp_path / "cloud.mcap"
@@ -225,8 +229,12 @@ def test_schemas_are_standard_ros2(tmp_path: Path) -> None:
         summary = reader.get_summary()
     names = {s.name for s in summary.schemas.values()}
     assert path.stat().st_mode & 0o777 == 0o666 & ~_umask()  # not mkstemp's 0600
-    assert names == {"sensor_msgs/msg/Image", "sensor_msgs/msg/PointCloud2",
-                     "nav_msgs/msg/Odometry", "geometry_msgs/msg/PoseStamped"}
+    assert names == {
+        "sensor_msgs/msg/Image",
+        "sensor_msgs/msg/PointCloud2",
+        "nav_msgs/msg/Odometry",
+        "geometry_msgs/msg/PoseStamped",
+    }
     assert {s.encoding for s in summary.schemas.values()} == {"ros2msg"}
     assert {c.message_encoding for c in summary.channels.values()} == {"cdr"}
 

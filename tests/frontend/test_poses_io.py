@@ -10,6 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from frontend.errors import FrontendInputError
+from frontend.odometry.logged import so3_exp
 from frontend.poses_io import (
     matrix_to_quaternion,
     quaternion_to_matrix,
@@ -19,7 +20,6 @@ from frontend.poses_io import (
     write_kitti,
     write_tum,
 )
-from frontend.odometry.logged import so3_exp
 
 
 def _random_poses(n: int, seed: int) -> np.ndarray:
@@ -31,8 +31,7 @@ def _random_poses(n: int, seed: int) -> np.ndarray:
     return poses
 
 
-@given(st.lists(st.floats(-1, 1, allow_nan=False), min_size=4, max_size=4).filter(
-    lambda q: np.linalg.norm(q) > 0.1))
+@given(st.lists(st.floats(-1, 1, allow_nan=False), min_size=4, max_size=4).filter(lambda q: np.linalg.norm(q) > 0.1))
 @settings(max_examples=60, deadline=None)
 def test_quaternion_matrix_round_trip(q: list[float]) -> None:
     q = np.array(q) / np.linalg.norm(q)

@@ -41,7 +41,11 @@ def _write_tum(path: Path, pos: np.ndarray, R: np.ndarray) -> None:
     from scipy.spatial.transform import Rotation
 
     q = Rotation.from_matrix(R).as_quat()  # x y z w
-    path.write_text("".join(f"{i * 0.1:.3f} " + " ".join(f"{v:.6f}" for v in (*p, *qq)) + "\n" for i, (p, qq) in enumerate(zip(pos, q))))
+    path.write_text(
+        "".join(
+            f"{i * 0.1:.3f} " + " ".join(f"{v:.6f}" for v in (*p, *qq)) + "\n" for i, (p, qq) in enumerate(zip(pos, q))
+        )
+    )
 
 
 def _write_kitti(path: Path, pos: np.ndarray, R: np.ndarray) -> None:
@@ -64,7 +68,11 @@ def test_kitti_camera_file_and_tum_body_file_give_the_same_route(tmp_path):
     assert (b.frame, b.file_format) == ("camera", "kitti")
     np.testing.assert_allclose(a.positions, b.positions, atol=1e-4)
     sims = [
-        TraverseSimulator(SimulationConfig(route={"preset": str(tmp_path / name)}, camera={"enabled": False}, lidar={"enabled": False}))
+        TraverseSimulator(
+            SimulationConfig(
+                route={"preset": str(tmp_path / name)}, camera={"enabled": False}, lidar={"enabled": False}
+            )
+        )
         for name in ("body.tum", "cam.txt")
     ]
     np.testing.assert_allclose(sims[0].route.xy, sims[1].route.xy, atol=1e-3)
@@ -78,7 +86,9 @@ def test_kitti_camera_file_and_tum_body_file_give_the_same_route(tmp_path):
 
 
 def test_kitti06_route_is_read_as_camera_poses_with_its_length_and_no_frame_in_a_building():
-    sim = TraverseSimulator(SimulationConfig(route={"preset": str(KITTI06)}, camera={"enabled": False}, lidar={"enabled": False}))
+    sim = TraverseSimulator(
+        SimulationConfig(route={"preset": str(KITTI06)}, camera={"enabled": False}, lidar={"enabled": False})
+    )
     assert sim.route_file is not None and sim.route_file.frame == "camera"
     assert sim.route.length_3d == pytest.approx(sim.route_file.length, rel=0.02)
     # KITTI 06 is about 450 m long and 20 m wide: the ground plane really is x-y now.
@@ -144,7 +154,10 @@ def test_foliage_is_porous_to_the_lidar():
     assert d[k] < 25.0
     scene = sim.scene(k)
     x, y, yaw = sim.xy_yaw[k]
-    scans = [sim.lidar.scan(x, y, yaw, np.random.default_rng(seed), road_z=float(sim.road_z[k]), scene=scene)[0] for seed in (1, 2)]
+    scans = [
+        sim.lidar.scan(x, y, yaw, np.random.default_rng(seed), road_z=float(sim.road_z[k]), scene=scene)[0]
+        for seed in (1, 2)
+    ]
     assert abs(len(scans[0]) - len(scans[1])) > 0 or not np.allclose(scans[0], scans[1])
 
 
@@ -202,7 +215,9 @@ def test_beam_azimuth_calibration_error_turns_each_beams_points():
     errors = faulty.lidar.azimuth_error
     assert 0.5 < np.degrees(errors.std()) < 1.5 and len(np.unique(errors)) == len(errors)
     # the beam of each point: by elevation, as the unit orders them
-    beam = np.argmin(np.abs(np.arctan2(p0[:, 2], np.hypot(p0[:, 0], p0[:, 1]))[:, None] - perfect.lidar.elev[None]), axis=1)
+    beam = np.argmin(
+        np.abs(np.arctan2(p0[:, 2], np.hypot(p0[:, 0], p0[:, 1]))[:, None] - perfect.lidar.elev[None]), axis=1
+    )
     turned = np.arctan2(p1[:, 1], p1[:, 0]) - np.arctan2(p0[:, 1], p0[:, 0])
     turned = np.angle(np.exp(1j * turned))
     assert np.allclose(turned, -errors[beam], atol=1e-6)

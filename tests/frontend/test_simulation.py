@@ -153,7 +153,7 @@ def test_figure_eight_crosses_itself():
     centre = grid_node(s.config.city.pitch_m, 1, 1)
     near = np.nonzero(np.linalg.norm(xy - centre, axis=1) < 3.0)[0]
     # Passed through the centre crossing heading in two different directions, on both laps.
-    headings = {int(np.round(((s.xy_yaw[k, 2] % (2 * math.pi)) / (math.pi / 2)))) % 4 for k in near}
+    headings = {int(np.round((s.xy_yaw[k, 2] % (2 * math.pi)) / (math.pi / 2))) % 4 for k in near}
     assert len(headings) >= 2
     assert (ground_truth_revisits(xy, 4.0, s.default_min_gap()) >= 0).sum() > 50
 
@@ -291,12 +291,22 @@ def _point_to_walls(city, pts_xy: np.ndarray) -> np.ndarray:
 
 def _ideal_lidar_sim(**overrides) -> TraverseSimulator:
     """The demo with a perfect LiDAR (no calibration error, opaque foliage) and no traffic."""
-    lidar = {"beam_elevation_error_deg": 0.0, "beam_azimuth_error_deg": 0.0, "range_bias_sigma_m": 0.0, "foliage_return_probability": 1.0,
-             "foliage_depth_m": 0.0, "glass_pass_probability": 0.0, "glass_dropout_probability": 0.0,
-             **overrides.pop("lidar", {})}
+    lidar = {
+        "beam_elevation_error_deg": 0.0,
+        "beam_azimuth_error_deg": 0.0,
+        "range_bias_sigma_m": 0.0,
+        "foliage_return_probability": 1.0,
+        "foliage_depth_m": 0.0,
+        "glass_pass_probability": 0.0,
+        "glass_dropout_probability": 0.0,
+        **overrides.pop("lidar", {}),
+    }
     city = {"verge_relief_m": 0.0, "kerb_height_m": 0.0, "road_camber": 0.0}
-    return TraverseSimulator(default_demo_config(camera={"enabled": False}, lidar=lidar, city=city,
-                                                 traffic={"oncoming_vehicles_per_km": 0.0}, **overrides))
+    return TraverseSimulator(
+        default_demo_config(
+            camera={"enabled": False}, lidar=lidar, city=city, traffic={"oncoming_vehicles_per_km": 0.0}, **overrides
+        )
+    )
 
 
 def _world_points(sim: TraverseSimulator, k: int, pts: np.ndarray, times: np.ndarray) -> np.ndarray:
@@ -352,12 +362,20 @@ def test_lidar_beam_elevation_errors_bend_the_ground():
     """A real unit: per-beam elevation errors put a flat road's returns off the plane."""
 
     def ground_offset(elevation_error_deg: float) -> float:
-        sim = TraverseSimulator(default_demo_config(
-            camera={"enabled": False}, max_frames=60, route={"terrain_amplitude_m": 0.0},
-            city={"verge_relief_m": 0.0, "kerb_height_m": 0.0, "road_camber": 0.0},
-            traffic={"oncoming_vehicles_per_km": 0.0},
-            lidar={"beam_elevation_error_deg": elevation_error_deg, "range_bias_sigma_m": 0.0, "motion_distortion": False},
-        ))
+        sim = TraverseSimulator(
+            default_demo_config(
+                camera={"enabled": False},
+                max_frames=60,
+                route={"terrain_amplitude_m": 0.0},
+                city={"verge_relief_m": 0.0, "kerb_height_m": 0.0, "road_camber": 0.0},
+                traffic={"oncoming_vehicles_per_km": 0.0},
+                lidar={
+                    "beam_elevation_error_deg": elevation_error_deg,
+                    "range_bias_sigma_m": 0.0,
+                    "motion_distortion": False,
+                },
+            )
+        )
         f = sim.frame(50)
         w = f.points @ f.gt_pose[:3, :3].T + f.gt_pose[:3, 3]
         near = (np.linalg.norm(f.points[:, :2], axis=1) < 20) & (np.abs(w[:, 2]) < 0.3)

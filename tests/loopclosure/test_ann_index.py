@@ -71,7 +71,9 @@ def _projection(dim_in: int, dim: int, seed: int) -> PCAProjection:
     )
 
 
-def _database(stage1: np.ndarray, config: DatabaseConfig | None = None, index: str = "exact", **filtering) -> PlaceDatabase:
+def _database(
+    stage1: np.ndarray, config: DatabaseConfig | None = None, index: str = "exact", **filtering
+) -> PlaceDatabase:
     p, n, d = stage1.shape
     db = PlaceDatabase(Codebooks(_projection(max(d, 8), d, 1), _projection(8, 3, 2)), config)
     db.configure_search(FilteringConfig(index=index, **filtering))
@@ -209,7 +211,7 @@ def test_approximate_indexes_find_the_exact_candidates_and_honour_exclusions(kin
     rng = np.random.default_rng(6)
     database = _database(db, index=kind, ivf_nprobe=128)
     recalls = []
-    for t in range(12):
+    for _ in range(12):
         p = int(rng.integers(0, 3000))
         query = _unit(db[p] + 0.1 * rng.standard_normal((16, 24)))
         for excluded in (None, np.arange(2900, 3000), np.arange(p - 3, p + 4) % 3000):

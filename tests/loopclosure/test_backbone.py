@@ -200,7 +200,9 @@ def test_load_backbone_from_explicit_path(weights_path, real_sd):
     config = BackboneConfig(weights=str(weights_path), device="cpu", input_size=32, precision="fp32")
     backbone = load_backbone(config)
     loaded = backbone.net.state_dict()
-    assert set(loaded) == {f"features.{i}.{p}" for i in (0, 2, 5, 7, 10, 12, 14, 17, 19, 21, 24, 26) for p in ("weight", "bias")}
+    assert set(loaded) == {
+        f"features.{i}.{p}" for i in (0, 2, 5, 7, 10, 12, 14, 17, 19, 21, 24, 26) for p in ("weight", "bias")
+    }
     for key, value in loaded.items():
         assert torch.equal(value, real_sd[key])
 

@@ -21,8 +21,8 @@ from loopclosure import backbone as backbone_module
 from loopclosure.backbone import Backbone, resolve_precision
 from loopclosure.config import BackboneConfig
 from loopclosure.errors import LoopClosureInputError
-from loopclosure.int8_runtime import int8_available
 from loopclosure.images import list_images, read_image, resize_square
+from loopclosure.int8_runtime import int8_available
 
 SIZE = 96  # fully convolutional: agreement at 96 px means the same as at 224, in a third of the time
 MIN_COSINE = {"bf16": 0.999, "int8": 0.995}
@@ -82,7 +82,9 @@ def test_auto_on_cpu_follows_the_cpuinfo_flags(monkeypatch, flags, expected):
     assert resolve_precision("bf16", torch.device("cpu")) == "bf16"
 
 
-@pytest.mark.parametrize("avx512_bf16, amx, expected", [(True, False, "bf16"), (False, True, "bf16"), (False, False, "fp32")])
+@pytest.mark.parametrize(
+    "avx512_bf16, amx, expected", [(True, False, "bf16"), (False, True, "bf16"), (False, False, "fp32")]
+)
 def test_auto_without_proc_cpuinfo_asks_torch(monkeypatch, avx512_bf16, amx, expected):
     monkeypatch.setattr(backbone_module, "cpu_flags", lambda: None)
     monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda: avx512_bf16, raising=False)
@@ -147,7 +149,9 @@ def test_int8_needs_a_calibration_folder(real_sd):
         Backbone(_config("int8"), real_sd)
 
 
-def test_int8_calibrated_on_references_agrees_with_fp32(monkeypatch, tmp_path, real_sd, queries, reference_maps, gardens_dir):
+def test_int8_calibrated_on_references_agrees_with_fp32(
+    monkeypatch, tmp_path, real_sd, queries, reference_maps, gardens_dir
+):
     pytest.importorskip("onnxruntime")
     from loopclosure import int8_runtime
 

@@ -14,7 +14,9 @@ SCRIPT = Path(__file__).resolve().parents[2] / "tools" / "bench_vpr.py"
 def test_stage1_index_and_mapped_map_sections() -> None:
     args = ["--only-index", "--index-sizes", "600", "--repeats", "2", "--exact-repeats", "3", "--nprobes", "4,1024",
             "--append-places", "2", "--exclude-recent", "10", "--mapped-places", "30"]  # fmt: skip
-    proc = subprocess.run([sys.executable, str(SCRIPT), *args], capture_output=True, text=True, timeout=300, check=False)
+    proc = subprocess.run(
+        [sys.executable, str(SCRIPT), *args], capture_output=True, text=True, timeout=300, check=False
+    )
     assert proc.returncode == 0, proc.stderr[-2000:]
     out = json.loads(proc.stdout)
     size = out["stage1_index"]["sizes"]["600"]

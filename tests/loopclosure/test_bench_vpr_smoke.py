@@ -25,8 +25,17 @@ def _run(*extra: str) -> dict:
 
 
 def _check_common(out: dict) -> None:
-    for key in ("machine", "settings", "cnn_encode", "filtering_query_ms", "spatial_matching_ms",
-                "bytes_per_place", "targets", "blas_threads_ab_ms", "sequence_query_ms"):
+    for key in (
+        "machine",
+        "settings",
+        "cnn_encode",
+        "filtering_query_ms",
+        "spatial_matching_ms",
+        "bytes_per_place",
+        "targets",
+        "blas_threads_ab_ms",
+        "sequence_query_ms",
+    ):
         assert key in out, key
     machine = out["machine"]
     for key in ("cpu_count", "torch", "torch_threads", "device", "cuda_device"):
@@ -49,7 +58,9 @@ def _check_common(out: dict) -> None:
 
     sequence = out["sequence_query_ms"]
     assert sequence["num_candidates"] == 50 and sequence["timed_queries"] == 2
-    assert set(sequence["settings"]) == {f"L{L}_{d}_K{k}" for L in (3, 5) for d in ("forward", "both") for k in ("all", 10)}
+    assert set(sequence["settings"]) == {
+        f"L{L}_{d}_K{k}" for L in (3, 5) for d in ("forward", "both") for k in ("all", 10)
+    }
     full = sequence["settings"]["L5_forward_Kall"]
     assert full["total_ms"]["median"] >= full["matcher_ms"]["median"] > 0
     assert full["total_ms"]["n"] == 2 and "cpu_median" in full["total_ms"]

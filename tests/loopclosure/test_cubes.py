@@ -76,7 +76,9 @@ def test_size_one_cubes_are_unit_length_locations(seed, c, h, w):
     np.testing.assert_allclose(np.linalg.norm(cubes, axis=-1), 1.0, rtol=1e-5)
     # direction unchanged: the cube is the location's vector divided by its norm
     locations = maps.transpose(0, 2, 3, 1)
-    np.testing.assert_allclose(cubes * np.linalg.norm(locations, axis=-1, keepdims=True), locations, rtol=1e-4, atol=1e-4)
+    np.testing.assert_allclose(
+        cubes * np.linalg.norm(locations, axis=-1, keepdims=True), locations, rtol=1e-4, atol=1e-4
+    )
 
 
 def test_normalisation_makes_each_location_of_a_cube_unit_length():

@@ -42,7 +42,10 @@ def _codes(n: int, seed: int = 0) -> PlaceCodes:
 
 
 def _infos(n: int, start: int = 0) -> list[PlaceInfo]:
-    return [PlaceInfo(frame_id=10 * (start + i), timestamp=0.5 * (start + i), name=f"p{start + i}", extra={"k": start + i}) for i in range(n)]
+    return [
+        PlaceInfo(frame_id=10 * (start + i), timestamp=0.5 * (start + i), name=f"p{start + i}", extra={"k": start + i})
+        for i in range(n)
+    ]
 
 
 def _assert_same_db(a: PlaceDatabase, b: PlaceDatabase) -> None:
@@ -80,7 +83,9 @@ def test_mixed_chunks_equal_batch(codebooks):
     _assert_same_db(chunked, whole)
 
 
-@pytest.mark.parametrize("s1, s2", [("float32", "float16"), ("float16", "float32"), ("float32", "float32"), ("float16", "float16")])
+@pytest.mark.parametrize(
+    "s1, s2", [("float32", "float16"), ("float16", "float32"), ("float32", "float32"), ("float16", "float16")]
+)
 def test_storage_dtypes_and_bytes_per_place(codebooks, tmp_path, s1, s2):
     db = PlaceDatabase(codebooks, DatabaseConfig(stage1_dtype=s1, stage2_dtype=s2))
     assert db.bytes_per_place == 0
@@ -246,7 +251,9 @@ def test_crash_between_arrays_and_manifest_loads_previous_state(codebooks, tmp_p
     np.save(folder / "stage1.npy", grown.stage1)
     np.save(folder / "stage2.npy", grown.stage2)
     (folder / "places.json").write_text(
-        json.dumps([{"frame_id": p.frame_id, "timestamp": p.timestamp, "name": p.name, "extra": p.extra} for p in grown.places])
+        json.dumps(
+            [{"frame_id": p.frame_id, "timestamp": p.timestamp, "name": p.name, "extra": p.extra} for p in grown.places]
+        )
     )
     loaded = PlaceDatabase.load(folder)
     _assert_same_db(loaded, db)
@@ -300,7 +307,9 @@ def test_a_copy_grows_without_touching_the_original(codebooks):
     session.add(_codes(3, seed=1), _infos(3, start=5))
     assert len(prior) == 5 and len(session) == 8
     assert np.array_equal(prior.stage1, stage1) and np.array_equal(prior.stage2, stage2)
-    assert np.array_equal(session.stage1[:5], stage1) and [p.frame_id for p in session.places] == [10 * i for i in range(8)]
+    assert np.array_equal(session.stage1[:5], stage1) and [p.frame_id for p in session.places] == [
+        10 * i for i in range(8)
+    ]
     session.stage1[0] += 1.0  # no shared buffers either
     assert np.array_equal(prior.stage1, stage1)
     empty = PlaceDatabase(codebooks).copy()
@@ -314,7 +323,10 @@ def test_int8_storage_round_trip_and_bytes(codebooks, tmp_path):
     codes = _codes(6, seed=12)
     db.add(codes, _infos(6))
     assert db.bytes_per_place == N1 * D1 + N1 * 4 + GH * GW * D2 + GH * GW * 4
-    for stored, original, projection in ((db.stage1, codes.stage1, codebooks.stage1), (db.stage2, codes.stage2, codebooks.stage2)):
+    for stored, original, projection in (
+        (db.stage1, codes.stage1, codebooks.stage1),
+        (db.stage2, codes.stage2, codebooks.stage2),
+    ):
         values = np.asarray(stored)
         assert values.dtype == np.float32 and values.shape == original.shape
         # within half a step: the vector's own scale times the dimension's spread
@@ -335,7 +347,12 @@ def test_int8_default_shapes_fit_in_20_kB(codebooks):
     cb = Codebooks(_projection(120, 100, 1), _projection(120, 100, 2))
     db = PlaceDatabase(cb, DatabaseConfig(stage1_dtype="int8", stage2_dtype="int8"))
     rng = np.random.default_rng(0)
-    db.add(PlaceCodes(rng.standard_normal((1, 16, 100)).astype(np.float32), rng.standard_normal((1, 13, 13, 100)).astype(np.float32)))
+    db.add(
+        PlaceCodes(
+            rng.standard_normal((1, 16, 100)).astype(np.float32),
+            rng.standard_normal((1, 13, 13, 100)).astype(np.float32),
+        )
+    )
     assert db.bytes_per_place == 19_240 <= 20_000  # today's float32 + float16: 40,200
 
 
@@ -362,9 +379,18 @@ def _write_v1_map(folder, codebooks, n: int = 5):
     codebooks.save(folder / "codebooks.npz")
     np.save(folder / "stage1.npy", codes.stage1)
     np.save(folder / "stage2.npy", codes.stage2.astype(np.float16))
-    (folder / "places.json").write_text(json.dumps([{"frame_id": i, "timestamp": 0.0, "name": "", "extra": {}} for i in range(n)]))
-    manifest = {"format": "ssmvpr-place-database", "version": 1, "num_places": n, "stage1_shape": [N1, D1],
-                "stage2_shape": [GH, GW, D2], "config": {"stage1_dtype": "float32", "stage2_dtype": "float16"}, "extra": {}}
+    (folder / "places.json").write_text(
+        json.dumps([{"frame_id": i, "timestamp": 0.0, "name": "", "extra": {}} for i in range(n)])
+    )
+    manifest = {
+        "format": "ssmvpr-place-database",
+        "version": 1,
+        "num_places": n,
+        "stage1_shape": [N1, D1],
+        "stage2_shape": [GH, GW, D2],
+        "config": {"stage1_dtype": "float32", "stage2_dtype": "float16"},
+        "extra": {},
+    }
     (folder / MANIFEST).write_text(json.dumps(manifest))
     return codes
 
@@ -377,7 +403,9 @@ def test_memory_mapped_load_reads_the_same_and_copies_to_ram(codebooks, tmp_path
     assert mapped.memory_mapped
     assert isinstance(mapped._codes["stage2"].values.view, np.memmap)
     _assert_same_db(db, mapped)
-    np.testing.assert_array_equal(mapped.filter(_codes(1).stage1[0], 5, 3).places, db.filter(_codes(1).stage1[0], 5, 3).places)
+    np.testing.assert_array_equal(
+        mapped.filter(_codes(1).stage1[0], 5, 3).places, db.filter(_codes(1).stage1[0], 5, 3).places
+    )
     with pytest.raises(RuntimeError, match="read-only"):
         mapped.add(_codes(1))
     session = mapped.copy()  # a session grows its own copy in RAM
@@ -502,7 +530,9 @@ def test_sigkill_mid_append_leaves_the_previous_map(codebooks, tmp_path):
 
 def test_code_weights_follow_the_pca_variances():
     def projection(ev: list[float], whiten: bool = False) -> PCAProjection:
-        return PCAProjection(np.zeros(5, np.float32), np.eye(4, 5, dtype=np.float32), np.array(ev, np.float32), whiten, False)
+        return PCAProjection(
+            np.zeros(5, np.float32), np.eye(4, 5, dtype=np.float32), np.array(ev, np.float32), whiten, False
+        )
 
     assert code_weights(projection([4.0, 1.0, 0.0, np.nan])).tolist() == [1.0] * 4  # a NaN variance: no weighting
     np.testing.assert_allclose(code_weights(projection([4.0, 1.0, 0.0, 0.25])), [1.0, 0.5, 1e-3, 0.25])

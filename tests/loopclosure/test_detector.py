@@ -106,7 +106,9 @@ def at(x: float) -> np.ndarray:
     return np.array([x, 0.0, 0.0])
 
 
-def feed(det: LoopDetector, scenes: list[int], first_id: int, positions: list[float] | None = None) -> list[LoopProposal | None]:
+def feed(
+    det: LoopDetector, scenes: list[int], first_id: int, positions: list[float] | None = None
+) -> list[LoopProposal | None]:
     out = []
     for k, s in enumerate(scenes):
         position = None if positions is None else at(positions[k])
@@ -351,7 +353,9 @@ def test_session_places_after_a_prior_map_are_not_flagged(tmp_path: Path, codebo
 # ------------------------------------------------------------------------------ rear camera
 
 
-def drive_back(det: LoopDetector, first_id: int, fronts: list[int], rears: list[int | None]) -> list[LoopProposal | None]:
+def drive_back(
+    det: LoopDetector, first_id: int, fronts: list[int], rears: list[int | None]
+) -> list[LoopProposal | None]:
     """Keyframes whose forward images are new places and whose rear images are `rears`."""
     return [
         det.process(scene(f), first_id + k, rear_image=None if r is None else scene(r))

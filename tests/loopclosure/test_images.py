@@ -109,7 +109,9 @@ def test_as_rgb_grey_rgb_rgba():
     np.testing.assert_array_equal(out, rgb)  # alpha dropped, colours untouched (no BGR swap)
 
 
-@pytest.mark.parametrize("image", [np.zeros((4, 4, 3), np.float32), np.zeros((4, 4), np.float64), np.zeros((4, 4, 3), np.uint16)])
+@pytest.mark.parametrize(
+    "image", [np.zeros((4, 4, 3), np.float32), np.zeros((4, 4), np.float64), np.zeros((4, 4, 3), np.uint16)]
+)
 def test_as_rgb_rejects_non_uint8(image):
     with pytest.raises(LoopClosureInputError, match="cam7: expected a uint8"):
         as_rgb(image, "cam7")

@@ -68,7 +68,9 @@ def test_whitening_gives_unit_variance_per_component():
     y_plain, y_white = plain.transform(x), white.transform(x)
     assert np.var(y_plain, axis=0, ddof=1)[0] > 10  # the leading variance is ~25 unwhitened
     np.testing.assert_allclose(np.var(y_white, axis=0, ddof=1), 1.0, rtol=1e-3)
-    np.testing.assert_allclose(np.abs(y_white * np.sqrt(white.explained_variance)), np.abs(y_plain), rtol=1e-3, atol=1e-3)
+    np.testing.assert_allclose(
+        np.abs(y_white * np.sqrt(white.explained_variance)), np.abs(y_plain), rtol=1e-3, atol=1e-3
+    )
 
 
 def test_fewer_samples_than_dim_is_a_clear_error():

@@ -69,7 +69,9 @@ def assert_same(a: SequenceMatch, b: SequenceMatch) -> None:
     np.testing.assert_array_equal(a.candidate_scores, b.candidate_scores)
 
 
-def auc(matches: list[SequenceMatch] | np.ndarray, scores: np.ndarray | None, truth: dict[int, int], tol: int = 1) -> float:
+def auc(
+    matches: list[SequenceMatch] | np.ndarray, scores: np.ndarray | None, truth: dict[int, int], tol: int = 1
+) -> float:
     if scores is None:
         places = np.array([-1 if m.place is None else m.place for m in matches])
         scores = np.array([m.score for m in matches])
@@ -199,7 +201,10 @@ def test_continuation_finds_the_place_stage_one_missed() -> None:
 def test_no_candidates_gives_no_match_and_the_stream_goes_on() -> None:
     s = plant(noise(10, 30, seed=8), range(0, 10), list(range(10, 20)))
     cands = [np.arange(30) if q != 4 else np.empty(0, np.int64) for q in range(10)]
-    for res in (match_sequences(s, cfg(length=3, continuations=0), cands), stream(s, cfg(length=3, continuations=0), cands)):
+    for res in (
+        match_sequences(s, cfg(length=3, continuations=0), cands),
+        stream(s, cfg(length=3, continuations=0), cands),
+    ):
         assert res[4].place is None and res[4].direction is None
         assert res[6].place == 16 and res[6].score == pytest.approx(0.8)
 
@@ -223,7 +228,9 @@ CONFIGS = [
 ]
 
 
-@pytest.mark.parametrize("config", CONFIGS, ids=lambda c: f"L{c.length}-{c.direction}-{c.aggregation}-{c.missing}-{len(c.speeds)}v")
+@pytest.mark.parametrize(
+    "config", CONFIGS, ids=lambda c: f"L{c.length}-{c.direction}-{c.aggregation}-{c.missing}-{len(c.speeds)}v"
+)
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_streaming_equals_batch(config: SequenceMatchConfig, seed: int) -> None:
     rng = np.random.default_rng(seed)

@@ -20,7 +20,9 @@ import torch
 from loopclosure import weights as W
 from loopclosure.errors import LoopClosureInputError, WeightsNotFoundError
 
-EXPECTED_KEYS = [f"features.{i}.{p}" for i in (0, 2, 5, 7, 10, 12, 14, 17, 19, 21, 24, 26, 28) for p in ("weight", "bias")]
+EXPECTED_KEYS = [
+    f"features.{i}.{p}" for i in (0, 2, 5, 7, 10, 12, 14, 17, 19, 21, 24, 26, 28) for p in ("weight", "bias")
+]
 
 
 def _offline_urlopen(request, timeout=None):

@@ -32,6 +32,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from cli_helpers import assert_user_error, clean_ssmvpr_environment, invoke  # noqa: E402, F401
 
 from frontend.config import McapWriterConfig
 from frontend.simulation import SimulationConfig, TraverseSimulator
@@ -40,8 +41,6 @@ from ssmvpr_slam.checkpoint import load_checkpoint
 from ssmvpr_slam.config import load_config
 from ssmvpr_slam.evaluation.trajectory_io import read_tum
 from ssmvpr_slam.prior_map import PriorMap
-
-from cli_helpers import assert_user_error, clean_ssmvpr_environment, invoke  # noqa: E402, F401
 
 pytestmark = pytest.mark.slow
 
@@ -152,7 +151,9 @@ def test_the_checkpoint_reads_as_a_partial_result(killed: SimpleNamespace) -> No
     np.testing.assert_allclose(optimised, partial.optimised, atol=TOLERANCE)
     with open(checkpoint.folder / "loop_closures.csv", newline="") as f:
         rows = list(csv.DictReader(f))
-    assert len(rows) == len(partial.loops) and sum(r["in_graph"] == "1" for r in rows) == sum(r.in_graph for r in partial.loops)
+    assert len(rows) == len(partial.loops) and sum(r["in_graph"] == "1" for r in rows) == sum(
+        r.in_graph for r in partial.loops
+    )
     # what the keyframes keep, read back: grey copies within the pixel budget (here the camera's
     # 320 x 240, the rear one too as there is no scan) and JPEG thumbnails, no full image
     assert all(k.image is not None and k.image.gray.shape == (240, 320) and k.image.nbytes < 320 * 240

@@ -9,14 +9,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from cli_helpers import assert_user_error, clean_ssmvpr_environment, invoke  # noqa: E402, F401
 
 from frontend.config import McapWriterConfig
 from frontend.simulation import SimulationConfig, TraverseSimulator
 from frontend.sources import write_frames
 from ssmvpr_slam.evaluation.trajectory_io import read_tum
-
-
-from cli_helpers import assert_user_error, clean_ssmvpr_environment, invoke  # noqa: E402, F401
 
 
 def _write_images(folder: Path, n: int, seed: int) -> list[Path]:
@@ -87,7 +85,9 @@ def test_vpr_eval_missing_ground_truth_and_weights(folders: dict[str, Path], wei
 )  # fmt: skip
 def test_vpr_eval_invalid_option_values(folders: dict[str, Path], option: str, value: str, field: str) -> None:
     result = invoke("vpr-eval", folders["ref"], folders["query"], option, value, "--out", folders["out"])
-    assert_user_error(result, field, repr(value) if option in ("--device", "--direction") else "greater than or equal to 1")
+    assert_user_error(
+        result, field, repr(value) if option in ("--device", "--direction") else "greater than or equal to 1"
+    )
 
 
 def test_error_text_with_brackets_is_printed_verbatim(tmp_path: Path) -> None:
@@ -130,7 +130,9 @@ def lidar_only_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return log
 
 
-def test_run_picks_logged_odometry_for_a_log_without_scans(camera_only_log: Path, weights_path: Path, tmp_path: Path) -> None:
+def test_run_picks_logged_odometry_for_a_log_without_scans(
+    camera_only_log: Path, weights_path: Path, tmp_path: Path
+) -> None:
     result = invoke("run", camera_only_log, "--weights", weights_path, "--device", "cpu", "--out", tmp_path / "out")
     assert result.exit_code == 0, result.output
     metrics = json.loads((_run_folders(tmp_path / "out")[0] / "metrics.json").read_text())
@@ -171,7 +173,10 @@ def test_run_truncated_log_strict_exits_with_one_line(truncated_log, weights_pat
 
 
 def test_run_truncated_log_lenient_keeps_the_frames_before_the_cut(
-    truncated_log, weights_path: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture  # noqa: ANN001
+    truncated_log,
+    weights_path: Path,
+    tmp_path: Path,
+    caplog: pytest.LogCaptureFixture,  # noqa: ANN001
 ) -> None:
     cut, total = truncated_log
     out = tmp_path / "out"

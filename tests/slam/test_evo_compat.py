@@ -32,9 +32,7 @@ def trajectories():
     rng = np.random.default_rng(42)
     n = 200
     ang = np.linspace(0, 3 * np.pi, n)
-    ref = np.array(
-        [make_pose(rot_z(a), [30 * np.cos(a), 20 * np.sin(a), 0.05 * k]) for k, a in enumerate(ang)]
-    )
+    ref = np.array([make_pose(rot_z(a), [30 * np.cos(a), 20 * np.sin(a), 0.05 * k]) for k, a in enumerate(ang)])
     est = ref.copy()
     drift = np.cumsum(rng.normal(0, 0.05, (n, 3)), axis=0)
     tilt = Rotation.from_rotvec(np.cumsum(rng.normal(0, 0.002, (n, 3)), axis=0)).as_matrix()
@@ -82,9 +80,7 @@ def test_rpe_matches_evo(trajectories, delta, all_pairs):
         (evo_metrics.PoseRelation.translation_part, lambda r: r.translation),
         (evo_metrics.PoseRelation.rotation_angle_deg, lambda r: r.rotation_deg),
     ):
-        metric = evo_metrics.RPE(
-            relation, delta=delta, delta_unit=evo_metrics.Unit.frames, all_pairs=all_pairs
-        )
+        metric = evo_metrics.RPE(relation, delta=delta, delta_unit=evo_metrics.Unit.frames, all_pairs=all_pairs)
         metric.process_data((evo_traj(stamps, ref), evo_traj(stamps, est)))
         theirs = metric.get_all_statistics()
         ours = ours_of(rpe(ref, est, delta=delta, all_pairs=all_pairs))

@@ -20,6 +20,7 @@ from types import SimpleNamespace
 import cv2
 import numpy as np
 import pytest
+from cli_helpers import assert_user_error, clean_ssmvpr_environment, invoke  # noqa: E402, F401
 
 from frontend.config import McapWriterConfig
 from frontend.poses_io import write_kitti
@@ -34,9 +35,6 @@ from ssmvpr_slam.prior_map import PriorMap, save_map
 from ssmvpr_slam.report import evaluate
 from ssmvpr_slam.result import Keyframe, LoopRecord, RunResult
 from ssmvpr_slam.results import staged_results_dir
-
-
-from cli_helpers import assert_user_error, clean_ssmvpr_environment, invoke  # noqa: E402, F401
 
 
 def _tree(folder: Path) -> set[str]:
@@ -193,6 +191,7 @@ def test_missing_out_folders_made_for_a_refused_run_are_removed(tmp_path: Path) 
 
 # ---------------------------------------------------------- results written as one unit
 
+
 def _publish(base: Path, payload: str, during: Callable[[Path], None] | None = None) -> Path:
     with staged_results_dir(base, "run") as staged:
         (staged.path / "metrics.json").write_text(payload)
@@ -258,7 +257,9 @@ def test_run_failing_while_writing_keeps_the_earlier_run(partial_gt_run: SimpleN
 def _projection(dim_in: int, dim: int, seed: int) -> PCAProjection:
     rng = np.random.default_rng(seed)
     components = np.linalg.qr(rng.standard_normal((dim_in, dim)))[0].T.astype(np.float32)
-    return PCAProjection(rng.standard_normal(dim_in).astype(np.float32), components, np.ones(dim, np.float32), False, True)
+    return PCAProjection(
+        rng.standard_normal(dim_in).astype(np.float32), components, np.ones(dim, np.float32), False, True
+    )
 
 
 def _valid_map(folder: Path, vpr=None) -> Path:  # noqa: ANN001
@@ -266,7 +267,9 @@ def _valid_map(folder: Path, vpr=None) -> Path:  # noqa: ANN001
     vpr = vpr or load_config().vpr
     rng = np.random.default_rng(0)
     db = PlaceDatabase(Codebooks(_projection(30, 8, 1), _projection(20, 6, 2)), vpr.database)
-    codes = PlaceCodes(rng.standard_normal((4, 16, 8)).astype(np.float32), rng.standard_normal((4, 3, 4, 6)).astype(np.float32))
+    codes = PlaceCodes(
+        rng.standard_normal((4, 16, 8)).astype(np.float32), rng.standard_normal((4, 3, 4, 6)).astype(np.float32)
+    )
     db.add(codes, [PlaceInfo(frame_id=i, timestamp=float(i)) for i in range(4)])
     save_map(folder, db, vpr, {i: np.eye(4) for i in range(4)}, {0: rng.standard_normal((10, 3))}, {})
     return folder
@@ -277,6 +280,7 @@ def _edit_json(name: str, edit: Callable[[object], object]) -> Callable[[Path], 
         path = folder / name
         path.write_text(json.dumps(edit(json.loads(path.read_text()))))
         return name
+
     return apply
 
 
@@ -292,6 +296,7 @@ def _place(index: int, **changes: object) -> Callable[[Path], str]:
     def edit(places: list) -> list:
         places[index] = {**places[index], **changes}
         return places
+
     return _edit_json("places.json", edit)
 
 
@@ -299,6 +304,7 @@ def _place_extra(index: int, **extra: object) -> Callable[[Path], str]:
     def edit(places: list) -> list:
         places[index]["extra"] = {**places[index]["extra"], **extra}
         return places
+
     return _edit_json("places.json", edit)
 
 
@@ -307,6 +313,7 @@ def _bytes(name: str, make: Callable[[bytes], bytes]) -> Callable[[Path], str]:
         path = folder / name
         path.write_bytes(make(path.read_bytes()))
         return name
+
     return apply
 
 
@@ -314,6 +321,7 @@ def _array(name: str, make: Callable[[np.ndarray], np.ndarray]) -> Callable[[Pat
     def apply(folder: Path) -> str:
         np.save(folder / name, make(np.load(folder / name)))
         return name
+
     return apply
 
 
@@ -321,6 +329,7 @@ def _remove(name: str) -> Callable[[Path], str]:
     def apply(folder: Path) -> str:
         (folder / name).unlink()
         return name
+
     return apply
 
 
@@ -337,6 +346,7 @@ def _set_nan(index: tuple) -> Callable[[np.ndarray], np.ndarray]:  # type: ignor
         a = a.copy()
         a[index] = np.nan
         return a
+
     return make
 
 
@@ -363,9 +373,13 @@ MAP_CASES: dict[str, Callable[[Path], str]] = {
     "codebooks_truncated": _bytes("codebooks.npz", lambda b: b[: len(b) // 2]),
     "codebooks_garbage": _bytes("codebooks.npz", lambda b: b"PK\x03\x04" + b"\x00" * 40),
     "codebooks_missing": _remove("codebooks.npz"),
-    "codebooks_nan": lambda f: (np.savez(f / "codebooks.npz", **{
-        k: (v * np.nan if k == "stage1_mean" else v) for k, v in np.load(f / "codebooks.npz").items()
-    }), "codebooks.npz")[1],
+    "codebooks_nan": lambda f: (
+        np.savez(
+            f / "codebooks.npz",
+            **{k: (v * np.nan if k == "stage1_mean" else v) for k, v in np.load(f / "codebooks.npz").items()},
+        ),
+        "codebooks.npz",
+    )[1],
     "scans_truncated": _bytes("scans.npz", lambda b: b[: len(b) // 2]),
     "scans_garbage": _bytes("scans.npz", lambda b: b"not a zip at all"),
     "scans_nan": lambda f: (np.savez(f / "scans.npz", p0=np.full((5, 3), np.nan)), "scans.npz")[1],
@@ -380,7 +394,9 @@ MAP_CASES: dict[str, Callable[[Path], str]] = {
     "places_not_a_list": _edit_json("places.json", lambda p: {"0": p[0]}),
     "places_too_few": _edit_json("places.json", lambda p: p[:2]),
     "place_not_an_object": _edit_json("places.json", lambda p: [7, *p[1:]]),
-    "place_without_frame_id": _edit_json("places.json", lambda p: [{k: v for k, v in p[0].items() if k != "frame_id"}, *p[1:]]),
+    "place_without_frame_id": _edit_json(
+        "places.json", lambda p: [{k: v for k, v in p[0].items() if k != "frame_id"}, *p[1:]]
+    ),
     "place_unknown_key": _place(1, colour="red"),
     "map_pose_15_values": _place_extra(2, map_pose=[0.0] * 15),
     "map_pose_text": _place_extra(2, map_pose=["a"] * 16),
@@ -412,7 +428,9 @@ def test_map_path_that_is_no_map(kind: str, inputs: SimpleNamespace, tmp_path: P
         path.write_text("x")
     elif kind == "empty_folder":
         path.mkdir()
-    assert_user_error(invoke("run", inputs.log, "--odometry", "logged", "--map", path), str(path), "not a place database")
+    assert_user_error(
+        invoke("run", inputs.log, "--odometry", "logged", "--map", path), str(path), "not a place database"
+    )
 
 
 SMALL_PCA = {"SSMVPR_VPR__FILTERING__PCA__DIM": "8", "SSMVPR_VPR__SPATIAL__PCA__DIM": "8"}  # 3 images suffice
@@ -488,7 +506,9 @@ IMAGE_ROLES = [(case, "ref") for case in sorted(IMAGE_CASES)] + [
 
 
 @pytest.mark.parametrize(("case", "role"), IMAGE_ROLES)
-def test_bad_image_in_vpr_eval(case: str, role: str, inputs: SimpleNamespace, weights_path: Path, tmp_path: Path) -> None:
+def test_bad_image_in_vpr_eval(
+    case: str, role: str, inputs: SimpleNamespace, weights_path: Path, tmp_path: Path
+) -> None:
     folders = {"ref": tmp_path / "ref", "query": tmp_path / "query"}
     shutil.copytree(inputs.ref, folders["ref"])
     shutil.copytree(inputs.query, folders["query"])
@@ -571,7 +591,9 @@ PARTIAL_GT_CASES = {
 def test_evaluation_on_the_keyframes_with_ground_truth(case: str) -> None:
     missing, judged, precision = PARTIAL_GT_CASES[case]
     true = _out_and_back()
-    gt = [None if missing.get(k, 0) is None else np.full((4, 4), np.nan) if k in missing else true[k] for k in range(20)]
+    gt = [
+        None if missing.get(k, 0) is None else np.full((4, 4), np.nan) if k in missing else true[k] for k in range(20)
+    ]
     # (16, 3) and (15, 4) close correct loops; (18, 6) is 25 m off
     run = _result(gt, [(16, 3), (15, 4), (18, 6)])
     config = load_config(overrides={"evaluation": {"loops": {"min_frame_gap": 5}}})

@@ -8,17 +8,30 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ssmvpr_slam.backend.g2o_io import (
-    GraphEdge, PoseGraphData, information_planar_to_pose3, planar_pose, read_ground_truth, read_pose_graph,
-)  # fmt: skip
 from ssmvpr_slam.backend.config import GncConfig
+from ssmvpr_slam.backend.g2o_io import (
+    GraphEdge,
+    PoseGraphData,
+    information_planar_to_pose3,
+    planar_pose,
+    read_ground_truth,
+    read_pose_graph,
+)  # fmt: skip
 from ssmvpr_slam.backend.graph_optimizer import (
-    OptimizerSettings, check_kept_loops, chi2_threshold, initial_poses, optimize_graph, refine_with_gnc, trajectory_ate,
+    OptimizerSettings,
+    check_kept_loops,
+    chi2_threshold,
+    initial_poses,
+    optimize_graph,
+    refine_with_gnc,
+    trajectory_ate,
 )  # fmt: skip
 from ssmvpr_slam.backend.se3 import make_pose, relative, rot_z
 
 
-def _circle(n: int, dim: int, loops: list[tuple[int, int]], rng: np.random.Generator | None = None) -> tuple[PoseGraphData, np.ndarray]:
+def _circle(
+    n: int, dim: int, loops: list[tuple[int, int]], rng: np.random.Generator | None = None
+) -> tuple[PoseGraphData, np.ndarray]:
     """Poses on a circle (3-D: a helix); measurements exact (or noisy); vertices all zero."""
     gt = []
     for k in range(n):
@@ -31,7 +44,11 @@ def _circle(n: int, dim: int, loops: list[tuple[int, int]], rng: np.random.Gener
     for i, j in [(k, k + 1) for k in range(n - 1)] + loops:
         rel = relative(gt[i], gt[j])
         if rng is not None:
-            noise = planar_pose(*rng.normal(0, [0.05, 0.05, 0.02])) if dim == 2 else make_pose(np.eye(3), rng.normal(0, 0.05, 3))
+            noise = (
+                planar_pose(*rng.normal(0, [0.05, 0.05, 0.02]))
+                if dim == 2
+                else make_pose(np.eye(3), rng.normal(0, 0.05, 3))
+            )
             rel = rel @ noise
         edges.append(GraphEdge(i, j, rel, info))
     return PoseGraphData(dim, tuple(range(n)), np.tile(np.eye(4), (n, 1, 1)), tuple(edges), "circle", False), gt
@@ -100,12 +117,16 @@ def _drifting_graph(dim: int, seed: int) -> tuple[PoseGraphData, PoseGraphData, 
     for k in range(n):
         if k < laps * lap:
             a = 2 * np.pi * k / lap
-            gt.append(make_pose(rot_z(a + np.pi / 2), (10 * np.cos(a), 10 * np.sin(a), 0.0 if dim == 2 else 0.5 * np.sin(a))))
+            gt.append(
+                make_pose(rot_z(a + np.pi / 2), (10 * np.cos(a), 10 * np.sin(a), 0.0 if dim == 2 else 0.5 * np.sin(a)))
+            )
         else:
             m = k - laps * lap
             gt.append(make_pose(np.eye(3), (10.0 + m, 0.005 * m * m, 0.0)))
     gt = np.array(gt)
-    info = information_planar_to_pose3(np.diag([400.0, 400.0, 131.3])) if dim == 2 else np.diag([131.3] * 3 + [400.0] * 3)
+    info = (
+        information_planar_to_pose3(np.diag([400.0, 400.0, 131.3])) if dim == 2 else np.diag([131.3] * 3 + [400.0] * 3)
+    )
 
     def measured(i: int, j: int, bias: float) -> np.ndarray:
         if dim == 2:
@@ -135,7 +156,9 @@ def test_default_configuration_holds_with_half_false_loops(dim: int) -> None:
     worst_without_gnc = 0.0
     for seed in range(3):
         clean, noisy, gt = _drifting_graph(dim, seed)
-        optimum = trajectory_ate(gt, optimize_graph(clean, OptimizerSettings(kernel="none", gnc=False)).poses, dim).stats.rmse
+        optimum = trajectory_ate(
+            gt, optimize_graph(clean, OptimizerSettings(kernel="none", gnc=False)).poses, dim
+        ).stats.rmse
         assert trajectory_ate(gt, initial_poses(clean)[0], dim).stats.rmse > 2 * optimum  # a drifted start
         plain = optimize_graph(noisy, OptimizerSettings(kernel="none", gnc=False))
         assert trajectory_ate(gt, plain.poses, dim).stats.rmse > 5 * optimum  # the false loops hurt
@@ -155,7 +178,9 @@ def test_leave_one_out_check_removes_a_bending_false_loop(dim: int) -> None:
     (ATE many times the optimum) and the loop's own residual stays under the chi2 threshold, so
     no residual test can see it. The check removes exactly that loop and restores the optimum."""
     clean, _, gt = _drifting_graph(dim, 0)
-    optimum = trajectory_ate(gt, optimize_graph(clean, OptimizerSettings(kernel="none", gnc=False)).poses, dim).stats.rmse
+    optimum = trajectory_ate(
+        gt, optimize_graph(clean, OptimizerSettings(kernel="none", gnc=False)).poses, dim
+    ).stats.rmse
     info = clean.loops[0].information
     bent_graph = clean.with_edges((*clean.edges, GraphEdge(10, 140, planar_pose(0.2, 0.1, 0.1), info)))
     bent = optimize_graph(bent_graph, OptimizerSettings(kernel="none", gnc=False))
@@ -174,7 +199,9 @@ def test_leave_one_out_check_removes_false_loops_that_hold_a_bend_together(dim: 
     removing either alone saves little because the other holds the bend, so only the joint
     removal of the high-leverage loops finds the cheaper TLS solution."""
     clean, _, gt = _drifting_graph(dim, 0)
-    optimum = trajectory_ate(gt, optimize_graph(clean, OptimizerSettings(kernel="none", gnc=False)).poses, dim).stats.rmse
+    optimum = trajectory_ate(
+        gt, optimize_graph(clean, OptimizerSettings(kernel="none", gnc=False)).poses, dim
+    ).stats.rmse
     info = clean.loops[0].information
     false = [GraphEdge(10 + k, 140 + k, planar_pose(0.2, 0.1, 0.1), info) for k in (0, 1)]
     bent_graph = clean.with_edges((*clean.edges, *false))

@@ -33,7 +33,9 @@ def curved(length_m: float = 1000.0, **kw: float) -> np.ndarray:
     return integrate(CURVE_STEP_M, np.sin(2 * np.pi * s / 600.0) / 2000.0, **kw)
 
 
-def devkit_reference(gt: np.ndarray, est: np.ndarray, lengths=KITTI_LENGTHS_M, step: int = 10) -> tuple[float, float, int]:
+def devkit_reference(
+    gt: np.ndarray, est: np.ndarray, lengths=KITTI_LENGTHS_M, step: int = 10
+) -> tuple[float, float, int]:
     """Independent transcription of the devkit's calcSequenceErrors (plain loops, acos, its error order)."""
     dist = [0.0]
     for k in range(1, len(gt)):

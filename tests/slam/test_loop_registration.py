@@ -188,9 +188,7 @@ def test_pure_rotation_yaw_is_recovered(camera, yaw_deg):
     assert reg.sigmas[3] == cfg.two_view.translation_sigma
 
 
-@pytest.mark.parametrize(
-    ("yaw_deg", "t_mq_cam"), [(10.0, [1.0, 0.0, 0.3]), (-6.0, [-1.5, 0.0, 0.5])]
-)
+@pytest.mark.parametrize(("yaw_deg", "t_mq_cam"), [(10.0, [1.0, 0.0, 0.3]), (-6.0, [-1.5, 0.0, 0.5])])
 def test_essential_matrix_yaw_with_baseline(camera, yaw_deg, t_mq_cam):
     """A concave corner of two textured walls 6 m away, seen after a sideways step."""
     cfg, body_from_cam, k, img_m = camera

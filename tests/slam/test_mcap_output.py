@@ -24,7 +24,10 @@ def _result() -> RunResult:
     optimised = odom.copy()
     optimised[:, 1, 3] = 0.1 * np.arange(N)
     rng = np.random.default_rng(0)
-    thumbnail = lambda: mcap_output.thumbnail_jpeg(rng.integers(0, 256, (240, 320, 3), dtype=np.uint8), 80)
+
+    def thumbnail() -> bytes:
+        return mcap_output.thumbnail_jpeg(rng.integers(0, 256, (240, 320, 3), dtype=np.uint8), 80)
+
     kfs = tuple(Keyframe(k, 2 * k, 10.0 + k, odom[k], None, None, None, thumbnail=thumbnail()) for k in range(N))
     proposal = LoopProposal(11, 0, 0, 0.8, 0.5, 0, 0.0, True, "accepted", "forward")
     rejected = LoopProposal(6, 1, 1, 0.7, 0.5, 0, 0.0, True, "accepted", "forward")

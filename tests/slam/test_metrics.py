@@ -17,10 +17,7 @@ from ssmvpr_slam.evaluation.metrics import associate, ate, drift_per_100m, rpe
 
 def circle(n: int = 100, radius: float = 20.0) -> np.ndarray:
     ang = np.linspace(0, 2 * np.pi, n, endpoint=False)
-    poses = [
-        make_pose(rot_z(a + np.pi / 2), [radius * np.cos(a), radius * np.sin(a), 0.1 * a])
-        for a in ang
-    ]
+    poses = [make_pose(rot_z(a + np.pi / 2), [radius * np.cos(a), radius * np.sin(a), 0.1 * a]) for a in ang]
     return np.array(poses)
 
 
@@ -185,9 +182,7 @@ def test_revisits_split_by_direction_and_camera_visibility():
     gt = _drive([(0, 0), (100, 0), (100, 2), (0, 2), (0, 0), (100, 0), (100, 20), (50, 20), (50, -30)])
     cfg = LoopMetricsConfig(revisit_radius=5.0, correct_radius=10.0, min_frame_gap=20, view_angle_deg=45.0)
     revisits = find_revisits(gt, cfg.revisit_radius, cfg.min_frame_gap)
-    kinds = classify_revisits(
-        gt, revisits, cfg.revisit_radius, cfg.min_frame_gap, cfg.view_angle_deg
-    )
+    kinds = classify_revisits(gt, revisits, cfg.revisit_radius, cfg.min_frame_gap, cfg.view_angle_deg)
     west = (gt[kinds.ids, 1] == 2.0) & (gt[kinds.ids, 0] > 5) & (gt[kinds.ids, 0] < 95)  # westward, mid-street
     second_east = (kinds.ids > 210) & (kinds.ids < 300) & (gt[kinds.ids, 1] == 0)
     crossing = kinds.ids >= 374  # the last leg crosses the streets at x = 50, heading south

@@ -37,9 +37,7 @@ def is_png(path) -> bool:
 
 def test_all_plots_render(tmp_path, run):
     gt, odom, opt, loops = run
-    evaluation = evaluate_loops(
-        gt, loops, LoopMetricsConfig(revisit_radius=1.0, correct_radius=2.0, min_frame_gap=10)
-    )
+    evaluation = evaluate_loops(gt, loops, LoopMetricsConfig(revisit_radius=1.0, correct_radius=2.0, min_frame_gap=10))
     assert evaluation.loop_correct == [True, True, False]
     odom_ate, opt_ate = ate(gt, odom), ate(gt, opt)
     paths = [
@@ -74,7 +72,5 @@ def test_plot_input_errors(tmp_path, run):
     with pytest.raises(ValueError, match=r"loops\[0\]"):
         plot_trajectories(tmp_path / "a.png", gt, loops=[(500, 1)], config=SMALL)
     with pytest.raises(ValueError, match="distance_m"):
-        plot_translation_error(
-            tmp_path / "b.png", np.ones(5), None, distance_m=np.ones(3), config=SMALL
-        )
+        plot_translation_error(tmp_path / "b.png", np.ones(5), None, distance_m=np.ones(3), config=SMALL)
     assert not list(tmp_path.iterdir())

@@ -33,6 +33,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from wrong_loops import WrongLoopGraph
 
 from frontend.config import KeyframeConfig
 from frontend.frame import Frame
@@ -40,15 +41,14 @@ from frontend.odometry import make_odometry
 from frontend.simulation import SimulationConfig, TraverseSimulator
 from loopclosure.backbone import load_backbone
 from loopclosure.errors import LoopClosureInputError
+from ssmvpr_slam.backend.noise import sigmas6
 from ssmvpr_slam.config import SlamConfig, load_config
 from ssmvpr_slam.evaluation.trajectory_io import read_kitti, read_tum
-from ssmvpr_slam.backend.noise import sigmas6
 from ssmvpr_slam.pipeline import SlamPipeline
 from ssmvpr_slam.prior_map import PriorMap
 from ssmvpr_slam.report import evaluate
 from ssmvpr_slam.result import RunResult
 from ssmvpr_slam.writers import LOOP_COLUMNS, write_results
-from wrong_loops import WrongLoopGraph
 
 pytestmark = pytest.mark.slow
 
@@ -142,7 +142,12 @@ def camera_frames() -> list[Frame]:
 
 
 def _run(
-    folder: Path, cfg: SlamConfig, backbone: MemoBackbone, frames, inject: float = 0.0, plots: bool = False  # noqa: ANN001
+    folder: Path,
+    cfg: SlamConfig,
+    backbone: MemoBackbone,
+    frames,
+    inject: float = 0.0,
+    plots: bool = False,  # noqa: ANN001
 ) -> Run:
     graph = None
     if inject:
@@ -470,5 +475,7 @@ def test_a_second_kiss_icp_session_aligns_to_the_prior_scans(second_kiss: Run, k
 def test_a_map_from_other_encoder_settings_is_refused(clean: Run) -> None:
     other = clean.config.vpr.model_copy(deep=True)
     other.backbone.input_size = 320
-    with pytest.raises(LoopClosureInputError, match=r"prior map .*database: encoded with other settings \(input_size\)"):
+    with pytest.raises(
+        LoopClosureInputError, match=r"prior map .*database: encoded with other settings \(input_size\)"
+    ):
         PriorMap.load(clean.folder / "database", other)

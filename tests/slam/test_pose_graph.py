@@ -66,9 +66,7 @@ def scenario():
 
 
 def run_graph(odom, loops, kernel="cauchy", scale=None, gnc=False):
-    cfg = PoseGraphConfig(
-        robust=RobustKernelConfig(kind=kernel, scale=scale), gnc=GncConfig(enabled=gnc)
-    )
+    cfg = PoseGraphConfig(robust=RobustKernelConfig(kind=kernel, scale=scale), gnc=GncConfig(enabled=gnc))
     graph = PoseGraph(cfg)
     by_query: dict[int, list] = {}
     for m, q, T in loops:
@@ -259,9 +257,7 @@ def test_odometry_sigmas_follow_the_odometry_source() -> None:
     kiss = cfg.for_odometry("kiss_icp").odometry
     assert kiss.rot_sigma < cfg.odometry.rot_sigma
     assert cfg.for_odometry("logged").odometry == cfg.odometry  # no entry: the generic sigmas
-    custom = PoseGraphConfig.model_validate(
-        {"odometry_by_source": {"logged": {"rot_sigma": 0.05, "trans_sigma": 0.3}}}
-    )
+    custom = PoseGraphConfig.model_validate({"odometry_by_source": {"logged": {"rot_sigma": 0.05, "trans_sigma": 0.3}}})
     assert custom.for_odometry("logged").odometry == OdometryNoiseConfig(rot_sigma=0.05, trans_sigma=0.3)
     assert custom.for_odometry("kiss_icp").odometry == custom.odometry  # replaced mapping: no kiss entry
     with pytest.raises(ValueError, match="odometry_by_source"):

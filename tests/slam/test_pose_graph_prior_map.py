@@ -21,7 +21,7 @@ def _pose(x: float, y: float, yaw: float) -> np.ndarray:
 def _square(n_side: int = 25, step: float = 2.0) -> list[np.ndarray]:
     """A 50 m square driven anticlockwise, a pose every `step` metres (map frame)."""
     poses, x, y, yaw = [], 0.0, 0.0, 0.0
-    for side in range(4):
+    for _side in range(4):
         for _ in range(n_side):
             poses.append(_pose(x, y, yaw))
             x, y = x + step * np.cos(yaw), y + step * np.sin(yaw)
@@ -50,7 +50,9 @@ def _session(map_places: list[int], wrong: dict[int, int] | None = None, config:
         graph.add_keyframe(k, pose)
         if k in map_places:
             p = (wrong or {}).get(k, k)  # a wrong match: registered as if it were the right place
-            handles[k] = graph.add_map_loop(p, MAP[p], k, np.linalg.inv(MAP[k]) @ TRUTH[k], sigmas=[0.02] * 3 + [0.1] * 3)
+            handles[k] = graph.add_map_loop(
+                p, MAP[p], k, np.linalg.inv(MAP[k]) @ TRUTH[k], sigmas=[0.02] * 3 + [0.1] * 3
+            )
         graph.update()
     return graph, handles
 

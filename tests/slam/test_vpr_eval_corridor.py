@@ -26,8 +26,15 @@ def corridor_run(tmp_path_factory: pytest.TempPathFactory, corridor_dir: Path, w
 
 
 def test_outputs_are_written(corridor_run: Path) -> None:
-    for name in ("metrics.json", "matches.csv", "config.yaml", "pr_tolerances.png", "pr_stages.png", "recall_at_n.png",
-                 "pr_sequence.png"):
+    for name in (
+        "metrics.json",
+        "matches.csv",
+        "config.yaml",
+        "pr_tolerances.png",
+        "pr_stages.png",
+        "recall_at_n.png",
+        "pr_sequence.png",
+    ):
         assert (corridor_run / name).stat().st_size > 0, name
     assert (corridor_run / "database" / "manifest.json").is_file()
     rows = list(csv.DictReader((corridor_run / "matches.csv").open()))

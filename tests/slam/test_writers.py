@@ -24,12 +24,16 @@ from ssmvpr_slam.writers import write_results
 def _projection(dim_in: int, dim: int, seed: int) -> PCAProjection:
     rng = np.random.default_rng(seed)
     components = np.linalg.qr(rng.standard_normal((dim_in, dim)))[0].T.astype(np.float32)
-    return PCAProjection(rng.standard_normal(dim_in).astype(np.float32), components, np.ones(dim, np.float32), False, True)
+    return PCAProjection(
+        rng.standard_normal(dim_in).astype(np.float32), components, np.ones(dim, np.float32), False, True
+    )
 
 
 def _codes(n: int, seed: int) -> PlaceCodes:
     rng = np.random.default_rng(seed)
-    return PlaceCodes(rng.standard_normal((n, 16, 8)).astype(np.float32), rng.standard_normal((n, 3, 4, 6)).astype(np.float32))
+    return PlaceCodes(
+        rng.standard_normal((n, 16, 8)).astype(np.float32), rng.standard_normal((n, 3, 4, 6)).astype(np.float32)
+    )
 
 
 def test_writing_twice_changes_neither_the_result_nor_the_prior_map(tmp_path: Path) -> None:
@@ -44,12 +48,16 @@ def test_writing_twice_changes_neither_the_result_nor_the_prior_map(tmp_path: Pa
     prior_places = copy.deepcopy(prior.database.places)
     # the session's database: a copy of the prior one grown by 5 keyframes
     database = prior.database.copy()
-    database.add(_codes(5, 1), [PlaceInfo(frame_id=k, timestamp=float(k), extra={"session": "current"}) for k in range(5)])
+    database.add(
+        _codes(5, 1), [PlaceInfo(frame_id=k, timestamp=float(k), extra={"session": "current"}) for k in range(5)]
+    )
     session_places = copy.deepcopy(database.places)
     poses = np.tile(np.eye(4), (5, 1, 1))
     poses[:, 0, 3] = np.arange(5.0)
     kfs = tuple(Keyframe(k, k, float(k), poses[k], poses[k], None, None) for k in range(5))
-    loops = (LoopRecord(LoopProposal(4, 0, 3, 0.9, 0.5, 0, 0.0, True, "accepted", "forward"), factor_handle=0, dropped=True),)
+    loops = (
+        LoopRecord(LoopProposal(4, 0, 3, 0.9, 0.5, 0, 0.0, True, "accepted", "forward"), factor_handle=0, dropped=True),
+    )
     anchor = np.eye(4)
     anchor[1, 3] = 2.0
     result = RunResult(kfs, loops, np.arange(5.0), poses, poses, in_map_frame=np.linalg.inv(anchor) @ poses,
