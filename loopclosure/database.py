@@ -34,12 +34,12 @@ from typing import Any, BinaryIO
 import numpy as np
 from pydantic import ValidationError
 
-from loopclosure.atomic import atomic_write, atomic_write_text
 from loopclosure.config import DatabaseConfig, FilteringConfig
 from loopclosure.encoder import PlaceCodes
 from loopclosure.errors import LoopClosureInputError
 from loopclosure.filtering import Candidates, empty_candidates, max_row_norm, rank_neighbours, vote
 from loopclosure.pca import Codebooks
+from ssmvpr_common.atomic import atomic_write, atomic_write_text
 
 FORMAT = "ssmvpr-place-database"
 FORMAT_VERSION = 1  # float codes only: what every earlier build reads

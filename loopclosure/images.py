@@ -8,12 +8,11 @@ import cv2
 import numpy as np
 
 from loopclosure.errors import LoopClosureInputError
+from ssmvpr_common.images import IMAGE_SUFFIXES, image_files
 
 # Below this many pixels on a side the backbone sees an upsampled blur (the input is 224 or
 # more), so the codes say nothing about the place: a stream warns, a benchmark refuses.
 MIN_IMAGE_SIDE = 32
-
-IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".ppm", ".pgm", ".tif", ".tiff", ".webp")
 
 
 def list_images(folder: str | Path) -> list[Path]:
@@ -21,7 +20,7 @@ def list_images(folder: str | Path) -> list[Path]:
     folder = Path(folder)
     if not folder.is_dir():
         raise LoopClosureInputError(f"image folder not found: {folder}")
-    files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+    files = image_files(folder)
     if not files:
         raise LoopClosureInputError(f"no images ({', '.join(IMAGE_SUFFIXES)}) in folder {folder}")
     return files

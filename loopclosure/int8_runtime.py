@@ -28,8 +28,8 @@ import numpy as np
 import torch
 from torch import nn
 
-from loopclosure.atomic import atomic_write
 from loopclosure.errors import LoopClosureInputError
+from ssmvpr_common.atomic import atomic_write
 
 log = logging.getLogger(__name__)
 

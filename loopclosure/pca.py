@@ -14,9 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from loopclosure.atomic import atomic_write_bytes
 from loopclosure.config import PCAConfig
 from loopclosure.errors import LoopClosureInputError
+from ssmvpr_common.atomic import atomic_write_bytes
 
 
 @dataclass(frozen=True)

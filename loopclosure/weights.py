@@ -54,8 +54,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any, Literal
 
-from loopclosure.atomic import atomic_write
 from loopclosure.errors import LoopClosureInputError, WeightsNotFoundError
+from ssmvpr_common.atomic import atomic_write
 
 if TYPE_CHECKING:
     import torch

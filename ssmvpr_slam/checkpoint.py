@@ -44,10 +44,10 @@ from typing import Any
 import cv2
 import numpy as np
 
-from loopclosure.atomic import atomic_write_bytes, atomic_write_text
 from loopclosure.database import PlaceDatabase
 from loopclosure.detector import LoopProposal
 from loopclosure.errors import LoopClosureInputError
+from ssmvpr_common.atomic import atomic_write_bytes, atomic_write_text
 from ssmvpr_slam.backend.loop_registration import LoopRegistration
 from ssmvpr_slam.backend.two_view import ReducedImage
 from ssmvpr_slam.config import ResultsConfig, SlamConfig

@@ -20,10 +20,10 @@ from typing import Any
 
 import numpy as np
 
-from loopclosure.atomic import atomic_write_bytes
 from loopclosure.config import VPRConfig
 from loopclosure.database import MANIFEST, PlaceDatabase
 from loopclosure.errors import LoopClosureInputError
+from ssmvpr_common.atomic import atomic_write_bytes
 
 SCANS_FILE = "scans.npz"
 

@@ -21,7 +21,7 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from loopclosure.atomic import atomic_write_text
+from ssmvpr_common.atomic import atomic_write_text
 from ssmvpr_slam.errors import SlamError
 
 log = logging.getLogger(__name__)

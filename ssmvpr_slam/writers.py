@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from loopclosure.atomic import atomic_write_text
+from ssmvpr_common.atomic import atomic_write_text
 from ssmvpr_slam.backend.g2o_io import write_g2o
 from ssmvpr_slam.config import SlamConfig, dump_config
 from ssmvpr_slam.evaluation.trajectory_io import write_kitti, write_tum

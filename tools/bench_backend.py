@@ -390,7 +390,7 @@ def main(argv: list[str] | None = None) -> int:
         by_graph[name] = [k for k in ks.split(",") if k]
     gnc_modes = {"both": (False, True), "on": (True,), "off": (False,)}[args.gnc]
     log = None if args.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
-    from loopclosure.atomic import atomic_write_text
+    from ssmvpr_common.atomic import atomic_write_text
 
     checkpoint = None
     if args.output:

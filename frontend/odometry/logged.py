@@ -13,7 +13,7 @@ import numpy as np
 from frontend.config import DriftConfig, LoggedOdometryConfig, PoseFileConfig
 from frontend.frame import Frame
 from frontend.odometry.base import OdometryStats
-from frontend.poses_io import pose_problem
+from ssmvpr_common.poses import pose_problem
 
 AXES = {"x": 0, "y": 1, "z": 2}
 

@@ -8,9 +8,9 @@ from frontend.config import PoseFileConfig, SourceConfig
 from frontend.errors import FrontendInputError
 from frontend.sources.base import Source
 from frontend.sources.folder_source import IMAGE_DIR_NAMES, FolderSource
-from frontend.sources.images import list_images
 from frontend.sources.kitti_source import CAMERA_FOLDERS, KittiSource
 from frontend.sources.mcap_source import McapSource
+from ssmvpr_common.images import image_files
 
 MCAP_SUFFIX = ".mcap"
 
@@ -28,7 +28,7 @@ def detect_kind(path: Path) -> str:
     has_camera = any((path / c).is_dir() for c in CAMERA_FOLDERS)
     if (path / "velodyne").is_dir() or ((path / "times.txt").is_file() and has_camera):
         return "kitti"
-    if list_images(path) or any((path / name).is_dir() and list_images(path / name) for name in IMAGE_DIR_NAMES):
+    if image_files(path) or any((path / name).is_dir() and image_files(path / name) for name in IMAGE_DIR_NAMES):
         return "folder"
     raise FrontendInputError(
         f"{path}: not recognised: expected a .mcap file, a KITTI sequence folder "

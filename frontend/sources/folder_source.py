@@ -23,7 +23,8 @@ from frontend.frame import Frame
 from frontend.poses_io import PoseFile, read_poses
 from frontend.sources.base import Source
 from frontend.sources.clock import StreamClock
-from frontend.sources.images import list_images, read_rgb
+from frontend.sources.images import read_rgb
+from ssmvpr_common.images import image_files
 
 IMAGE_DIR_NAMES = ("images", "image", "rgb", "image_2", "image_0")
 POSES_NAMES = ("poses.txt", "groundtruth.txt", "poses_tum.txt", "poses_kitti.txt", "gt.txt")
@@ -46,7 +47,7 @@ class FolderSource(Source):
         if not self.path.is_dir():
             raise FrontendInputError(f"{self.path}: image folder not found")
         self.image_dir = self._image_dir()
-        self.images = list_images(self.image_dir)
+        self.images = image_files(self.image_dir)
         if not self.images:
             raise FrontendInputError(f"{self.image_dir}: no image files")
         self.poses_path = self._find(self.config.poses_file, POSES_NAMES, "poses file")
@@ -64,7 +65,7 @@ class FolderSource(Source):
                 raise FrontendInputError(f"{folder}: image folder not found")
             return folder
         for name in IMAGE_DIR_NAMES:
-            if (self.path / name).is_dir() and list_images(self.path / name):
+            if (self.path / name).is_dir() and image_files(self.path / name):
                 return self.path / name
         return self.path
 

@@ -1,4 +1,5 @@
-"""Image files in, RGB uint8 out (the one colour convention of Frame)."""
+"""Image files in, RGB uint8 out (the one colour convention of Frame); which files are images
+is :func:`ssmvpr_common.images.image_files`."""
 
 from __future__ import annotations
 
@@ -8,13 +9,6 @@ import cv2
 import numpy as np
 
 from frontend.errors import FrontendInputError
-
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".ppm", ".pgm", ".tif", ".tiff")
-
-
-def list_images(folder: Path) -> list[Path]:
-    """Image files directly in ``folder``, sorted by name (zero-padded names sort in order)."""
-    return sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
 
 
 def read_rgb(path: Path) -> np.ndarray:

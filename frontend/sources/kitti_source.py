@@ -24,10 +24,12 @@ import numpy as np
 from frontend.config import KittiSourceConfig, PoseFileConfig
 from frontend.errors import FrontendInputError
 from frontend.frame import Frame
-from frontend.poses_io import KITTI_COLUMNS, pose_from_kitti_row, read_kitti
+from frontend.poses_io import read_kitti
 from frontend.sources.base import Source
 from frontend.sources.clock import StreamClock
-from frontend.sources.images import list_images, read_rgb
+from frontend.sources.images import read_rgb
+from ssmvpr_common.images import image_files
+from ssmvpr_common.poses import KITTI_COLUMNS, pose_from_kitti_row
 
 log = logging.getLogger("frontend.sources.kitti")
 
@@ -78,7 +80,7 @@ class KittiSource(Source):
             raise FrontendInputError(f"{self.path}: KITTI sequence folder not found")
         self.times = self._read_times(self.path / "times.txt")
         self.camera_folder = self._camera_folder()
-        self.images = list_images(self.path / self.camera_folder) if self.camera_folder else []
+        self.images = image_files(self.path / self.camera_folder) if self.camera_folder else []
         velodyne = self.path / "velodyne"
         self.scans = sorted(velodyne.glob("*.bin")) if self.config.load_points and velodyne.is_dir() else []
         if not self.images and not self.scans:

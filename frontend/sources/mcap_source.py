@@ -28,7 +28,6 @@ from mcap_ros2.decoder import DecoderFactory
 from frontend.config import McapSourceConfig, McapWriterConfig, PoseFileConfig
 from frontend.errors import FrontendInputError
 from frontend.frame import Frame
-from frontend.poses_io import pose_problem
 from frontend.sources import ros_convert
 from frontend.sources.association import Associated, StreamAssociator
 from frontend.sources.base import Source
@@ -41,6 +40,7 @@ from frontend.sources.ros_msgdefs import (
     POSE_STAMPED,
     normalise_type,
 )
+from ssmvpr_common.poses import pose_problem
 
 log = logging.getLogger("frontend.sources.mcap")
 

@@ -23,8 +23,9 @@ from mcap_ros2.writer import Writer
 from frontend.config import McapWriterConfig
 from frontend.errors import FrontendInputError
 from frontend.frame import Frame
-from frontend.poses_io import default_file_mode, pose_problem
 from frontend.sources import ros_convert, ros_msgdefs
+from ssmvpr_common.atomic import default_file_mode
+from ssmvpr_common.poses import pose_problem
 
 _COMPRESSION = {
     "zstd": CompressionType.ZSTD,

@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 
 from frontend.errors import FrontendInputError
-from frontend.poses_io import matrix_to_quaternion, pose_from_translation_quaternion
+from ssmvpr_common.poses import matrix_to_quaternion, pose_from_translation_quaternion
 
 NANOSECONDS = 1_000_000_000
 

@@ -38,8 +38,8 @@ from pathlib import Path
 
 import numpy as np
 
-from frontend.poses_io import matrix_to_quaternion, quaternion_to_matrix
-from loopclosure.atomic import atomic_write_text
+from ssmvpr_common.atomic import atomic_write_text
+from ssmvpr_common.poses import matrix_to_quaternion, quaternion_to_matrix
 from ssmvpr_slam.backend.se3 import make_pose, project_to_so3, rot_z, yaw_of
 
 QUATERNION_NORM_TOL = 1e-3

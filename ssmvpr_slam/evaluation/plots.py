@@ -15,7 +15,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from loopclosure.atomic import atomic_write
+from ssmvpr_common.atomic import atomic_write
 from ssmvpr_slam.evaluation.config import PlotConfig
 from ssmvpr_slam.evaluation.loop_metrics import LoopEvaluation
 

@@ -5,7 +5,7 @@ KITTI: one pose per line, the 12 row-major values of the top 3x4 of the 4x4 matr
 ``#`` comments and blank lines are skipped on read. Poses are 4x4 body-to-world.
 
 Line scanning, quaternion and matrix conversions and line formatting are
-:mod:`frontend.poses_io`'s; on top of them this module keeps the evaluation's contract:
+:mod:`ssmvpr_common.poses`'s; on top of them this module keeps the evaluation's contract:
 `FileNotFoundError` for a missing file, plain `ValueError` wording, the back end's pose
 checks (`as_pose`, tighter rotation tolerance, rotations re-orthonormalised), a header line
 and fixed 9-decimal numbers in TUM files, 10 significant digits in KITTI files.
@@ -19,12 +19,12 @@ from pathlib import Path
 
 import numpy as np
 
-from frontend import poses_io
-from loopclosure.atomic import atomic_write_text
+from ssmvpr_common import poses as pose_format
+from ssmvpr_common.atomic import atomic_write_text
 from ssmvpr_slam.backend.se3 import as_pose, as_pose_array
 
-TUM_FIELDS = poses_io.TUM_COLUMNS
-KITTI_FIELDS = poses_io.KITTI_COLUMNS
+TUM_FIELDS = pose_format.TUM_COLUMNS
+KITTI_FIELDS = pose_format.KITTI_COLUMNS
 QUATERNION_NORM_TOL = 1e-3
 """A stored quaternion whose norm is off by more than this is treated as corrupt."""
 KITTI_ROTATION_TOL = 1e-4
@@ -38,7 +38,11 @@ def _rows(path: Path, expected: int, fmt: str) -> Iterator[tuple[int, np.ndarray
     """(line number, values) of each data line, each checked to hold `expected` numbers."""
     if not path.is_file():
         raise FileNotFoundError(f"{path}: trajectory file not found")
-    for lineno, fields in poses_io.data_lines(path):
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as error:
+        raise ValueError(f"{path}: cannot read trajectory file ({error})") from None
+    for lineno, fields in pose_format.data_lines(text):
         yield lineno, _numbers(path, lineno, fields, expected, fmt)
 
 
@@ -59,12 +63,12 @@ def read_tum(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray]:
     path = Path(path)
     stamps, poses = [], []
     for lineno, values in _rows(path, TUM_FIELDS, "t x y z qx qy qz qw"):
-        problem = poses_io.quaternion_problem(values[4:8], QUATERNION_NORM_TOL)
+        problem = pose_format.quaternion_problem(values[4:8], QUATERNION_NORM_TOL)
         if problem is not None:
             raise ValueError(f"{path}:{lineno}: {problem}")
         stamps.append(values[0])
-        poses.append(poses_io.pose_from_translation_quaternion(values[1:4], values[4:8]))
-    return np.asarray(stamps, dtype=np.float64), poses_io.stack_poses(poses)
+        poses.append(pose_format.pose_from_translation_quaternion(values[1:4], values[4:8]))
+    return np.asarray(stamps, dtype=np.float64), pose_format.stack_poses(poses)
 
 
 def write_tum(path: str | os.PathLike[str], timestamps: np.ndarray, poses: np.ndarray) -> Path:
@@ -75,7 +79,7 @@ def write_tum(path: str | os.PathLike[str], timestamps: np.ndarray, poses: np.nd
         raise ValueError(f"timestamps: {len(stamps)} stamps for {len(mats)} poses")
     if not np.all(np.isfinite(stamps)):
         raise ValueError("timestamps: contains NaN or inf")
-    lines = [TUM_HEADER, *poses_io.tum_lines(stamps, mats, NUMBER_FORMAT, NUMBER_FORMAT)]
+    lines = [TUM_HEADER, *pose_format.tum_lines(stamps, mats, NUMBER_FORMAT, NUMBER_FORMAT)]
     return atomic_write_text(path, "".join(line + "\n" for line in lines))
 
 
@@ -83,13 +87,13 @@ def read_kitti(path: str | os.PathLike[str]) -> np.ndarray:
     """Return poses (N, 4, 4) from a KITTI file."""
     path = Path(path)
     poses = [
-        as_pose(f"{path}:{lineno}", poses_io.pose_from_kitti_row(values), KITTI_ROTATION_TOL)
+        as_pose(f"{path}:{lineno}", pose_format.pose_from_kitti_row(values), KITTI_ROTATION_TOL)
         for lineno, values in _rows(path, KITTI_FIELDS, "3x4 row-major")
     ]
-    return poses_io.stack_poses(poses)
+    return pose_format.stack_poses(poses)
 
 
 def write_kitti(path: str | os.PathLike[str], poses: np.ndarray) -> Path:
     """Write a KITTI file atomically."""
-    lines = poses_io.kitti_lines(as_pose_array("poses", poses), KITTI_NUMBER_FORMAT)
+    lines = pose_format.kitti_lines(as_pose_array("poses", poses), KITTI_NUMBER_FORMAT)
     return atomic_write_text(path, "".join(line + "\n" for line in lines))

@@ -17,7 +17,6 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 from threadpoolctl import threadpool_limits
 
-from loopclosure.atomic import atomic_write_text
 from loopclosure.backbone import load_backbone
 from loopclosure.config import SequenceMatchConfig
 from loopclosure.database import PlaceDatabase, PlaceInfo
@@ -30,6 +29,7 @@ from loopclosure.pca import Codebooks
 from loopclosure.recognizer import Recognizer
 from loopclosure.sequence_matcher import SequenceMatcher
 from loopclosure.spatial import spatial_scores
+from ssmvpr_common.atomic import atomic_write_text
 from ssmvpr_slam.config import SlamConfig, dump_config
 from ssmvpr_slam.prior_map import encoder_signature
 from ssmvpr_slam.results import staged_results_dir, write_json

@@ -11,15 +11,8 @@ from hypothesis import strategies as st
 
 from frontend.errors import FrontendInputError
 from frontend.odometry.logged import so3_exp
-from frontend.poses_io import (
-    matrix_to_quaternion,
-    quaternion_to_matrix,
-    read_kitti,
-    read_poses,
-    read_tum,
-    write_kitti,
-    write_tum,
-)
+from frontend.poses_io import read_kitti, read_poses, read_tum, write_kitti, write_tum
+from ssmvpr_common.poses import matrix_to_quaternion, quaternion_to_matrix
 
 
 def _random_poses(n: int, seed: int) -> np.ndarray:
