@@ -48,6 +48,7 @@ from loopclosure.database import PlaceDatabase
 from loopclosure.detector import LoopProposal
 from loopclosure.errors import LoopClosureInputError
 from ssmvpr_common.atomic import atomic_write_bytes, atomic_write_text
+from ssmvpr_slam.backend.kept_scan import KeptScan
 from ssmvpr_slam.backend.loop_registration import LoopRegistration
 from ssmvpr_slam.backend.two_view import ReducedImage
 from ssmvpr_slam.config import ResultsConfig, SlamConfig
@@ -59,7 +60,7 @@ from ssmvpr_slam.writers import write_config, write_database, write_loop_csv, wr
 log = logging.getLogger(__name__)
 
 FORMAT = "ssmvpr-slam-checkpoint"
-FORMAT_VERSION = 2  # 2: keyframes keep grey PNG copies and JPEG thumbnails, float32 scans
+FORMAT_VERSION = 3  # 2: keyframes keep grey PNG copies and JPEG thumbnails, float32 scans; 3: int16 cm scans
 LINK = "checkpoint"
 META = "checkpoint.json"
 _PREFIX = "checkpoint-"
@@ -202,9 +203,8 @@ def _keyframe_arrays(result: RunResult) -> dict[str, np.ndarray]:
             gt[i] = k.gt_pose
     scans = [k.scan for k in kfs]
     lengths = np.array([-1 if s is None else len(s) for s in scans], np.int64)
-    stacked = (
-        np.concatenate([s for s in scans if s is not None]) if any(s is not None for s in scans) else np.zeros((0, 3))
-    )
+    held = [s.centimetres for s in scans if s is not None]
+    stacked = np.concatenate(held) if held else np.zeros((0, 3), np.int16)
 
     def full_size(image: ReducedImage | None) -> tuple[int, int]:
         return (-1, -1) if image is None else (image.full_width, image.full_height)
@@ -220,7 +220,7 @@ def _keyframe_arrays(result: RunResult) -> dict[str, np.ndarray]:
         "gt_present": np.array([k.gt_pose is not None for k in kfs], bool),
         "gt": gt,
         "scan_lengths": lengths,
-        "scans": np.asarray(stacked, np.float32),
+        "scans": stacked,  # int16 centimetres, as kept (a resume is exact)
         "image_full_size": np.array([full_size(k.image) for k in kfs], np.int64).reshape(n, 2),
         "rear_image_full_size": np.array([full_size(k.rear_image) for k in kfs], np.int64).reshape(n, 2),
         "has_thumbnail": np.array([k.thumbnail is not None for k in kfs], bool),
@@ -418,7 +418,7 @@ def _keyframes(arrays: dict[str, np.ndarray], images: Path) -> tuple[Keyframe, .
         length = int(arrays["scan_lengths"][i])
         scan = None
         if length >= 0:
-            scan = np.array(scans[offset : offset + length], np.float32)
+            scan = KeptScan(np.array(scans[offset : offset + length], np.int16))
             offset += length
         out.append(Keyframe(
             id=kf_id,

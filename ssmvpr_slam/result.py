@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from loopclosure.detector import LoopProposal
+from ssmvpr_slam.backend.kept_scan import KeptScan
 from ssmvpr_slam.backend.loop_registration import LoopRegistration
 from ssmvpr_slam.backend.two_view import ReducedImage
 
@@ -27,7 +28,7 @@ if TYPE_CHECKING:  # only for annotations: the result module stays light to impo
 @dataclass(frozen=True)
 class Keyframe:
     """What the back end, the evaluation and the outputs keep of a keyframe for the whole run,
-    bounded per keyframe: the voxelised scan (float32), grey copies of the images within
+    bounded per keyframe: the voxelised scan (`KeptScan`, int16 centimetres), grey copies of the images within
     `pipeline.keyframe_image_pixels` for two-view registration, a JPEG thumbnail. Never the
     full camera images (a KITTI image is 1.4 MB: gigabytes over a long drive)."""
 
@@ -36,7 +37,7 @@ class Keyframe:
     timestamp: float
     odom_pose: np.ndarray
     gt_pose: np.ndarray | None
-    scan: np.ndarray | None
+    scan: KeptScan | None
     image: ReducedImage | None
     rear_image: ReducedImage | None = None  # kept only where a loop may need two-view geometry (no scan)
     thumbnail: bytes | None = None  # JPEG, for trajectory.mcap (results.mcap)

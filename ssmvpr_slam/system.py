@@ -30,6 +30,7 @@ from loopclosure.backbone import Backbone
 from loopclosure.detector import LoopDetector, LoopProposal
 from loopclosure.encoder import Encoder
 from ssmvpr_slam.backend.g2o_io import from_pose_graph
+from ssmvpr_slam.backend.kept_scan import KeptScan, keep_scan
 from ssmvpr_slam.backend.loop_registration import LoopRegistrar, LoopRegistration, build_local_map
 from ssmvpr_slam.backend.pose_graph import PoseGraph
 from ssmvpr_slam.backend.two_view import reduce_image
@@ -160,7 +161,7 @@ class SlamSystem:
                              dict(counts.frames_skipped), seconds)  # fmt: skip
 
     def _keep(self, frame: Frame, pose: np.ndarray, keyframe_id: int) -> Keyframe:
-        """What the run keeps of a keyframe: poses, the voxelised scan (float32), a grey copy of
+        """What the run keeps of a keyframe: poses, the voxelised scan (int16 cm), a grey copy of
         the image within the pixel budget (and of the rear image where there is no scan), a
         JPEG thumbnail for trajectory.mcap; never the full images (megabytes per keyframe)."""
         assert frame.image is not None
@@ -244,17 +245,9 @@ class SlamSystem:
         deskewed = getattr(self.odometry, "last_scan", None)
         return deskewed if deskewed is not None else frame.points
 
-    def _keep_scan(self, points: np.ndarray | None) -> np.ndarray | None:
-        if points is None or len(points) == 0:
-            return None
-        from kiss_icp.voxelization import voxel_down_sample
-
+    def _keep_scan(self, points: np.ndarray | None) -> KeptScan | None:
         lidar = self.config.backend.registration.lidar
-        finite = np.asarray(points, dtype=np.float64)
-        finite = finite[np.isfinite(finite).all(axis=1)]
-        voxel = lidar.voxel_size * lidar.map_downsample_factor
-        # float32 as a saved map holds them: half the memory, micrometres at 100 m
-        return voxel_down_sample(finite, voxel).astype(np.float32) if len(finite) else None
+        return keep_scan(points, lidar.voxel_size * lidar.map_downsample_factor)
 
     def _register(self, kf: Keyframe, proposal: LoopProposal) -> LoopRegistration:
         """ICP against a local map around the match when both have scans, else a place prior."""
@@ -264,12 +257,12 @@ class SlamSystem:
         if kf.scan is not None and match.scan is not None:
             half = self.config.backend.registration.lidar.local_map_half_window
             window = self.state.keyframes[max(0, match.id - half) : match.id + half + 1]
-            with_scans = [(k.scan, k.odom_pose) for k in window if k.scan is not None]
+            with_scans = [(k.scan.points, k.odom_pose) for k in window if k.scan is not None]
             local_map = build_local_map(
                 [scan for scan, _ in with_scans], [pose for _, pose in with_scans], match.odom_pose,
                 self.config.backend.registration.lidar.max_range,
             )  # fmt: skip
-            return self.registrar.register_scans(kf.scan, local_map, proposal.yaw_guess)
+            return self.registrar.register_scans(kf.scan.points, local_map, proposal.yaw_guess)
         if proposal.camera == "rear":  # the rear image saw what the match's forward camera saw
             if kf.rear_image is None:
                 return self.registrar.yaw_prior(proposal.yaw_guess, "rear camera match: no rear image kept")
@@ -294,7 +287,7 @@ class SlamSystem:
         if kf.scan is not None and parts:
             scans, poses = zip(*parts)
             local_map = build_local_map(scans, poses, pose, lidar.max_range)
-            return self.registrar.register_scans(kf.scan, local_map, proposal.yaw_guess)
+            return self.registrar.register_scans(kf.scan.points, local_map, proposal.yaw_guess)
         return self.registrar.yaw_prior(proposal.yaw_guess, "prior-map place: no scans to align")
 
     # ---- the end --------------------------------------------------------------------------

@@ -130,7 +130,7 @@ def write_database(folder: Path, result: RunResult, config: SlamConfig, poses: n
     places = result.session_places
     kfs = result.keyframes
     map_poses = {} if in_map is None else {places[k.id]: in_map[k.id] for k in kfs if k.id in places}
-    scans = {places[k.id]: k.scan for k in kfs if k.id in places and k.scan is not None}
+    scans = {places[k.id]: k.scan.points.astype(np.float32) for k in kfs if k.id in places and k.scan is not None}
     gt = {places[k.id]: k.gt_pose for k in kfs if k.id in places and k.gt_pose is not None}
     if result.prior_map is not None:  # carry the prior places' scans into the grown map
         scans.update(result.prior_map.scans)

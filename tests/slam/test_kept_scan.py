@@ -1,0 +1,64 @@
+"""A keyframe keeps its voxelised scan as int16 centimetres: half of float32, within 5 mm,
+exact through a checkpoint, and metres again wherever registration or a saved map reads it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ssmvpr_slam import checkpoint
+from ssmvpr_slam.backend.kept_scan import MAX_RANGE_M, KeptScan, keep_scan
+from ssmvpr_slam.result import Keyframe, RunResult
+
+
+def _street_scan(n: int, seed: int) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    return rng.uniform([-90, -90, -3], [90, 90, 12], size=(n, 3))
+
+
+def test_points_come_back_within_half_a_centimetre_at_half_the_bytes() -> None:
+    points = _street_scan(5000, 0)
+    kept = KeptScan.from_points(points)
+    assert kept is not None and len(kept) == 5000
+    assert np.abs(kept.points - points).max() <= 0.005 + 1e-12
+    assert kept.nbytes == 5000 * 3 * 2 == points.astype(np.float32).nbytes // 2
+
+
+def test_non_finite_and_unholdable_points_are_dropped() -> None:
+    points = np.array([[1.0, 2.0, 3.0], [np.nan, 0, 0], [MAX_RANGE_M + 1, 0, 0], [0, -400.0, 0], [-5.25, 0.004, 2]])
+    kept = KeptScan.from_points(points)
+    assert kept is not None
+    np.testing.assert_allclose(kept.points, [[1.0, 2.0, 3.0], [-5.25, 0.0, 2.0]])
+    assert KeptScan.from_points(np.array([[np.inf, 0, 0]])) is None
+    assert keep_scan(None, 0.5) is None and keep_scan(np.zeros((0, 3)), 0.5) is None
+
+
+def test_keep_scan_voxelises_to_one_point_per_voxel() -> None:
+    points = _street_scan(20000, 1)
+    kept = keep_scan(points, 5.0)
+    assert kept is not None
+    assert len(kept) == len(np.unique(np.floor(points / 5.0), axis=0)) < 20000
+
+
+@pytest.mark.parametrize("bad", [np.zeros((4, 3), np.float32), np.zeros((4, 2), np.int16), np.zeros(3, np.int16)])
+def test_a_kept_scan_refuses_anything_but_int16_xyz(bad: np.ndarray) -> None:
+    with pytest.raises(ValueError, match="int16"):
+        KeptScan(bad)
+
+
+def test_a_checkpoint_holds_the_kept_scans_exactly(tmp_path: Path) -> None:
+    poses = np.tile(np.eye(4), (3, 1, 1))
+    poses[:, 0, 3] = np.arange(3.0)
+    scans = [KeptScan.from_points(_street_scan(100 + k, k)) for k in range(2)] + [None]
+    kfs = tuple(Keyframe(k, k, float(k), poses[k], None, scans[k], None) for k in range(3))
+    result = RunResult(kfs, (), np.arange(3.0), poses, poses)
+    (tmp_path / "keyframes.npz").write_bytes(checkpoint._npz(checkpoint._keyframe_arrays(result)))
+    back = checkpoint._keyframes(checkpoint._load_npz(tmp_path / "keyframes.npz"), tmp_path / "images")
+    for before, after in zip(kfs, back):
+        if before.scan is None:
+            assert after.scan is None
+        else:
+            assert after.scan is not None and after.scan.centimetres.dtype == np.int16
+            assert np.array_equal(after.scan.centimetres, before.scan.centimetres)
