@@ -75,6 +75,7 @@ from loopclosure.encoder import PlaceCodes  # noqa: E402
 from loopclosure.filtering import max_row_norm, rank_neighbours, vote  # noqa: E402
 from loopclosure.pca import Codebooks, PCAProjection  # noqa: E402
 from loopclosure.spatial import best_query_cells, consistency_counts, spatial_scores  # noqa: E402
+from ssmvpr_common.atomic import atomic_write_text  # noqa: E402
 
 SHARED = Path(os.environ.get("SSMVPR_SHARED", ROOT.parent / "shared"))
 DEFAULT_IMAGES = SHARED / "data" / "corridor" / "ref"
@@ -992,7 +993,7 @@ def main(argv: list[str] | None = None) -> dict:
         result["wall_s"] = round(time.perf_counter() - t_start, 1)
         text = json.dumps(result, indent=2)
         if args.output:
-            Path(args.output).write_text(text + "\n")
+            atomic_write_text(args.output, text + "\n")
         print(text)
         return result
     with blas_limit(args.blas_threads):
@@ -1057,7 +1058,7 @@ def main(argv: list[str] | None = None) -> dict:
     result["wall_s"] = round(time.perf_counter() - t_start, 1)
     text = json.dumps(result, indent=2)
     if args.output:
-        Path(args.output).write_text(text + "\n")
+        atomic_write_text(args.output, text + "\n")
     print(text)
     return result
 
