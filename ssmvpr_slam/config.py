@@ -85,9 +85,10 @@ class PipelineConfig(BaseModel):
     use_lidar_for_loops: bool = Field(default=True, description="Register loops by ICP when scans exist.")
     keyframe_image_pixels: int | None = Field(
         default=76800, ge=1024,
-        description="Each keyframe keeps a grey copy of its camera image (and of its rear image where it has no "
-        "scan) for two-view loop registration, area-averaged to at most this many pixels (aspect kept; 76800 = "
-        "320 x 240) and held as PNG bytes; None keeps them at full size. Full colour images are not kept.",
+        description="A keyframe without a scan keeps grey copies of its camera images for two-view loop "
+        "registration, area-averaged to at most this many pixels (aspect kept; 76800 = 320 x 240) and held as PNG "
+        "bytes; None keeps them at full size. Keyframes with a scan register by ICP and keep no image; full colour "
+        "images are never kept.",
     )  # fmt: skip
     overlap: bool = Field(
         default=False,
@@ -98,6 +99,13 @@ class PipelineConfig(BaseModel):
     )
     overlap_queue_keyframes: int = Field(
         default=2, ge=1, description="With overlap: keyframes the front end may run ahead of the back end."
+    )
+    release_heap_every_keyframes: int = Field(
+        default=25,
+        ge=0,
+        description="Hand the allocator's free pages back to the OS (glibc malloc_trim) every this many keyframes; "
+        "0 never. Without it a long run's memory grew about 1.2 MB per keyframe of memory it no longer used "
+        "(ssmvpr_slam/heap.py).",
     )
 
 

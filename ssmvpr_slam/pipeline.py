@@ -32,6 +32,7 @@ from frontend.odometry.base import Odometry
 from loopclosure.backbone import Backbone
 from ssmvpr_slam.backend.pose_graph import PoseGraph
 from ssmvpr_slam.config import SlamConfig
+from ssmvpr_slam.heap import HeapTrimmer
 from ssmvpr_slam.prior_map import PriorMap
 from ssmvpr_slam.result import RunResult, StreamEnd
 from ssmvpr_slam.system import KeyframeInput, RunState, SlamSystem
@@ -96,6 +97,7 @@ class SlamPipeline:
         self.stop = StopFlag()
         self.ending = StreamEnd()
         self.step_error: Exception | None = None  # the exception that ended the loop, for the caller
+        self.heap = HeapTrimmer(self.config.pipeline.release_heap_every_keyframes)
 
     # the system's parts, for callers that inspect a run (tests, benchmarks)
     @property
@@ -162,8 +164,7 @@ class SlamPipeline:
                 self.step_error = exc
                 log.exception("frame %s failed", frame.index)
                 break
-            if on_frame is not None:
-                on_frame(self.state)
+            self._after_step(on_frame)
         return None
 
     def _run_overlapped(self, iterator: Iterator[Frame], on_frame: Callable[[RunState], None] | None) -> str | None:
@@ -220,8 +221,7 @@ class SlamPipeline:
                     self.step_error = exc
                     log.exception("keyframe %s (frame %s) failed", message.keyframe.id, message.keyframe.frame_index)
                     break
-                if on_frame is not None:
-                    on_frame(self.state)
+                self._after_step(on_frame)
         finally:
             if end is None:  # the consumer stopped first: release a producer waiting on a full queue
                 cancel.set()
@@ -234,6 +234,11 @@ class SlamPipeline:
         if on_frame is not None:
             on_frame(self.state)
         return end.source_error
+
+    def _after_step(self, on_frame: Callable[[RunState], None] | None) -> None:
+        self.heap.after(len(self.state.keyframes))
+        if on_frame is not None:
+            on_frame(self.state)
 
     def finish(self) -> RunResult:
         """The system's result, with how the stream ended (optimises once; see SlamSystem.finish)."""

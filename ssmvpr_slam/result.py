@@ -28,9 +28,10 @@ if TYPE_CHECKING:  # only for annotations: the result module stays light to impo
 @dataclass(frozen=True)
 class Keyframe:
     """What the back end, the evaluation and the outputs keep of a keyframe for the whole run,
-    bounded per keyframe: the voxelised scan (`KeptScan`, int16 centimetres), grey copies of the images within
-    `pipeline.keyframe_image_pixels` for two-view registration, a JPEG thumbnail. Never the
-    full camera images (a KITTI image is 1.4 MB: gigabytes over a long drive)."""
+    bounded per keyframe: the voxelised scan (`KeptScan`, int16 centimetres) or, without one,
+    grey copies of the images within `pipeline.keyframe_image_pixels` for two-view
+    registration, and a JPEG thumbnail. Never the full camera images (a KITTI image is 1.4 MB:
+    gigabytes over a long drive)."""
 
     id: int
     frame_index: int
@@ -39,7 +40,7 @@ class Keyframe:
     gt_pose: np.ndarray | None
     scan: KeptScan | None
     image: ReducedImage | None
-    rear_image: ReducedImage | None = None  # kept only where a loop may need two-view geometry (no scan)
+    rear_image: ReducedImage | None = None
     thumbnail: bytes | None = None  # JPEG, for trajectory.mcap (results.mcap)
 
     @property

@@ -161,16 +161,19 @@ class SlamSystem:
                              dict(counts.frames_skipped), seconds)  # fmt: skip
 
     def _keep(self, frame: Frame, pose: np.ndarray, keyframe_id: int) -> Keyframe:
-        """What the run keeps of a keyframe: poses, the voxelised scan (int16 cm), a grey copy of
-        the image within the pixel budget (and of the rear image where there is no scan), a
-        JPEG thumbnail for trajectory.mcap; never the full images (megabytes per keyframe)."""
+        """What the run keeps of a keyframe: poses, the voxelised scan (int16 cm), grey copies of
+        the images within the pixel budget where there is no scan (two-view registration is
+        what registers such a keyframe; with scans on both sides ICP does), and a JPEG
+        thumbnail for trajectory.mcap; never the full images (megabytes per keyframe)."""
         assert frame.image is not None
         pipeline = self.config.pipeline
         scan = self._keep_scan(self._scan_of(frame)) if pipeline.use_lidar_for_loops else None
         pixels = pipeline.keyframe_image_pixels
-        rear = None
-        if scan is None and frame.rear_image is not None:
-            rear = reduce_image(frame.rear_image, pixels, f"keyframe {keyframe_id} rear image")
+        image = rear = None
+        if scan is None:
+            image = reduce_image(frame.image, pixels, f"keyframe {keyframe_id} image")
+            if frame.rear_image is not None:
+                rear = reduce_image(frame.rear_image, pixels, f"keyframe {keyframe_id} rear image")
         thumbnail = None
         if self.config.results.mcap:
             thumbnail = thumbnail_jpeg(frame.image, self.config.results.mcap_thumbnail_width)
@@ -181,7 +184,7 @@ class SlamSystem:
             odom_pose=np.array(pose, dtype=np.float64),
             gt_pose=None if frame.gt_pose is None else np.array(frame.gt_pose, dtype=np.float64),
             scan=scan,
-            image=reduce_image(frame.image, pixels, f"keyframe {keyframe_id} image"),
+            image=image,
             rear_image=rear,
             thumbnail=thumbnail,
         )

@@ -57,6 +57,9 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--precision", default=None, help="vpr.backbone.precision")
     parser.add_argument("--omp-wait-policy", default="inherit", help="PASSIVE | ACTIVE | inherit (the environment's)")
     parser.add_argument("--rss-every", type=int, default=0, help="sample RSS every N keyframes (0: off)")
+    parser.add_argument(
+        "--release-heap-every", type=int, default=None, help="pipeline.release_heap_every_keyframes (0: never)"
+    )
     parser.add_argument("--weights", default=None, help="VGG16 weights (default: resolve as configured)")
     parser.add_argument("--device", default=None, help="auto | cpu | cuda")
     parser.add_argument("--config", default=None)
@@ -94,6 +97,8 @@ def main(argv: list[str] | None = None) -> int:
         config.pipeline.overlap = args.overlap
     if args.no_lidar_loops:
         config.pipeline.use_lidar_for_loops = False
+    if args.release_heap_every is not None:
+        config.pipeline.release_heap_every_keyframes = args.release_heap_every
     config.frontend.odometry.kind = args.odometry
     if args.log is not None:
         source: Any = open_source(args.log, config.frontend.source, config.frontend.pose_files)
@@ -150,7 +155,9 @@ def main(argv: list[str] | None = None) -> int:
             "precision": config.vpr.backbone.precision,
             "lidar_loops": config.pipeline.use_lidar_for_loops,
             "keyframe_image_pixels": config.pipeline.keyframe_image_pixels,
+            "release_heap_every_keyframes": config.pipeline.release_heap_every_keyframes,
         },
+        "heap_trims": {"calls": pipeline.heap.calls, "seconds": round(pipeline.heap.seconds, 3)},
         "frames": state.frames_seen,
         "keyframes": n_kf,
         "rear_keyframes": state.rear_keyframes,

@@ -380,6 +380,11 @@ def test_kiss_icp_run_closes_loops_by_icp_without_harm(kiss: Run) -> None:
     state = kiss.pipeline.state
     assert len(state.keyframes) == KISS_FRAMES // 2 and not state.frames_skipped
     assert kiss.pipeline.odometry.stats.skipped == {} or not any(kiss.pipeline.odometry.stats.skipped.values())
+    # with a scan a keyframe keeps it (int16 cm) and no image: ICP registers it, not two views
+    assert all(k.scan is not None and k.image is None and k.rear_image is None for k in state.keyframes)
+    assert (
+        kiss.pipeline.heap.calls == len(state.keyframes) // kiss.pipeline.config.pipeline.release_heap_every_keyframes
+    )
     loops = kiss.metrics["loops"]
     assert loops["in_graph"] >= 8 and loops["precision"] == 1.0
     graph = _graph_loops(kiss)
