@@ -40,12 +40,11 @@ import numpy as np
 TOOLS = Path(__file__).resolve().parent
 sys.path.insert(0, str(TOOLS))
 
-from bench_vpr import DEFAULT_IMAGES, load_images, loadavg, log, machine_info, pick_weights, stats  # noqa: E402
+from bench_vpr import DEFAULT_IMAGES, emit, load_images, loadavg, log, machine_info, pick_weights, stats  # noqa: E402
 
 from loopclosure.backbone import Backbone, cpu_has_fast_bf16  # noqa: E402
 from loopclosure.config import BackboneConfig  # noqa: E402
 from loopclosure.errors import LoopClosureInputError  # noqa: E402
-from ssmvpr_common.atomic import atomic_write_text  # noqa: E402
 
 # tools/peak_flops.c on both cores of this project's machine (AMD EPYC, family 26 = Zen 5, about
 # 4.2 GHz; 2026-11-24): 265 GFLOP/s fp32, 530 bf16, 1055 GOP/s int8 per core, i.e. 64 / 128 / 256
@@ -238,12 +237,7 @@ def main(argv: list[str] | None = None) -> dict:
     }
     result["machine"]["loadavg_mid"] = load_mid
     result["machine"]["loadavg_end"] = loadavg()
-    result["wall_s"] = round(time.perf_counter() - t_start, 1)
-    text = json.dumps(result, indent=2)
-    if args.output:
-        atomic_write_text(args.output, text + "\n")
-    print(text)
-    return result
+    return emit(result, t_start, args.output)
 
 
 if __name__ == "__main__":

@@ -135,6 +135,16 @@ def unit_rows(x: np.ndarray) -> np.ndarray:
     return x
 
 
+def emit(result: dict, t_start: float, output: str | None) -> dict:
+    """Stamp the wall time, print the JSON and write it to `output` (atomically) when given."""
+    result["wall_s"] = round(time.perf_counter() - t_start, 1)
+    text = json.dumps(result, indent=2)
+    if output:
+        atomic_write_text(output, text + "\n")
+    print(text)
+    return result
+
+
 def loadavg() -> list[float] | None:
     try:
         return [round(v, 2) for v in os.getloadavg()]
@@ -990,12 +1000,7 @@ def main(argv: list[str] | None = None) -> dict:
                     config, args.mapped_places, args.mapped_dtype, Path(tmp) / "map"
                 )
         machine["loadavg_end"] = loadavg()
-        result["wall_s"] = round(time.perf_counter() - t_start, 1)
-        text = json.dumps(result, indent=2)
-        if args.output:
-            atomic_write_text(args.output, text + "\n")
-        print(text)
-        return result
+        return emit(result, t_start, args.output)
     with blas_limit(args.blas_threads):
         if args.index_sizes:
             result["stage1_index"] = bench_stage1_index(args, config, _ints(args.index_sizes), repeats)
@@ -1055,12 +1060,7 @@ def main(argv: list[str] | None = None) -> dict:
             f"busy machine: 1-min load average up to {max(load)} on {os.cpu_count()} CPUs; "
             "timings are inflated and noisy (medians over repeats reported)"
         )
-    result["wall_s"] = round(time.perf_counter() - t_start, 1)
-    text = json.dumps(result, indent=2)
-    if args.output:
-        atomic_write_text(args.output, text + "\n")
-    print(text)
-    return result
+    return emit(result, t_start, args.output)
 
 
 if __name__ == "__main__":

@@ -188,14 +188,14 @@ def test_pure_rotation_yaw_is_recovered(camera, yaw_deg):
     assert reg.sigmas[3] == cfg.two_view.translation_sigma
 
 
-@pytest.mark.parametrize(("yaw_deg", "t_mq_cam"), [(10.0, [1.0, 0.0, 0.3]), (-6.0, [-1.5, 0.0, 0.5])])
-def test_essential_matrix_yaw_with_baseline(camera, yaw_deg, t_mq_cam):
-    """A concave corner of two textured walls 6 m away, seen after a sideways step."""
-    cfg, body_from_cam, k, img_m = camera
-    r_qm = cam_rotation_qm(body_from_cam, yaw_deg)
+def _corner_view(
+    img_m: np.ndarray, k: np.ndarray, r_qm: np.ndarray, t_mq_cam: list[float], split_px: int
+) -> np.ndarray:
+    """The query view of a concave corner of two textured walls 6 m away (the left wall up to
+    column `split_px` of the matched image), after the camera moved by (r_qm, t_mq_cam)."""
     t_qm = -r_qm @ np.asarray(t_mq_cam)
     left = np.zeros((H_PX, W_PX), np.float32)
-    left[:, : W_PX // 2] = 1.0
+    left[:, :split_px] = 1.0
     img_q = np.zeros((H_PX, W_PX), np.float32)
     depth = 6.0
     for normal, mask in (((-1, 0, 1), left), ((1, 0, 1), 1.0 - left)):
@@ -203,7 +203,15 @@ def test_essential_matrix_yaw_with_baseline(camera, yaw_deg, t_mq_cam):
         h = k @ (r_qm + np.outer(t_qm, n) / (depth / np.sqrt(2.0))) @ np.linalg.inv(k)
         warped = cv2.warpPerspective(img_m.astype(np.float32), h, (W_PX, H_PX))
         img_q += warped * cv2.warpPerspective(mask, h, (W_PX, H_PX), flags=cv2.INTER_NEAREST)
-    reg = LoopRegistrar(cfg).register_images(img_q.astype(np.uint8), img_m, yaw_guess=0.0)
+    return img_q.astype(np.uint8)
+
+
+@pytest.mark.parametrize(("yaw_deg", "t_mq_cam"), [(10.0, [1.0, 0.0, 0.3]), (-6.0, [-1.5, 0.0, 0.5])])
+def test_essential_matrix_yaw_with_baseline(camera, yaw_deg, t_mq_cam):
+    """A concave corner of two textured walls 6 m away, seen after a sideways step."""
+    cfg, body_from_cam, k, img_m = camera
+    img_q = _corner_view(img_m, k, cam_rotation_qm(body_from_cam, yaw_deg), t_mq_cam, W_PX // 2)
+    reg = LoopRegistrar(cfg).register_images(img_q, img_m, yaw_guess=0.0)
     assert reg.accepted and reg.method == "two_view_essential", reg.reason
     assert np.degrees(yaw_of(reg.T_mq[:3, :3])) == pytest.approx(yaw_deg, abs=2.5)
 
@@ -291,19 +299,9 @@ def test_essential_matrix_yaw_on_the_kept_images_with_calibrated_intrinsics(came
     cfg, body_from_cam, _, img_m = camera
     two_view = cfg.two_view.model_copy(update={"fx": 520.0, "fy": 520.0, "cx": 300.0, "cy": 260.0})
     k = intrinsics(two_view, W_PX, H_PX)
-    r_qm = cam_rotation_qm(body_from_cam, yaw_deg)
-    t_qm = -r_qm @ np.asarray(t_mq_cam)
-    left = np.zeros((H_PX, W_PX), np.float32)
-    left[:, :300] = 1.0
-    img_q = np.zeros((H_PX, W_PX), np.float32)
-    depth = 6.0
-    for normal, mask in (((-1, 0, 1), left), ((1, 0, 1), 1.0 - left)):
-        n = np.asarray(normal, float) / np.sqrt(2.0)
-        h = k @ (r_qm + np.outer(t_qm, n) / (depth / np.sqrt(2.0))) @ np.linalg.inv(k)
-        warped = cv2.warpPerspective(img_m.astype(np.float32), h, (W_PX, H_PX))
-        img_q += warped * cv2.warpPerspective(mask, h, (W_PX, H_PX), flags=cv2.INTER_NEAREST)
+    img_q = _corner_view(img_m, k, cam_rotation_qm(body_from_cam, yaw_deg), t_mq_cam, 300)
     registrar = LoopRegistrar(cfg.model_copy(update={"two_view": two_view}))
-    reg = registrar.register_images(reduce_image(img_q.astype(np.uint8), KEPT_PIXELS), reduce_image(img_m, KEPT_PIXELS))
+    reg = registrar.register_images(reduce_image(img_q, KEPT_PIXELS), reduce_image(img_m, KEPT_PIXELS))
     assert reg.accepted and reg.method == "two_view_essential", reg.reason
     assert np.degrees(yaw_of(reg.T_mq[:3, :3])) == pytest.approx(yaw_deg, abs=2.5)
 
