@@ -66,11 +66,7 @@ def write_trajectory_mcap(path: Path, result: RunResult) -> Path | None:
                 OPTIMISED_POSE, ros_msgdefs.POSE_STAMPED, ros_convert.pose_stamped_message(opt, t, FRAME), t
             )
             if kf.thumbnail is not None:
-                message = {
-                    "header": ros_convert.header_dict(t, f"keyframe_{kf.id}"),
-                    "format": "jpeg",
-                    "data": kf.thumbnail,
-                }
+                message = ros_convert.encoded_image_message(kf.thumbnail, t, f"keyframe_{kf.id}", "jpeg")
                 writer.write_message(THUMBNAILS, ros_msgdefs.COMPRESSED_IMAGE, message, t)
     return path
 

@@ -84,7 +84,12 @@ def compressed_image_message(
     ok, buffer = cv2.imencode(f".{fmt}", cv2.cvtColor(image, cv2.COLOR_RGB2BGR), params)
     if not ok:
         raise ValueError(f"cv2 could not encode a {image.shape} image as {fmt}")
-    return {"header": header_dict(seconds, frame_id), "format": fmt, "data": buffer.tobytes()}
+    return encoded_image_message(buffer.tobytes(), seconds, frame_id, fmt)
+
+
+def encoded_image_message(data: bytes, seconds: float, frame_id: str, fmt: str) -> dict[str, Any]:
+    """sensor_msgs/CompressedImage around bytes already encoded as ``fmt``."""
+    return {"header": header_dict(seconds, frame_id), "format": fmt, "data": data}
 
 
 def point_cloud_message(points: np.ndarray, times: np.ndarray | None, seconds: float, frame_id: str) -> dict[str, Any]:
