@@ -24,6 +24,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from frontend.simulation import TraverseSimulator, default_demo_config  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _memory import peak_rss_mb, rss_mb  # noqa: E402
 from _sim_options import add_simulation_options, simulation_config  # noqa: E402
 
 
@@ -41,28 +42,19 @@ def _rate(fn, ks, repeats: int) -> tuple[float, float]:
     return len(ks) / best_wall, best_cpu / len(ks) * 1000
 
 
-def _rss_mb() -> float:
-    """Resident set size now (Linux /proc), in MB."""
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024
-    return float("nan")
-
-
 def stream_mcap(args: argparse.Namespace, parser: argparse.ArgumentParser) -> dict:
     """Simulate a whole traverse into an MCAP log; RSS along the way."""
-    import resource
     import tempfile
 
     from frontend.sources import write_frames
 
     overrides = {"route": {"laps": args.laps}} if args.laps else {}
     config = simulation_config(parser, args, **overrides)
-    rss_start = _rss_mb()
+    rss_start = rss_mb()
     t0 = time.perf_counter()
     sim = TraverseSimulator(config)
     setup_s = time.perf_counter() - t0
-    rss_after_setup = _rss_mb()
+    rss_after_setup = rss_mb()
     n = len(sim)
     marks = {max(1, round(n * i / 10)) for i in range(1, 11)}
     samples: list[dict[str, float]] = []
@@ -71,7 +63,7 @@ def stream_mcap(args: argparse.Namespace, parser: argparse.ArgumentParser) -> di
         for k, frame in enumerate(sim.frames(), start=1):
             yield frame
             if k in marks:
-                samples.append({"frames": k, "rss_mb": round(_rss_mb(), 1)})
+                samples.append({"frames": k, "rss_mb": round(rss_mb(), 1)})
 
     with tempfile.TemporaryDirectory() as tmp:
         log = Path(tmp) / "traverse.mcap"
@@ -90,7 +82,7 @@ def stream_mcap(args: argparse.Namespace, parser: argparse.ArgumentParser) -> di
         "mcap_mb": round(size_mb, 1),
         "rss_mb": {"start": round(rss_start, 1), "after_setup": round(rss_after_setup, 1), "by_frames": samples},
         "rss_growth_second_half_mb": round(rss[-1] - rss[len(rss) // 2 - 1], 1) if len(rss) >= 2 else None,
-        "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+        "peak_rss_mb": round(peak_rss_mb(), 1),
     }
 
 

@@ -34,13 +34,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-
-def _rss_mb() -> float:
-    """Resident set size now (Linux /proc), in MB."""
-    for line in Path("/proc/self/status").read_text().splitlines():
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024
-    return float("nan")
+from _memory import peak_rss_mb, rss_mb  # noqa: E402
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -124,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.rss_every and n and n % args.rss_every == 0 and (not samples or samples[-1]["keyframes"] != n):
             database = pipeline.detector.database
             samples.append({
-                "keyframes": n, "frames": state.frames_seen, "rss_mb": round(_rss_mb(), 2),
+                "keyframes": n, "frames": state.frames_seen, "rss_mb": round(rss_mb(), 2),
                 "database_places": 0 if database is None else len(database),
                 "kept_mb": round(sum(k.nbytes for k in state.keyframes) / 1e6, 3),
                 "load_1min": round(os.getloadavg()[0], 2), "seconds": round(time.perf_counter() - start, 1),
@@ -199,15 +193,9 @@ def _memory(samples: list[dict[str, float]], pipeline: Any, state: Any, np: Any)
             "mean": round(float(np.mean(kept)) / 1024, 1) if kept else None,
             "max": round(float(np.max(kept)) / 1024, 1) if kept else None,
         },
-        "peak_rss_mb": round(_peak_rss_mb(), 1),
+        "peak_rss_mb": round(peak_rss_mb(), 1),
         "target_besides_database_kb": 150,
     }
-
-
-def _peak_rss_mb() -> float:
-    import resource
-
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
 
 
 if __name__ == "__main__":

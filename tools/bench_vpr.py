@@ -77,6 +77,9 @@ from loopclosure.pca import Codebooks, PCAProjection  # noqa: E402
 from loopclosure.spatial import best_query_cells, consistency_counts, spatial_scores  # noqa: E402
 from ssmvpr_common.atomic import atomic_write_text  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _memory import rss_mb  # noqa: E402
+
 SHARED = Path(os.environ.get("SSMVPR_SHARED", ROOT.parent / "shared"))
 DEFAULT_IMAGES = SHARED / "data" / "corridor" / "ref"
 SHARED_WEIGHTS = SHARED / "weights" / "vgg16_imagenet_conv.pth"
@@ -869,14 +872,13 @@ def bench_mapped_map(config: VPRConfig, n_places: int, dtype: str, folder: Path)
     write_s = time.perf_counter() - t0
     db = None  # freed before the next size (the lambdas above ran already)
     gc.collect()
-    rss = lambda: int(Path("/proc/self/statm").read_text().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20  # noqa: E731 - MB now
     out: dict = {"places": n_places, "dtypes": [dbc.stage1_dtype, dbc.stage2_dtype], "write_s": round(write_s, 1),
                  "disk_mb": round(sum(f.stat().st_size for f in folder.iterdir()) / 2**20, 1)}  # fmt: skip
-    peak0 = rss()
+    peak0 = rss_mb()
     t0 = time.perf_counter()
     mapped = PlaceDatabase.load(folder, mmap=True)
     out["open_mapped_s"] = round(time.perf_counter() - t0, 3)
-    out["open_mapped_rss_growth_mb"] = round(rss() - peak0, 1)
+    out["open_mapped_rss_growth_mb"] = round(rss_mb() - peak0, 1)
     del mapped
     grow = PlaceDatabase.open(folder)
     one = PlaceCodes(unit_rows(rng.standard_normal((1, *shapes["stage1"]), dtype=np.float32)),
@@ -893,10 +895,10 @@ def bench_mapped_map(config: VPRConfig, n_places: int, dtype: str, folder: Path)
     del grow
     gc.collect()
     t0 = time.perf_counter()
-    peak0 = rss()
+    peak0 = rss_mb()
     ram = PlaceDatabase.load(folder)
     out["load_in_ram_s"] = round(time.perf_counter() - t0, 3)
-    out["load_in_ram_rss_growth_mb"] = round(rss() - peak0, 1)
+    out["load_in_ram_rss_growth_mb"] = round(rss_mb() - peak0, 1)
     del ram
     return out
 
