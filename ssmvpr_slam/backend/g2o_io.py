@@ -19,12 +19,13 @@ is not positive definite.
 
 Representation
 --------------
-2-D graphs are **lifted into Pose3** (the back end is Pose3 throughout): a planar pose becomes a
-rotation about z plus (x, y, 0); the 3x3 information over (x, y, theta) maps onto the Pose3
-tangent (rx, ry, rz, tx, ty, tz) at (tx, ty, rz), and the three out-of-plane directions get the
-largest in-plane diagonal entry (all measurements are planar, so the solution stays planar;
-the entries only keep the system well posed). Pose3's local coordinates restricted to the
-plane are Pose2's, so the lifted problem has the same optimum as the Pose2 problem.
+2-D graphs are **held lifted into Pose3 form**, so one representation serves both (the SLAM
+pipeline's graphs are 3-D): a planar pose becomes a rotation about z plus (x, y, 0); the 3x3
+information over (x, y, theta) maps onto the Pose3 tangent (rx, ry, rz, tx, ty, tz) at (tx, ty,
+rz), and the three out-of-plane directions get the largest in-plane diagonal entry. The
+optimiser (`graph_optimizer`) takes the planar part back and solves 2-D graphs with Pose2,
+which has the same optimum (Pose3's local coordinates restricted to the plane are Pose2's) at a
+fraction of the cost; the writer writes a 2-D graph back as EDGE_SE2 from the same planar part.
 3-D information is permuted from g2o's (translation, rotation) order to GTSAM's (rotation,
 translation) order, as gtsam's own ``readG2o`` does.
 """
