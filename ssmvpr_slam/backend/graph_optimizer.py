@@ -23,8 +23,9 @@ and returns a frozen :class:`OptimizationResult`; the command line writes the ou
   weights, linear mu schedule and stopping rules runs over the whole graph from the kernel
   solution, odometry and prior as known inliers. Each step starts from the previous step's
   solution (``gnc_warm_start``); GTSAM's ``GncLMOptimizer`` (``gnc_warm_start=False``) restarts
-  every step from the kernel solution, up to 10 LM iterations each, and was 5-13x slower for the
-  same answers. The inlier threshold is the chi2 quantile for the residual's dimension: 3 for
+  every step from the kernel solution, up to 10 LM iterations each: its GNC took 1.6-3.2x as
+  long on ringCity and manhattan at 10-50 % random false loops, with the same ATE after the
+  check (docs/backend_benchmarks.md). The inlier threshold is the chi2 quantile for the residual's dimension: 3 for
   2-D graphs, 6 for 3-D.
 * Leave-one-out check (``verify=True``, with GNC): GNC, like every local method, can end in a
   minimum where a false loop is kept and the map is bent to satisfy it. On ringCity a single
