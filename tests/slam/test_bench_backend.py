@@ -51,15 +51,3 @@ def test_tiny_run_json_and_markdown(bench, capsys, tmp_path: Path, shared_dir: P
     assert bench.main(["--markdown", str(out)]) == 0
     table = capsys.readouterr().out
     assert "### Kernel `dcs`" in table and "| ring | random | 30% |" in table
-    assert results["protocol"]["gnc_solver"] == "warm"
-
-
-def test_gtsam_gnc_solver_is_selectable(bench, capsys, shared_dir: Path) -> None:  # noqa: ANN001
-    """--gnc-solver gtsam runs GTSAM's GncLMOptimizer (the reference the warm start is checked
-    against); on ring with 30 % random false loops both hold."""
-    assert bench.main(["--graphs", "ring", "--rates", "0.3", "--kinds", "random", "--kernels", "dcs",
-                       "--gnc", "on", "--gnc-solver", "gtsam", "--quiet"]) == 0  # fmt: skip
-    results = json.loads(capsys.readouterr().out)
-    assert results["protocol"]["gnc_solver"] == "gtsam"
-    (row,) = results["rows"]
-    assert row["gnc"] and row["ate_ratio"] <= 1.1 and row["outlier_recall"] == 1.0

@@ -21,7 +21,6 @@ from ssmvpr_slam.backend.graph_optimizer import (
     OptimizerSettings,
     check_kept_loops,
     chi2_threshold,
-    gnc_weights,
     initial_poses,
     optimize_graph,
     refine_with_gnc,
@@ -241,33 +240,3 @@ def test_planar_graph_solved_with_pose2_reaches_the_lifted_pose3_optimum() -> No
         np.testing.assert_allclose(planar.poses, spatial.poses, atol=1e-5)
         np.testing.assert_allclose(planar.loop_chi2, spatial.loop_chi2, rtol=1e-4, atol=1e-6)
     assert chi2_threshold(noisy, 0.99)[0] == 3 and chi2_threshold(lifted, 0.99)[0] == 6
-
-
-def test_tls_weights_follow_the_gnc_rule() -> None:
-    """Truncated least squares (Yang et al. 2020, eq. 14): weight 1 under mu/(mu+1) c^2, 0 over
-    (mu+1)/mu c^2, in between a weight that falls with the cost; GM is smooth and 1 at zero."""
-    c2, mu = 5.0, 2.0
-    cost = np.array([0.0, 3.0, 3.4, 5.0, 7.4, 7.6, 100.0])
-    w = gnc_weights("tls", cost, mu, c2)
-    assert w[0] == w[1] == 1.0 and w[5] == w[6] == 0.0
-    assert 1.0 > w[2] > w[3] > w[4] > 0.0
-    assert w[3] == pytest.approx(np.sqrt(c2 * mu * (mu + 1) / 5.0) - mu)
-    gm = gnc_weights("gm", cost, mu, c2)
-    assert gm[0] == 1.0 and np.all(np.diff(gm) < 0)
-
-
-@pytest.mark.parametrize("dim", [2, 3])
-def test_warm_started_gnc_flags_the_same_loops_as_gtsams(dim: int) -> None:
-    """The default GNC starts each step from the previous solution; GTSAM's GncLMOptimizer
-    restarts from the kernel solution. Without the check both flag exactly the false loops of a
-    drifting graph with 50 % random false loops and reach the same poses."""
-    clean, noisy, gt = _drifting_graph(dim, 2)
-    kernel = optimize_graph(noisy, OptimizerSettings(gnc=False))
-    no_check = OptimizerSettings(verify=False)
-    warm = refine_with_gnc(noisy, kernel, no_check)
-    reference = refine_with_gnc(noisy, kernel, replace(no_check, gnc_warm_start=False))
-    false_indices = set(range(len(clean.edges), len(noisy.edges)))
-    for result in (warm, reference):
-        assert set(result.loop_indices[~result.loop_inlier].tolist()) == false_indices
-    assert set(np.unique(np.round(warm.loop_weight, 6))) <= {0.0, 1.0}
-    np.testing.assert_allclose(warm.poses, reference.poses, atol=1e-4)
