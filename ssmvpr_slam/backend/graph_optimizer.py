@@ -225,10 +225,8 @@ def _prior(dim: int, pose: np.ndarray) -> gtsam.NonlinearFactor:
 
 
 class _Factors:
-    """GTSAM factors of the graph, built once: Pose2 factors for a 2-D graph (its lifted 6x6
-    information restricted to x, y, theta), Pose3 for a 3-D one. The optimum is the same as the
-    lifted Pose3 problem's, but each linear solve is 3x3 blocks instead of 6x6: 5x faster on
-    manhattan with 50 % random false loops, whose long edges make the elimination nearly dense."""
+    """GTSAM factors of the graph, built once: Pose2 for a 2-D graph, Pose3 for a 3-D one (the
+    module docstring says why)."""
 
     def __init__(self, graph: PoseGraphData, initial: np.ndarray, kernel) -> None:  # noqa: ANN001
         self.graph = graph
