@@ -176,6 +176,7 @@ def _row(
         "flagged_outliers": scores["flagged_outliers"], "seconds": result.seconds,
         "check_removed": result.check_removed, "check_readmitted": result.check_readmitted,
         "from_kernel": result.from_kernel, "check_seconds": result.check_seconds,
+        "initialised_from_odometry": result.initialised_from_odometry,
     }  # fmt: skip
 
 
@@ -194,11 +195,14 @@ def _solve_cell(
     refine_scales: tuple[float, ...],
     reference: float,
     optimum: np.ndarray,
+    zero_init: bool = False,
 ) -> list[dict]:
     """Rows of one (graph, rate, kind, kernel): the kernel solve, and GNC (with the leave-one-out
     check, the default) started from it. Runs in a worker process with --jobs."""
     bench = _load_cached(name)
     noisy, truth = inject_false_loops(bench.graph, rate, kind, _cell_seed(seed, name, rate, kind))
+    if zero_init:  # as a front end without its own estimate writes it: optimize chains odometry
+        noisy = replace(noisy, poses=np.tile(np.eye(4), (len(noisy.ids), 1, 1)))
     n_false = int(truth.sum())
     settings = OptimizerSettings(kernel=kernel, gnc=False, batch=batch, refine_scales=tuple(refine_scales))
     base = optimize_graph(noisy, settings)
@@ -233,6 +237,7 @@ def run_benchmark(
     refine_scales=DEFAULT_REFINE_SCALES,
     checkpoint=None,
     jobs=1,
+    zero_init=False,
 ) -> dict:  # noqa: ANN001
     """Rows for every (graph, kernel, gnc, rate, kind); see the module docstring. `checkpoint`
     (a callable) gets the results so far after every finished cell, so a run cut short keeps its
@@ -245,7 +250,7 @@ def run_benchmark(
                          "kernels_by_graph": kernels_by_graph or {}, "gnc": list(gnc_modes),
                          "mode": "batch" if batch else "isam2", "refine_scales": list(refine_scales),
                          "seed": seed, "group_size": GROUP_SIZE, "local_span": LOCAL_SPAN,
-                         "gnc_check": True},
+                         "gnc_check": True, "zero_init": zero_init},
             "references": references,
             "rows": sorted(rows, key=_row_order),
         }  # fmt: skip
@@ -262,7 +267,7 @@ def run_benchmark(
             for kind in kinds:
                 for kernel in (kernels_by_graph or {}).get(name, kernels):
                     cells.append((name, rate, kind, kernel, tuple(gnc_modes), batch, seed, tuple(refine_scales),
-                                  reference, optima[name]))  # fmt: skip
+                                  reference, optima[name], zero_init))  # fmt: skip
 
     def done(cell_rows: list[dict]) -> None:
         rows.extend(cell_rows)
@@ -360,6 +365,9 @@ def main(argv: list[str] | None = None) -> int:
         help="limit the kernels of one graph (e.g. city10000=cauchy,dcs)",
     )
     parser.add_argument("--gnc", choices=("both", "on", "off"), default="both")
+    parser.add_argument(
+        "--zero-init", action="store_true", help="drop the stored vertex poses (optimize then chains odometry)"
+    )
     parser.add_argument("--isam2", action="store_true", help="iSAM2 in vertex order instead of batch LM (slow)")
     parser.add_argument(
         "--refine-scales",
@@ -397,7 +405,8 @@ def main(argv: list[str] | None = None) -> int:
         checkpoint = lambda partial: atomic_write_text(args.output, json.dumps(partial, indent=1) + "\n")  # noqa: E731
     results = run_benchmark(args.graphs, args.rates, args.kinds, args.kernels, gnc_modes,
                             batch=not args.isam2, seed=args.seed, kernels_by_graph=by_graph, log=log,
-                            refine_scales=args.refine_scales, checkpoint=checkpoint, jobs=args.jobs)  # fmt: skip
+                            refine_scales=args.refine_scales, checkpoint=checkpoint, jobs=args.jobs,
+                            zero_init=args.zero_init)  # fmt: skip
     results["summary"] = summary(results)
     text = json.dumps(results, indent=1)
     if args.output:

@@ -51,3 +51,15 @@ def test_tiny_run_json_and_markdown(bench, capsys, tmp_path: Path, shared_dir: P
     assert bench.main(["--markdown", str(out)]) == 0
     table = capsys.readouterr().out
     assert "### Kernel `dcs`" in table and "| ring | random | 30% |" in table
+    assert not gnc["initialised_from_odometry"] and not results["protocol"]["zero_init"]
+
+
+def test_zero_init_starts_from_chained_odometry(bench, capsys, shared_dir: Path) -> None:  # noqa: ANN001
+    """--zero-init drops the stored vertices, as a front end without its own estimate writes
+    them; the default still holds from the chained odometry."""
+    assert bench.main(["--graphs", "ring", "--rates", "0.3", "--kinds", "random", "--kernels", "dcs",
+                       "--gnc", "on", "--zero-init", "--quiet"]) == 0  # fmt: skip
+    results = json.loads(capsys.readouterr().out)
+    (row,) = results["rows"]
+    assert results["protocol"]["zero_init"] and row["initialised_from_odometry"]
+    assert row["ate_ratio"] <= 1.1 and row["outlier_recall"] == 1.0
