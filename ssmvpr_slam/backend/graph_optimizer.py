@@ -238,7 +238,8 @@ class _Factors:
         self.loop_indices: list[int] = []
         for n, e in enumerate(graph.edges):
             i, j = self.index[e.i], self.index[e.j]
-            gaussian = noise.gaussian_from_information(self.information(n))
+            information = information_pose3_to_planar(e.information) if self.dim == 2 else e.information
+            gaussian = noise.gaussian_from_information(information)
             plain = _between(self.dim, i, j, e.measured, gaussian)
             if e.is_odometry:
                 self.odometry.append((max(i, j), plain))
@@ -246,10 +247,6 @@ class _Factors:
                 robust = _between(self.dim, i, j, e.measured, noise.robustify(gaussian, kernel))
                 self.loops.append((max(i, j), robust, plain))
                 self.loop_indices.append(n)
-
-    def information(self, edge: int) -> np.ndarray:
-        information = self.graph.edges[edge].information
-        return information_pose3_to_planar(information) if self.dim == 2 else information
 
     def robust_graph(self) -> gtsam.NonlinearFactorGraph:
         g = gtsam.NonlinearFactorGraph()
@@ -323,9 +320,8 @@ def _solve_isam2(factors: _Factors, initial: np.ndarray, settings: OptimizerSett
     return factors.poses(estimate)
 
 
-def _loop_chi2(factors: _Factors, poses: np.ndarray) -> np.ndarray:
-    """Squared whitened residual of each loop (its Gaussian part) at `poses`."""
-    values = factors.values(poses)
+def _loop_chi2(factors: _Factors, values: gtsam.Values) -> np.ndarray:
+    """Squared whitened residual of each loop (its Gaussian part) at `values`."""
     return np.array([2.0 * plain.error(values) for _, _, plain in factors.loops])
 
 
@@ -346,7 +342,7 @@ def optimize_graph(graph: PoseGraphData, settings: OptimizerSettings | None = No
             factors = _Factors(graph, initial, kernel)
             poses = _solve_batch(factors, poses, settings)
     dof, threshold = chi2_threshold(graph, settings.outlier_quantile)
-    chi2 = _loop_chi2(factors, poses)
+    chi2 = _loop_chi2(factors, factors.values(poses))
     weights = np.array([1.0 if kernel is None else float(kernel.weight(np.sqrt(c))) for c in chi2])  # type: ignore[attr-defined]
     kernel_result = OptimizationResult(
         ids=graph.ids, poses=poses, loop_indices=np.asarray(factors.loop_indices, dtype=int),
@@ -395,7 +391,7 @@ def refine_with_gnc(
     if settings.verify and factors.loops:
         values, checked = _leave_one_out_check(factors, keep, values, threshold, settings)
         removed = int(np.sum(keep & ~checked))
-        fits = _loop_chi2(factors, factors.poses(values)) <= threshold
+        fits = _loop_chi2(factors, values) <= threshold
         readmitted = int(np.sum(fits & ~checked))
         keep = checked | fits
         if readmitted:
@@ -411,12 +407,12 @@ def refine_with_gnc(
         if tls_cost(factors, kernel_values, threshold) < tls_cost(factors, values, threshold):
             from_kernel = True
             values = kernel_values
-            keep = _loop_chi2(factors, factors.poses(values)) <= threshold
+            keep = _loop_chi2(factors, values) <= threshold
     check_seconds = time.perf_counter() - check_start
     poses = factors.poses(values)
     return OptimizationResult(
         ids=graph.ids, poses=poses, loop_indices=kernel_result.loop_indices,
-        loop_inlier=keep, loop_weight=weights, loop_chi2=_loop_chi2(factors, poses),
+        loop_inlier=keep, loop_weight=weights, loop_chi2=_loop_chi2(factors, values),
         initialised_from_odometry=kernel_result.initialised_from_odometry,
         seconds=time.perf_counter() - start, settings=replace(settings, gnc=True),
         classification=f"outlier if GNC ({cfg.loss}) weight < {cfg.weight_threshold}"
