@@ -364,12 +364,22 @@ def optimize(
         bool, typer.Option("--refine/--no-refine", help="After the first kernel solve, one batch solve at scale 1.")
     ] = True,
     batch: Annotated[
-        bool,
+        bool | None,
         typer.Option(
             "--batch/--isam2",
-            help="Kernel solve: one batch solve (default) or iSAM2 in vertex order, as a stream would.",
+            help="Kernel solve: one batch solve, or iSAM2 in vertex order as a stream would. Default: batch from "
+            "the graph's own vertex estimate; both, keeping the lower TLS objective, when the vertices are "
+            "chained from odometry.",
+            show_default=False,
         ),
-    ] = True,
+    ] = None,
+    from_odometry: Annotated[
+        bool,
+        typer.Option(
+            "--from-odometry",
+            help="Ignore the vertex estimate in the file and chain odometry (as for all-zero vertices).",
+        ),
+    ] = False,
     out: Annotated[Path, typer.Option("--out", help="Output folder.")] = Path("optimized"),
 ) -> None:
     """Optimise a g2o / TORO pose graph robustly; write optimised.g2o, TUM and metrics.json."""
@@ -381,6 +391,7 @@ def optimize(
     from ssmvpr_slam.backend.graph_optimizer import (
         KERNEL_NAMES,
         OptimizerSettings,
+        initial_poses,
         loop_classification_scores,
         optimize_graph,
         trajectory_ate,
@@ -392,10 +403,13 @@ def optimize(
         raise g2o_io.PoseGraphFileError(f"--kernel: expected one of {', '.join(KERNEL_NAMES)}, got {kernel!r}")
     with output_dir(out, "--out"):  # checked before the graph is read
         data = g2o_io.read_pose_graph(graph)
+        if from_odometry:
+            data = data.without_estimate()
         stamps = g2o_io.read_times(times, data) if times is not None else None
         gt_poses = g2o_io.read_ground_truth(gt, data, stamps) if gt is not None else None
         true_pairs = g2o_io.read_edge_pairs(gt_edges) if gt_edges is not None else None
-        settings = OptimizerSettings(kernel=kernel, gnc=gnc, batch=batch, verify=check)
+        solver = "auto" if batch is None else "batch" if batch else "isam2"
+        settings = OptimizerSettings(kernel=kernel, gnc=gnc, solver=solver, verify=check)
         if not refine:
             settings = replace(settings, refine_scales=())
         result = optimize_graph(data, settings)
@@ -407,7 +421,8 @@ def optimize(
             "graph": str(graph), "dimension": data.dim, "vertices": len(data.ids), "edges": len(data.edges),
             "odometry_edges": len(data.edges) - len(loops), "loop_candidates": len(loops),
             "initialised_from_odometry": result.initialised_from_odometry,
-            "solver": "batch" if batch else "isam2", "kernel": kernel,
+            "solver": solver, "kernel_solve": result.solver,
+            "start_tls": {name: cost for name, cost in result.start_tls}, "kernel": kernel,
             "refine_scales": list(settings.refine_scales) if kernel != "none" else [], "gnc": gnc,
             "check": gnc and check, "check_removed": result.check_removed, "check_readmitted": result.check_readmitted,
             "seconds": result.seconds,
@@ -417,8 +432,7 @@ def optimize(
         }  # fmt: skip
         if gt_poses is not None:
             metrics["ate"] = trajectory_ate(gt_poses, result.poses, data.dim).to_dict()
-            metrics["ate_initial"] = trajectory_ate(gt_poses, data.poses if data.has_initial_estimate()
-                                                    else g2o_io.chain_odometry(data), data.dim).to_dict()  # fmt: skip
+            metrics["ate_initial"] = trajectory_ate(gt_poses, initial_poses(data)[0], data.dim).to_dict()
         if true_pairs is not None:
             truth = np.array([(min(e.i, e.j), max(e.i, e.j)) not in true_pairs for e in loops], dtype=bool)
             metrics["loop_classification"] = loop_classification_scores(~result.loop_inlier, truth)

@@ -120,6 +120,12 @@ class PoseGraphData:
             return False
         return not np.allclose(self.poses, np.eye(4), atol=1e-12)
 
+    def without_estimate(self) -> PoseGraphData:
+        """The same graph with all-zero vertices, so that the optimiser chains odometry: for a
+        stored estimate that is not to be trusted (one bent by false loops)."""
+        return PoseGraphData(self.dim, self.ids, np.tile(np.eye(4), (len(self.ids), 1, 1)), self.edges, self.source,
+                             self.declared_vertices)  # fmt: skip
+
     def with_edges(self, edges: Iterable[GraphEdge], source: str | None = None) -> PoseGraphData:
         """The same vertices with another edge list (e.g. with injected false loops)."""
         return PoseGraphData(self.dim, self.ids, self.poses, tuple(edges), source or self.source,

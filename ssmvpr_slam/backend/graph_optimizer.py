@@ -11,6 +11,11 @@ and returns a frozen :class:`OptimizationResult`; the command line writes the ou
 * Initial values: the stored vertex poses, or, when they are all zero (or absent), odometry
   chained from the first vertex. In iSAM2 mode each new vertex starts at the current estimate
   of its predecessor composed with the odometry, as a stream would.
+* Two starts from odometry (solver 'auto', the default): a graph with its own estimate gets one
+  batch kernel solve; a graph chained from odometry gets both a batch solve and iSAM2 in vertex
+  order, each followed by GNC and the check, and the answer with the lower TLS objective wins.
+  Neither start holds alone from odometry (batch took in false loops on manhattan at 50 %,
+  iSAM2 on ringCity at 20 % grouped), and in both cases the objective picked the one that held.
 * Graduated kernel scale (``refine_scales``, default DCS Phi = 10 then 1): the first solve
   (iSAM2 or batch) uses the generous scale so that true loops closing a long drift are kept;
   one batch solve per further scale then starts from that solution. With a good start, the
@@ -80,9 +85,14 @@ DEFAULT_GNC = True
 """Default of `optimize` (docs/backend_benchmarks.md): the kernel solve below, then GNC and the
 leave-one-out check. Without GNC, DCS alone ends at 17.7x the optimum on ringCity with 50 %
 random false loops (two false loops kept bend the map and 302 true loops are lost)."""
-DEFAULT_BATCH = True
-"""Batch kernel solve by default: GNC is a batch pass anyway, and the iSAM2 first stage did not
-finish on manhattan with 50 % false loops within 480 s."""
+DEFAULT_SOLVER = "auto"
+"""Kernel solve: one batch solve from a graph's own estimate (iSAM2 first did not finish on
+manhattan with 50 % false loops within 480 s); from an odometry start, both a batch solve and
+iSAM2 in vertex order, each followed by GNC and the check, and the answer with the lower TLS
+objective is kept (zero-initialised, batch alone ended at 9.8x on manhattan at 50 % random false
+loops and iSAM2 alone at 32.9x on ringCity at 20 % grouped; in both the other start held and
+had the lower objective)."""
+SOLVERS = ("auto", "batch", "isam2")
 DEFAULT_REFINE_SCALES: tuple[float, ...] = (1.0,)
 """DCS at scale 10 (Phi, on the squared whitened error), then one batch DCS solve at Phi = 1
 from that solution. Phi = 1 alone rejects every true loop of ring/ringCity from their drifted
@@ -105,8 +115,9 @@ class OptimizerSettings:
     """After the first solve, one batch solve per scale with the same kernel, each from the
     previous solution (graduated scale: a generous scale closes loops after long drift, a tight
     one then drops the false loops it averaged in). Empty: no refinement; ignored for 'none'."""
-    batch: bool = DEFAULT_BATCH
-    """Kernel solve: one Levenberg-Marquardt solve (True) or iSAM2 in vertex order (False)."""
+    solver: str = DEFAULT_SOLVER
+    """Kernel solve: 'batch' (one Levenberg-Marquardt solve), 'isam2' (vertex order, as a stream
+    would) or 'auto' (batch from the graph's own estimate, both from an odometry start)."""
     gnc_config: GncConfig = field(default_factory=lambda: GncConfig(enabled=True, init="current"))
     """init 'current': GNC starts from the kernel solution ('odometry': from the initial values).
     From the odometry start GNC kept the wrong side of ring's 30 % / 50 % grouped false loops
@@ -133,6 +144,8 @@ class OptimizerSettings:
     on ring for the same classification)."""
 
     def __post_init__(self) -> None:
+        if self.solver not in SOLVERS:
+            raise ValueError(f"solver: expected one of {', '.join(SOLVERS)}, got {self.solver!r}")
         if self.kernel not in KERNEL_NAMES:
             raise ValueError(f"kernel: expected one of {', '.join(KERNEL_NAMES)}, got {self.kernel!r}")
         if any(not scale > 0.0 for scale in self.refine_scales):
@@ -145,9 +158,11 @@ class OptimizerSettings:
             raise ValueError(f"verify_rounds, verify_max_suspects: must be >= 1, got {self.verify_rounds}, "
                              f"{self.verify_max_suspects}")  # fmt: skip
 
-    @property
-    def mode(self) -> Literal["isam2", "batch"]:
-        return "batch" if self.batch else "isam2"
+    def starts(self, from_odometry: bool) -> tuple[Literal["batch", "isam2"], ...]:
+        """The kernel solves to run; more than one only for 'auto' from an odometry start."""
+        if self.solver == "batch" or (self.solver == "auto" and not (from_odometry and self.kernel != "none")):
+            return ("batch",)
+        return ("isam2",) if self.solver == "isam2" else ("batch", "isam2")
 
 
 @dataclass(frozen=True)
@@ -178,6 +193,11 @@ class OptimizationResult:
     from_kernel: bool = False
     """With GNC and the check: the kernel solution (least squares over the loops it kept) had
     the lower TLS objective and is the answer."""
+    solver: str = "batch"
+    """The kernel solve this answer started from: 'batch' or 'isam2'."""
+    start_tls: tuple[tuple[str, float], ...] = ()
+    """(solver, TLS objective) of each start compared (solver 'auto' from an odometry start);
+    empty when one start ran."""
 
     @property
     def n_loops(self) -> int:
@@ -328,11 +348,47 @@ def _loop_chi2(factors: _Factors, values: gtsam.Values) -> np.ndarray:
 def optimize_graph(graph: PoseGraphData, settings: OptimizerSettings | None = None) -> OptimizationResult:
     """Optimise `graph` (see the module docstring); does not modify it."""
     settings = settings or OptimizerSettings()
-    start = time.perf_counter()
+    kernel_results = kernel_solutions(graph, settings)
+    if settings.gnc and len(kernel_results[0].loop_indices):
+        results = [refine_with_gnc(graph, k, settings) for k in kernel_results]
+    else:
+        results = [replace(k, settings=settings) for k in kernel_results]
+    return lowest_tls(graph, results, settings)
+
+
+def kernel_solutions(graph: PoseGraphData, settings: OptimizerSettings) -> list[OptimizationResult]:
+    """The robust-kernel solve (first solve, then the refine scales) from each start that
+    ``settings.starts`` names, without GNC."""
     initial, from_odometry = initial_poses(graph)
+    return [_kernel_solve(graph, settings, initial, from_odometry, s) for s in settings.starts(from_odometry)]
+
+
+def lowest_tls(
+    graph: PoseGraphData, results: list[OptimizationResult], settings: OptimizerSettings
+) -> OptimizationResult:
+    """The result with the lowest TLS objective (`tls_cost`); its `seconds` cover every start and
+    its `start_tls` records each start's objective. One result is returned as it is."""
+    if len(results) == 1:
+        return results[0]
+    factors = _Factors(graph, results[0].poses, None)
+    _, threshold = chi2_threshold(graph, settings.gnc_config.inlier_probability)
+    costs = [tls_cost(factors, factors.values(r.poses), threshold) for r in results]
+    best = results[int(np.argmin(costs))]
+    return replace(best, seconds=sum(r.seconds for r in results),
+                   start_tls=tuple((r.solver, c) for r, c in zip(results, costs)))  # fmt: skip
+
+
+def _kernel_solve(
+    graph: PoseGraphData,
+    settings: OptimizerSettings,
+    initial: np.ndarray,
+    from_odometry: bool,
+    solver: Literal["batch", "isam2"],
+) -> OptimizationResult:
+    start = time.perf_counter()
     kernel = make_loop_kernel(settings)
     factors = _Factors(graph, initial, kernel)
-    if settings.batch:
+    if solver == "batch":
         poses = _solve_batch(factors, initial, settings)
     else:
         poses = _solve_isam2(factors, initial, settings)
@@ -344,17 +400,14 @@ def optimize_graph(graph: PoseGraphData, settings: OptimizerSettings | None = No
     dof, threshold = chi2_threshold(graph, settings.outlier_quantile)
     chi2 = _loop_chi2(factors, factors.values(poses))
     weights = np.array([1.0 if kernel is None else float(kernel.weight(np.sqrt(c))) for c in chi2])  # type: ignore[attr-defined]
-    kernel_result = OptimizationResult(
+    return OptimizationResult(
         ids=graph.ids, poses=poses, loop_indices=np.asarray(factors.loop_indices, dtype=int),
         loop_inlier=chi2 <= threshold, loop_weight=weights, loop_chi2=chi2,
         initialised_from_odometry=from_odometry, seconds=time.perf_counter() - start,
-        settings=replace(settings, gnc=False),
+        settings=replace(settings, gnc=False), solver=solver,
         classification=f"outlier if whitened residual^2 > chi2({dof}) quantile {settings.outlier_quantile} "
                        f"= {threshold:.2f}",
     )  # fmt: skip
-    if not settings.gnc or not factors.loops:
-        return replace(kernel_result, settings=settings)
-    return refine_with_gnc(graph, kernel_result, settings, factors, start)
 
 
 def chi2_threshold(graph: PoseGraphData, quantile: float) -> tuple[int, float]:
@@ -368,20 +421,17 @@ def refine_with_gnc(
     graph: PoseGraphData,
     kernel_result: OptimizationResult,
     settings: OptimizerSettings,
-    factors: _Factors | None = None,
-    start: float | None = None,
 ) -> OptimizationResult:
     """GNC (GTSAM's GncLMOptimizer, truncated least squares) over the whole graph from the
     kernel solution, odometry and prior as known inliers, then (``settings.verify``) the
     leave-one-out check and a least-squares solve over the known inliers plus the kept loops
     (inner LM solves are capped at `gnc_inner_iterations`, so that solve gives the converged
     optimum)."""
-    start = time.perf_counter() - kernel_result.seconds if start is None else start
-    if factors is None:
-        initial, _ = initial_poses(graph)
-        factors = _Factors(graph, initial, make_loop_kernel(settings))
+    start = time.perf_counter() - kernel_result.seconds
+    initial, _ = initial_poses(graph)
+    factors = _Factors(graph, initial, None)  # GNC and the check use the Gaussian loop factors only
     cfg = settings.gnc_config
-    init = kernel_result.poses if cfg.init == "current" else initial_poses(graph)[0]
+    init = kernel_result.poses if cfg.init == "current" else initial
     _, threshold = chi2_threshold(graph, cfg.inlier_probability)
     values, weights = _gnc(factors, factors.values(init), 0.5 * threshold, settings)
     keep = weights >= cfg.weight_threshold
@@ -417,7 +467,7 @@ def refine_with_gnc(
         seconds=time.perf_counter() - start, settings=replace(settings, gnc=True),
         classification=f"outlier if GNC ({cfg.loss}) weight < {cfg.weight_threshold}"
                        + (", then the leave-one-out check" if settings.verify else ""),
-        before_gnc=kernel_result, check_removed=removed, check_readmitted=readmitted, from_kernel=from_kernel,
+        before_gnc=kernel_result, solver=kernel_result.solver, check_removed=removed, check_readmitted=readmitted, from_kernel=from_kernel,
         check_seconds=check_seconds if settings.verify else 0.0,
     )  # fmt: skip
 

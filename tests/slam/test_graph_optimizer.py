@@ -55,10 +55,10 @@ def _circle(
 
 
 @pytest.mark.parametrize("dim", [2, 3])
-@pytest.mark.parametrize("batch", [False, True])
-def test_exact_graph_reaches_its_optimum(dim: int, batch: bool) -> None:
+@pytest.mark.parametrize("solver", ["auto", "batch", "isam2"])
+def test_exact_graph_reaches_its_optimum(dim: int, solver: str) -> None:
     graph, gt = _circle(30, dim, [(0, 29), (5, 25), (10, 20)])
-    result = optimize_graph(graph, OptimizerSettings(batch=batch))  # the default: with GNC and the check
+    result = optimize_graph(graph, OptimizerSettings(solver=solver))  # with GNC and the check
     assert result.initialised_from_odometry
     assert trajectory_ate(gt, result.poses, dim).stats.rmse < 1e-6
     assert result.loop_inlier.all() and result.n_loops == 3
@@ -68,16 +68,16 @@ def test_gnc_keeps_ate_with_false_loops() -> None:
     rng = np.random.default_rng(3)
     true_loops = [(0, 39), (3, 36), (6, 33), (10, 30), (12, 28), (15, 25)]
     graph, gt = _circle(40, 2, true_loops, rng)
-    clean = optimize_graph(graph, OptimizerSettings(kernel="none", gnc=False, batch=True))
+    clean = optimize_graph(graph, OptimizerSettings(kernel="none", gnc=False, solver="batch"))
     clean_ate = trajectory_ate(gt, clean.poses, 2).stats.rmse
     assert chi2_threshold(graph, 0.99) == (3, pytest.approx(11.345, abs=1e-3))  # GNC's 2-D inlier threshold
     info = graph.loops[0].information
     false = [GraphEdge(int(i), int(j), planar_pose(0.1, -0.1, 0.05), info)
              for i, j in ((2, 20), (8, 35), (1, 17), (22, 38), (4, 27), (11, 33))]  # fmt: skip
     noisy = graph.with_edges((*graph.edges, *false))
-    plain = optimize_graph(noisy, OptimizerSettings(kernel="none", gnc=False, batch=True))
+    plain = optimize_graph(noisy, OptimizerSettings(kernel="none", gnc=False, solver="batch"))
     assert trajectory_ate(gt, plain.poses, 2).stats.rmse > 3 * clean_ate  # the false loops hurt
-    robust = optimize_graph(noisy, OptimizerSettings(kernel="cauchy", gnc=True, batch=False))  # iSAM2, then GNC
+    robust = optimize_graph(noisy, OptimizerSettings(kernel="cauchy", gnc=True, solver="isam2"))  # iSAM2, then GNC
     assert trajectory_ate(gt, robust.poses, 2).stats.rmse <= 1.1 * clean_ate
     flagged = robust.loop_indices[~robust.loop_inlier]
     assert set(flagged.tolist()) == set(range(len(graph.edges), len(noisy.edges)))  # exactly the false ones
@@ -163,11 +163,11 @@ def test_default_configuration_holds_with_half_false_loops(dim: int) -> None:
         plain = optimize_graph(noisy, OptimizerSettings(kernel="none", gnc=False))
         assert trajectory_ate(gt, plain.poses, dim).stats.rmse > 5 * optimum  # the false loops hurt
         result = optimize_graph(noisy)
-        assert result.settings.gnc and result.settings.batch
+        assert result.settings.gnc and result.settings.solver == "auto"
         assert trajectory_ate(gt, result.poses, dim).stats.rmse <= 1.1 * optimum, seed
         false_indices = set(range(len(clean.edges), len(noisy.edges)))
         assert set(result.loop_indices[~result.loop_inlier].tolist()) == false_indices, seed
-        kernel_only = optimize_graph(noisy, OptimizerSettings(gnc=False))
+        kernel_only = optimize_graph(noisy, OptimizerSettings(gnc=False, solver="batch"))
         worst_without_gnc = max(worst_without_gnc, trajectory_ate(gt, kernel_only.poses, dim).stats.rmse / optimum)
     assert worst_without_gnc > 1.5
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
-from ssmvpr_slam.backend.g2o_io import read_pose_graph
+from ssmvpr_slam.backend.g2o_io import planar_of, planar_pose, read_pose_graph
 from ssmvpr_slam.cli import app
 from ssmvpr_slam.evaluation.trajectory_io import read_tum
 
@@ -29,7 +29,8 @@ def test_optimize_ring_writes_outputs(tmp_path: Path, shared_dir: Path) -> None:
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["vertices"] == 434 and metrics["loop_candidates"] == 26 and metrics["loops_outlier"] == 0
     assert metrics["ate"]["rmse"] < 0.5 * metrics["ate_initial"]["rmse"]
-    assert metrics["solver"] == "batch" and metrics["gnc"] is True and metrics["kernel"] == "dcs"  # the default
+    assert metrics["solver"] == "auto" and metrics["kernel_solve"] == "batch"  # the default, from stored vertices
+    assert metrics["gnc"] is True and metrics["kernel"] == "dcs"
     assert metrics["check"] is True and metrics["check_removed"] == 0
     graph = read_pose_graph(out / "optimised.g2o")
     assert graph.ids == tuple(range(434)) and len(graph.edges) == 459
@@ -47,13 +48,37 @@ def test_optimize_reports_loop_classification(tmp_path: Path) -> None:
     graph.write_text("\n".join(lines) + "\n")
     true_edges = tmp_path / "edges.txt"
     true_edges.write_text("".join(f"{k} {k + 1}\n" for k in range(11)) + "0 11\n")
-    result = invoke("optimize", graph, "--gt-edges", true_edges, "--batch", "--out", tmp_path / "o")
+    result = invoke("optimize", graph, "--gt-edges", true_edges, "--out", tmp_path / "o")
     assert result.exit_code == 0, result.output
     metrics = json.loads((tmp_path / "o" / "metrics.json").read_text())
     assert metrics["initialised_from_odometry"] is True
+    # from an odometry start both kernel solves run and the lower TLS objective is kept
+    assert metrics["solver"] == "auto" and set(metrics["start_tls"]) == {"batch", "isam2"}
+    assert metrics["start_tls"][metrics["kernel_solve"]] == min(metrics["start_tls"].values())
     assert metrics["loop_classification"]["outlier_precision"] == 1.0
     assert metrics["loop_classification"]["outlier_recall"] == 1.0
     assert metrics["outlier_loops"] == [[2, 8]]
+
+
+def test_from_odometry_ignores_a_bent_stored_estimate(tmp_path: Path) -> None:
+    """A 12-gon whose stored vertices were bent (as by a false loop): --from-odometry chains the
+    odometry instead, and reaches the 12-gon the consistent loop closes."""
+    step = planar_pose(1.0, 0.0, np.pi / 6)
+    chain = [np.eye(4)]
+    for _ in range(11):
+        chain.append(chain[-1] @ step)
+    x, y, theta = planar_of(chain[11])
+    lines = [f"VERTEX_SE2 {k} {k} {0.3 * k * k} 0" for k in range(12)]
+    lines += [f"EDGE_SE2 {k} {k + 1} 1 0 {np.pi / 6} 100 0 0 100 0 100" for k in range(11)]
+    lines.append(f"EDGE_SE2 0 11 {x} {y} {theta} 100 0 0 100 0 100")
+    graph = tmp_path / "bent.g2o"
+    graph.write_text("\n".join(lines) + "\n")
+    result = invoke("optimize", graph, "--from-odometry", "--out", tmp_path / "o")
+    assert result.exit_code == 0, result.output
+    metrics = json.loads((tmp_path / "o" / "metrics.json").read_text())
+    assert metrics["initialised_from_odometry"] is True and metrics["loops_outlier"] == 0
+    optimised = read_pose_graph(tmp_path / "o" / "optimised.g2o")
+    np.testing.assert_allclose(optimised.poses, np.array(chain), atol=1e-6)
 
 
 @pytest.mark.parametrize(
