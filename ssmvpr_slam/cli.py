@@ -345,6 +345,14 @@ def optimize(
     gt_edges: Annotated[
         Path | None, typer.Option("--gt-edges", help="The true edges (i j ... per line): loops not listed are false.")
     ] = None,
+    gt_radius: Annotated[
+        float | None,
+        typer.Option(
+            "--gt-radius",
+            help="With --gt and no --gt-edges: a loop is true when its two vertices are within this many "
+            "metres in the ground truth (a place recogniser's loops against GPS).",
+        ),
+    ] = None,
     times: Annotated[
         Path | None, typer.Option(help="Vertex timestamps ('t' or 'id t' per line): also write TUM.")
     ] = None,
@@ -408,6 +416,8 @@ def optimize(
         stamps = g2o_io.read_times(times, data) if times is not None else None
         gt_poses = g2o_io.read_ground_truth(gt, data, stamps) if gt is not None else None
         true_pairs = g2o_io.read_edge_pairs(gt_edges) if gt_edges is not None else None
+        if gt_radius is not None and (gt_poses is None or true_pairs is not None or not gt_radius > 0):
+            raise g2o_io.PoseGraphFileError(f"--gt-radius {gt_radius}: needs --gt, no --gt-edges, and a radius > 0")
         solver = "auto" if batch is None else "batch" if batch else "isam2"
         settings = OptimizerSettings(kernel=kernel, gnc=gnc, solver=solver, verify=check)
         if not refine:
@@ -433,9 +443,16 @@ def optimize(
         if gt_poses is not None:
             metrics["ate"] = trajectory_ate(gt_poses, result.poses, data.dim).to_dict()
             metrics["ate_initial"] = trajectory_ate(gt_poses, initial_poses(data)[0], data.dim).to_dict()
+        truth = None
         if true_pairs is not None:
             truth = np.array([(min(e.i, e.j), max(e.i, e.j)) not in true_pairs for e in loops], dtype=bool)
+        elif gt_radius is not None and gt_poses is not None:
+            ends = np.array([[data.index_of(e.i), data.index_of(e.j)] for e in loops], dtype=int).reshape(-1, 2)
+            truth = np.linalg.norm(gt_poses[ends[:, 0], :3, 3] - gt_poses[ends[:, 1], :3, 3], axis=1) > gt_radius
+        if truth is not None:
             metrics["loop_classification"] = loop_classification_scores(~result.loop_inlier, truth)
+            metrics["loop_classification"]["truth"] = (str(gt_edges) if true_pairs is not None
+                                                       else f"ground truth within {gt_radius} m")  # fmt: skip
         write_json(out / "metrics.json", metrics)
     summary = f"{len(data.ids)} vertices, {len(loops)} loop candidates, {result.n_outliers} rejected"
     if "ate" in metrics:

@@ -39,7 +39,8 @@ def test_optimize_ring_writes_outputs(tmp_path: Path, shared_dir: Path) -> None:
     np.testing.assert_allclose(poses[:, :3, 3], graph.poses[:, :3, 3], atol=1e-6)
 
 
-def test_optimize_reports_loop_classification(tmp_path: Path) -> None:
+@pytest.mark.parametrize("truth", ["edges", "radius"])
+def test_optimize_reports_loop_classification(tmp_path: Path, truth: str) -> None:
     lines = [f"VERTEX_SE2 {k} 0 0 0" for k in range(12)]
     lines += [f"EDGE_SE2 {k} {k + 1} 1 0 0.5235987756 100 0 0 100 0 100" for k in range(11)]
     lines += ["EDGE_SE2 0 11 0.5 0.866025 5.759586531 100 0 0 100 0 100",  # true (12-gon closes)
@@ -48,7 +49,16 @@ def test_optimize_reports_loop_classification(tmp_path: Path) -> None:
     graph.write_text("\n".join(lines) + "\n")
     true_edges = tmp_path / "edges.txt"
     true_edges.write_text("".join(f"{k} {k + 1}\n" for k in range(11)) + "0 11\n")
-    result = invoke("optimize", graph, "--gt-edges", true_edges, "--out", tmp_path / "o")
+    if truth == "radius":  # the 12-gon of 1 m sides: 0-11 are 1 m apart, 2-8 3.9 m
+        step, pose, vertices = planar_pose(1.0, 0.0, np.pi / 6), np.eye(4), []
+        for k in range(12):
+            vertices.append("VERTEX_SE2 {} {} {} {}".format(k, *planar_of(pose)))
+            pose = pose @ step
+        (tmp_path / "gt.g2o").write_text("\n".join(vertices) + "\n")
+        truth_args = ["--gt", tmp_path / "gt.g2o", "--gt-radius", 2.0]
+    else:
+        truth_args = ["--gt-edges", true_edges]
+    result = invoke("optimize", graph, *truth_args, "--out", tmp_path / "o")
     assert result.exit_code == 0, result.output
     metrics = json.loads((tmp_path / "o" / "metrics.json").read_text())
     assert metrics["initialised_from_odometry"] is True
@@ -58,6 +68,14 @@ def test_optimize_reports_loop_classification(tmp_path: Path) -> None:
     assert metrics["loop_classification"]["outlier_precision"] == 1.0
     assert metrics["loop_classification"]["outlier_recall"] == 1.0
     assert metrics["outlier_loops"] == [[2, 8]]
+    assert ("within 2.0 m" in metrics["loop_classification"]["truth"]) == (truth == "radius")
+
+
+def test_gt_radius_needs_ground_truth(tmp_path: Path) -> None:
+    graph = tmp_path / "g.g2o"
+    graph.write_text("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\nEDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\n")
+    result = invoke("optimize", graph, "--gt-radius", 5, "--out", tmp_path / "o")
+    assert result.exit_code == 2 and "--gt-radius 5.0: needs --gt" in result.stderr, result.output
 
 
 def test_from_odometry_ignores_a_bent_stored_estimate(tmp_path: Path) -> None:
