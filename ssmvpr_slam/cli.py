@@ -453,10 +453,20 @@ def optimize(
             metrics["loop_classification"] = loop_classification_scores(~result.loop_inlier, truth)
             metrics["loop_classification"]["truth"] = (str(gt_edges) if true_pairs is not None
                                                        else f"ground truth within {gt_radius} m")  # fmt: skip
+            if gt_poses is not None:  # the bound: least squares over odometry and the true loops alone
+                false = set(result.loop_indices[truth].tolist())
+                oracle = optimize_graph(
+                    data.with_edges(e for n, e in enumerate(data.edges) if n not in false),
+                    OptimizerSettings(kernel="none", gnc=False, solver="batch"),
+                )
+                metrics["ate_oracle"] = trajectory_ate(gt_poses, oracle.poses, data.dim).to_dict()
+                metrics["ate_ratio_to_oracle"] = metrics["ate"]["rmse"] / metrics["ate_oracle"]["rmse"]
         write_json(out / "metrics.json", metrics)
     summary = f"{len(data.ids)} vertices, {len(loops)} loop candidates, {result.n_outliers} rejected"
     if "ate" in metrics:
         summary += f", ATE {metrics['ate']['rmse']:.3f} m"
+    if "ate_oracle" in metrics:
+        summary += f" (true loops alone: {metrics['ate_oracle']['rmse']:.3f} m)"
     console.print(f"{summary}; wrote [bold]{escape(str(out))}[/bold] ({result.seconds:.1f} s)")
 
 

@@ -69,6 +69,8 @@ def test_optimize_reports_loop_classification(tmp_path: Path, truth: str) -> Non
     assert metrics["loop_classification"]["outlier_recall"] == 1.0
     assert metrics["outlier_loops"] == [[2, 8]]
     assert ("within 2.0 m" in metrics["loop_classification"]["truth"]) == (truth == "radius")
+    if truth == "radius":  # the false loop rejected, the answer is the bound: least squares over the true ones
+        assert metrics["ate_ratio_to_oracle"] == pytest.approx(1.0, abs=1e-4) and metrics["ate_oracle"]["rmse"] > 0.1
 
 
 def test_gt_radius_needs_ground_truth(tmp_path: Path) -> None:
