@@ -326,7 +326,9 @@ def test_optimize_recovers_a_graph_of_raw_appearance_loops_from_odometry(open_ga
     """`optimize` on the run's own pose_graph.g2o, vertices chained from odometry (as for a front
     end that writes no estimate), loops true within the correct radius: the false loops come
     from the recogniser itself, and the default stays within 10 % of the bound (least squares
-    over the true loops alone), where plain least squares does not."""
+    over the true loops alone), where plain least squares does not. Measured: 52 loops, 11 of them
+    false; ATE 5.29 m from odometry, 1.096 m with the default against the bound's 1.080 m
+    (1.014x; outlier precision 0.92, recall 1.0), 6.73 m with plain least squares."""
     from typer.testing import CliRunner
 
     from ssmvpr_slam.cli import app
