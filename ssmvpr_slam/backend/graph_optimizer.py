@@ -370,7 +370,7 @@ def lowest_tls(
     its `start_tls` records each start's objective. One result is returned as it is."""
     if len(results) == 1:
         return results[0]
-    factors = _Factors(graph, results[0].poses, None)
+    factors = _Factors(graph, initial_poses(graph)[0], None)  # the prior every start was held by
     _, threshold = chi2_threshold(graph, settings.gnc_config.inlier_probability)
     costs = [tls_cost(factors, factors.values(r.poses), threshold) for r in results]
     best = results[int(np.argmin(costs))]
@@ -467,8 +467,8 @@ def refine_with_gnc(
         seconds=time.perf_counter() - start, settings=replace(settings, gnc=True),
         classification=f"outlier if GNC ({cfg.loss}) weight < {cfg.weight_threshold}"
                        + (", then the leave-one-out check" if settings.verify else ""),
-        before_gnc=kernel_result, solver=kernel_result.solver, check_removed=removed, check_readmitted=readmitted, from_kernel=from_kernel,
-        check_seconds=check_seconds if settings.verify else 0.0,
+        before_gnc=kernel_result, solver=kernel_result.solver, from_kernel=from_kernel,
+        check_removed=removed, check_readmitted=readmitted, check_seconds=check_seconds if settings.verify else 0.0,
     )  # fmt: skip
 
 
