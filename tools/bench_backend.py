@@ -23,10 +23,14 @@ truth), outlier precision / recall (without GNC: whitened residual^2 > chi2 0.99
 GNC: `optimize`'s default classification, GNC weight < 0.5 then the leave-one-out check), and
 runtime. GNC rows start GNC from the same kernel solution as the kernel's own row; their
 runtime includes it. The GNC rows are `optimize`'s default configuration when the kernel is dcs.
+With ``--zero-init`` (vertices chained from odometry) and the default ``--solver auto``, each
+row runs both kernel starts (batch and iSAM2 in vertex order), the GNC row takes each through
+GNC and the check, and both keep the answer with the lower TLS objective, as `optimize` does.
 
     python tools/bench_backend.py                       # everything, JSON on stdout
     python tools/bench_backend.py --graphs ring --rates 0.2 --kernels cauchy --kinds random
     python tools/bench_backend.py --graphs ringCity --kinds random --kernels dcs --jobs 4 --output r.json
+    python tools/bench_backend.py --graphs manhattan --rates 0.5 --kinds random --kernels dcs --gnc on --zero-init
     python tools/bench_backend.py --markdown results.json   # tables from a saved run
 """
 
