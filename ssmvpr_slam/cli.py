@@ -409,20 +409,26 @@ def optimize(
 
     if kernel not in KERNEL_NAMES:
         raise g2o_io.PoseGraphFileError(f"--kernel: expected one of {', '.join(KERNEL_NAMES)}, got {kernel!r}")
+    if gt_radius is not None:
+        if not gt_radius > 0 or not np.isfinite(gt_radius):
+            raise g2o_io.PoseGraphFileError(f"--gt-radius: expected metres > 0, got {gt_radius}")
+        if gt is None or gt_edges is not None:
+            raise g2o_io.PoseGraphFileError("--gt-radius: needs --gt, and replaces --gt-edges")
     with output_dir(out, "--out"):  # checked before the graph is read
         data = g2o_io.read_pose_graph(graph)
+        anchor = data.poses[0].copy() if data.has_initial_estimate() else np.eye(4)
         if from_odometry:
             data = data.without_estimate()
         stamps = g2o_io.read_times(times, data) if times is not None else None
         gt_poses = g2o_io.read_ground_truth(gt, data, stamps) if gt is not None else None
         true_pairs = g2o_io.read_edge_pairs(gt_edges) if gt_edges is not None else None
-        if gt_radius is not None and (gt_poses is None or true_pairs is not None or not gt_radius > 0):
-            raise g2o_io.PoseGraphFileError(f"--gt-radius {gt_radius}: needs --gt, no --gt-edges, and a radius > 0")
         solver = "auto" if batch is None else "batch" if batch else "isam2"
         settings = OptimizerSettings(kernel=kernel, gnc=gnc, solver=solver, verify=check)
         if not refine:
             settings = replace(settings, refine_scales=())
         result = optimize_graph(data, settings)
+        if from_odometry:  # the chain started at the origin: back to the file's first vertex
+            result = replace(result, poses=anchor @ result.poses)
         g2o_io.write_g2o(out / "optimised.g2o", data, result.poses)
         if stamps is not None:
             write_tum(out / "optimised.tum", stamps, result.poses)
@@ -455,12 +461,15 @@ def optimize(
                                                        else f"ground truth within {gt_radius} m")  # fmt: skip
             if gt_poses is not None:  # the bound: least squares over odometry and the true loops alone
                 false = set(result.loop_indices[truth].tolist())
-                oracle = optimize_graph(
-                    data.with_edges(e for n, e in enumerate(data.edges) if n not in false),
-                    OptimizerSettings(kernel="none", gnc=False, solver="batch"),
+                true_graph = data.with_edges(e for n, e in enumerate(data.edges) if n not in false)
+                oracle = optimize_graph(  # from odometry, not from a stored estimate false loops may have bent
+                    true_graph.without_estimate(), OptimizerSettings(kernel="none", gnc=False, solver="batch")
                 )
-                metrics["ate_oracle"] = trajectory_ate(gt_poses, oracle.poses, data.dim).to_dict()
-                metrics["ate_ratio_to_oracle"] = metrics["ate"]["rmse"] / metrics["ate_oracle"]["rmse"]
+                bound = trajectory_ate(gt_poses, oracle.poses, data.dim)
+                metrics["ate_oracle"] = bound.to_dict()
+                metrics["ate_ratio_to_oracle"] = (
+                    metrics["ate"]["rmse"] / bound.stats.rmse if bound.stats.rmse > 1e-12 else None
+                )  # an exact graph has a bound of 0
         write_json(out / "metrics.json", metrics)
     summary = f"{len(data.ids)} vertices, {len(loops)} loop candidates, {result.n_outliers} rejected"
     if "ate" in metrics:

@@ -1,6 +1,6 @@
-"""Optimise a pose graph read from a file (g2o / TORO): robust kernel solve (one batch solve or
-iSAM2 in vertex order), GNC, a leave-one-out check of the loops GNC keeps, loop inlier/outlier
-classification, ATE.
+"""Optimise a pose graph read from a file (g2o / TORO): robust kernel solve (one batch solve,
+iSAM2 in vertex order, or both from an odometry start), GNC, a leave-one-out check of the loops
+GNC keeps, loop inlier/outlier classification, ATE.
 
 No file I/O here: `optimize_graph` takes a :class:`~ssmvpr_slam.backend.g2o_io.PoseGraphData`
 and returns a frozen :class:`OptimizationResult`; the command line writes the outputs.
@@ -117,7 +117,8 @@ class OptimizerSettings:
     one then drops the false loops it averaged in). Empty: no refinement; ignored for 'none'."""
     solver: str = DEFAULT_SOLVER
     """Kernel solve: 'batch' (one Levenberg-Marquardt solve), 'isam2' (vertex order, as a stream
-    would) or 'auto' (batch from the graph's own estimate, both from an odometry start)."""
+    would) or 'auto' (batch from the graph's own estimate, both from an odometry start unless the
+    kernel is 'none'; with or without GNC, the lower TLS objective is kept)."""
     gnc_config: GncConfig = field(default_factory=lambda: GncConfig(enabled=True, init="current"))
     """init 'current': GNC starts from the kernel solution ('odometry': from the initial values).
     From the odometry start GNC kept the wrong side of ring's 30 % / 50 % grouped false loops
@@ -159,10 +160,13 @@ class OptimizerSettings:
                              f"{self.verify_max_suspects}")  # fmt: skip
 
     def starts(self, from_odometry: bool) -> tuple[Literal["batch", "isam2"], ...]:
-        """The kernel solves to run; more than one only for 'auto' from an odometry start."""
-        if self.solver == "batch" or (self.solver == "auto" and not (from_odometry and self.kernel != "none")):
+        """The kernel solves to run: both only for 'auto' from an odometry start with a robust
+        kernel (plain least squares has one answer)."""
+        if self.solver == "batch":
             return ("batch",)
-        return ("isam2",) if self.solver == "isam2" else ("batch", "isam2")
+        if self.solver == "isam2":
+            return ("isam2",)
+        return ("batch", "isam2") if from_odometry and self.kernel != "none" else ("batch",)
 
 
 @dataclass(frozen=True)
@@ -348,12 +352,7 @@ def _loop_chi2(factors: _Factors, values: gtsam.Values) -> np.ndarray:
 def optimize_graph(graph: PoseGraphData, settings: OptimizerSettings | None = None) -> OptimizationResult:
     """Optimise `graph` (see the module docstring); does not modify it."""
     settings = settings or OptimizerSettings()
-    kernel_results = kernel_solutions(graph, settings)
-    if settings.gnc and len(kernel_results[0].loop_indices):
-        results = [refine_with_gnc(graph, k, settings) for k in kernel_results]
-    else:
-        results = [replace(k, settings=settings) for k in kernel_results]
-    return lowest_tls(graph, results, settings)
+    return refine_and_choose(graph, kernel_solutions(graph, settings), settings)
 
 
 def kernel_solutions(graph: PoseGraphData, settings: OptimizerSettings) -> list[OptimizationResult]:
@@ -363,19 +362,25 @@ def kernel_solutions(graph: PoseGraphData, settings: OptimizerSettings) -> list[
     return [_kernel_solve(graph, settings, initial, from_odometry, s) for s in settings.starts(from_odometry)]
 
 
-def lowest_tls(
-    graph: PoseGraphData, results: list[OptimizationResult], settings: OptimizerSettings
+def refine_and_choose(
+    graph: PoseGraphData, kernel_results: list[OptimizationResult], settings: OptimizerSettings
 ) -> OptimizationResult:
-    """The result with the lowest TLS objective (`tls_cost`); its `seconds` cover every start and
-    its `start_tls` records each start's objective. One result is returned as it is."""
+    """Each start's kernel solution through GNC and the check (``settings.gnc``), then the answer
+    with the lowest TLS objective (`tls_cost`): its `seconds` cover every start and the
+    comparison, its `start_tls` records each start's objective. One start is returned as it is."""
+    if settings.gnc and len(kernel_results[0].loop_indices):
+        results = [refine_with_gnc(graph, k, settings) for k in kernel_results]
+    else:
+        results = [replace(k, settings=settings) for k in kernel_results]
     if len(results) == 1:
         return results[0]
+    start = time.perf_counter()
     factors = _Factors(graph, initial_poses(graph)[0], None)  # the prior every start was held by
     _, threshold = chi2_threshold(graph, settings.gnc_config.inlier_probability)
     costs = [tls_cost(factors, factors.values(r.poses), threshold) for r in results]
     best = results[int(np.argmin(costs))]
-    return replace(best, seconds=sum(r.seconds for r in results),
-                   start_tls=tuple((r.solver, c) for r, c in zip(results, costs)))  # fmt: skip
+    seconds = sum(r.seconds for r in results) + time.perf_counter() - start
+    return replace(best, seconds=seconds, start_tls=tuple((r.solver, c) for r, c in zip(results, costs)))
 
 
 def _kernel_solve(

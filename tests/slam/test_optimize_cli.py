@@ -73,30 +73,44 @@ def test_optimize_reports_loop_classification(tmp_path: Path, truth: str) -> Non
         assert metrics["ate_ratio_to_oracle"] == pytest.approx(1.0, abs=1e-4) and metrics["ate_oracle"]["rmse"] > 0.1
 
 
-def test_gt_radius_needs_ground_truth(tmp_path: Path) -> None:
+@pytest.mark.parametrize(
+    ("extra", "fragment"),
+    [
+        (["--gt-radius", "5"], "--gt-radius: needs --gt"),
+        (["--gt", "g.g2o", "--gt-edges", "g.g2o", "--gt-radius", "5"], "replaces --gt-edges"),
+        (["--gt", "g.g2o", "--gt-radius", "-1"], "expected metres > 0, got -1.0"),
+    ],
+)
+def test_gt_radius_needs_ground_truth_and_a_positive_radius(tmp_path: Path, extra: list[str], fragment: str) -> None:
     graph = tmp_path / "g.g2o"
     graph.write_text("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\nEDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\n")
-    result = invoke("optimize", graph, "--gt-radius", 5, "--out", tmp_path / "o")
-    assert result.exit_code == 2 and "--gt-radius 5.0: needs --gt" in result.stderr, result.output
+    extra = [str(tmp_path / x) if x == "g.g2o" else x for x in extra]
+    result = invoke("optimize", graph, *extra, "--out", tmp_path / "o")
+    assert result.exit_code == 2 and fragment in result.stderr, result.output
+    assert not (tmp_path / "o").exists()  # refused before any work
 
 
 def test_from_odometry_ignores_a_bent_stored_estimate(tmp_path: Path) -> None:
     """A 12-gon whose stored vertices were bent (as by a false loop): --from-odometry chains the
-    odometry instead, and reaches the 12-gon the consistent loop closes."""
-    step = planar_pose(1.0, 0.0, np.pi / 6)
-    chain = [np.eye(4)]
+    odometry from the file's first vertex instead, and reaches the 12-gon the consistent loop
+    closes; with exact measurements the bound is exact too (no ratio to divide by zero)."""
+    step, anchor = planar_pose(1.0, 0.0, np.pi / 6), planar_pose(100.0, 50.0, 0.3)
+    chain = [anchor]
     for _ in range(11):
         chain.append(chain[-1] @ step)
-    x, y, theta = planar_of(chain[11])
-    lines = [f"VERTEX_SE2 {k} {k} {0.3 * k * k} 0" for k in range(12)]
+    x, y, theta = planar_of(np.linalg.inv(chain[0]) @ chain[11])
+    lines = ["VERTEX_SE2 0 100 50 0.3"] + [f"VERTEX_SE2 {k} {100 + k} {50 + 0.3 * k * k} 0" for k in range(1, 12)]
     lines += [f"EDGE_SE2 {k} {k + 1} 1 0 {np.pi / 6} 100 0 0 100 0 100" for k in range(11)]
     lines.append(f"EDGE_SE2 0 11 {x} {y} {theta} 100 0 0 100 0 100")
     graph = tmp_path / "bent.g2o"
     graph.write_text("\n".join(lines) + "\n")
-    result = invoke("optimize", graph, "--from-odometry", "--out", tmp_path / "o")
+    truth = tmp_path / "gt.g2o"
+    truth.write_text("".join("VERTEX_SE2 {} {} {} {}\n".format(k, *planar_of(p)) for k, p in enumerate(chain)))
+    result = invoke("optimize", graph, "--from-odometry", "--gt", truth, "--gt-radius", 5, "--out", tmp_path / "o")
     assert result.exit_code == 0, result.output
     metrics = json.loads((tmp_path / "o" / "metrics.json").read_text())
     assert metrics["initialised_from_odometry"] is True and metrics["loops_outlier"] == 0
+    assert metrics["ate_oracle"]["rmse"] < 1e-6 and metrics["ate_ratio_to_oracle"] is None
     optimised = read_pose_graph(tmp_path / "o" / "optimised.g2o")
     np.testing.assert_allclose(optimised.poses, np.array(chain), atol=1e-6)
 

@@ -182,8 +182,9 @@ def injected(tmp_path_factory, weights_path, backbone, camera_frames, clean) -> 
 
 @pytest.fixture(scope="module")
 def open_gate(tmp_path_factory, weights_path, backbone, camera_frames, clean) -> Run:  # noqa: ANN001
-    """Every proposal accepted (no score threshold): the pose graph of a front end whose loops
-    are the recogniser's raw, appearance-based guesses, many of them wrong."""
+    """Every proposal of sequence score >= OPEN_GATE_SCORE accepted (none kept out by the single
+    frame): the pose graph of a front end whose loops are the recogniser's raw, appearance-based
+    guesses, many of them wrong."""
     cfg = slam_config(weights_path, "logged")
     cfg.detector.min_score = cfg.detector.accept_score = OPEN_GATE_SCORE
     cfg.detector.min_single_score = 0.0
