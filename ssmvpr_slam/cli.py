@@ -416,7 +416,6 @@ def optimize(
             raise g2o_io.PoseGraphFileError("--gt-radius: needs --gt, and replaces --gt-edges")
     with output_dir(out, "--out"):  # checked before the graph is read
         data = g2o_io.read_pose_graph(graph)
-        anchor = data.poses[0].copy() if data.has_initial_estimate() else np.eye(4)
         if from_odometry:
             data = data.without_estimate()
         stamps = g2o_io.read_times(times, data) if times is not None else None
@@ -427,8 +426,6 @@ def optimize(
         if not refine:
             settings = replace(settings, refine_scales=())
         result = optimize_graph(data, settings)
-        if from_odometry:  # the chain started at the origin: back to the file's first vertex
-            result = replace(result, poses=anchor @ result.poses)
         g2o_io.write_g2o(out / "optimised.g2o", data, result.poses)
         if stamps is not None:
             write_tum(out / "optimised.tum", stamps, result.poses)
@@ -438,7 +435,7 @@ def optimize(
             "odometry_edges": len(data.edges) - len(loops), "loop_candidates": len(loops),
             "initialised_from_odometry": result.initialised_from_odometry,
             "solver": solver, "kernel_solve": result.solver,
-            "start_tls": {name: cost for name, cost in result.start_tls}, "kernel": kernel,
+            "start_tls": dict(result.start_tls), "kernel": kernel,
             "refine_scales": list(settings.refine_scales) if kernel != "none" else [], "gnc": gnc,
             "check": gnc and check, "check_removed": result.check_removed, "check_readmitted": result.check_readmitted,
             "seconds": result.seconds,

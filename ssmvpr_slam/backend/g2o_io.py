@@ -115,16 +115,20 @@ class PoseGraphData:
         return [e for e in self.edges if not e.is_odometry]
 
     def has_initial_estimate(self) -> bool:
-        """False when every stored pose is the identity (all-zero vertices) or none were stored."""
+        """False when every stored pose after the first is the identity (all-zero vertices; the
+        first only says where a chain of odometry starts) or none were stored."""
         if not self.declared_vertices or len(self.poses) == 0:
             return False
-        return not np.allclose(self.poses, np.eye(4), atol=1e-12)
+        return not np.allclose(self.poses[1:], np.eye(4), atol=1e-12)
 
     def without_estimate(self) -> PoseGraphData:
-        """The same graph with all-zero vertices, so that the optimiser chains odometry: for a
-        stored estimate that is not to be trusted (one bent by false loops)."""
-        return PoseGraphData(self.dim, self.ids, np.tile(np.eye(4), (len(self.ids), 1, 1)), self.edges, self.source,
-                             self.declared_vertices)  # fmt: skip
+        """The same graph with every vertex but the first zeroed, so that the optimiser chains
+        odometry from the first vertex, in the file's frame: for a stored estimate that is not to
+        be trusted (one bent by false loops)."""
+        poses = np.tile(np.eye(4), (len(self.ids), 1, 1))
+        if self.declared_vertices and len(self.poses):
+            poses[0] = self.poses[0]
+        return PoseGraphData(self.dim, self.ids, poses, self.edges, self.source, self.declared_vertices)
 
     def with_edges(self, edges: Iterable[GraphEdge], source: str | None = None) -> PoseGraphData:
         """The same vertices with another edge list (e.g. with injected false loops)."""
@@ -515,7 +519,7 @@ def chain_odometry(graph: PoseGraphData) -> np.ndarray:
     vertex keeps its stored pose. Raises PoseGraphFileError for a disconnected graph."""
     n = len(graph.ids)
     poses: list[np.ndarray | None] = [None] * n
-    poses[0] = graph.poses[0].copy() if graph.has_initial_estimate() else np.eye(4)
+    poses[0] = graph.poses[0].copy() if graph.declared_vertices and len(graph.poses) else np.eye(4)
     adjacency: dict[int, list[tuple[int, np.ndarray, bool]]] = {v: [] for v in graph.ids}
     for e in graph.edges:
         adjacency[e.i].append((e.j, e.measured, e.is_odometry))

@@ -77,6 +77,20 @@ def test_edges_only_file_gets_vertices_from_edges(tmp_path: Path) -> None:
     np.testing.assert_allclose(g2o_io.chain_odometry(graph)[2][:3, 3], [2, 0, 0])
 
 
+def test_zero_vertices_after_a_placed_first_one_chain_odometry_from_it(tmp_path: Path) -> None:
+    """Only the first vertex placed (or an estimate dropped with without_estimate): no estimate,
+    and the odometry chain starts at the first vertex, in the file's frame."""
+    text = "VERTEX_SE2 0 5 2 1.5707963268\nVERTEX_SE2 1 0 0 0\nVERTEX_SE2 2 0 0 0\n"
+    text += "EDGE_SE2 0 1 1 0 0 1 0 0 1 0 1\nEDGE_SE2 1 2 1 0 0 1 0 0 1 0 1\n"
+    graph = read_pose_graph(write(tmp_path, text))
+    assert not graph.has_initial_estimate()
+    np.testing.assert_allclose(g2o_io.chain_odometry(graph)[2][:3, 3], [5, 4, 0], atol=1e-9)
+    bent = read_pose_graph(write(tmp_path, text, "bent.g2o"))
+    bent.poses[1:, :3, 3] = [[9.0, 9.0, 0.0], [7.0, 1.0, 0.0]]
+    assert bent.has_initial_estimate() and not bent.without_estimate().has_initial_estimate()
+    np.testing.assert_allclose(g2o_io.chain_odometry(bent.without_estimate()), g2o_io.chain_odometry(graph), atol=1e-12)
+
+
 @pytest.mark.parametrize(
     ("line", "fragment"),
     [
