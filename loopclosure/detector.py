@@ -19,8 +19,8 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
+from loopclosure.blas import one_blas_thread
 from loopclosure.config import DetectorConfig, VPRConfig, feature_side, grid_side
 from loopclosure.database import PlaceDatabase, PlaceInfo
 from loopclosure.encoder import Encoder, PlaceCodes, RawCubes
@@ -232,7 +232,7 @@ class LoopDetector:
         # one BLAS thread for the many small products of stage II: right after the backbone pass
         # torch's threads hold the cores, and two BLAS threads were measured several times slower
         assert self._recognizer is not None  # built with the database
-        with threadpool_limits(limits=1, user_api="blas"):
+        with one_blas_thread():
             start = time.perf_counter()
             continued = sequence.continuations(limit)
             recognition = self._recognizer.rerank(codes, candidates, extra=continued)

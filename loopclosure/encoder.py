@@ -7,9 +7,9 @@ from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
 from loopclosure.backbone import Backbone
+from loopclosure.blas import one_blas_thread
 from loopclosure.config import VPRConfig
 from loopclosure.cubes import extract_cubes
 from loopclosure.errors import LoopClosureInputError
@@ -79,7 +79,7 @@ class Encoder:
             raise LoopClosureInputError("no PCA codebooks: fit them (ssmvpr-slam fit-pca) or load a database")
         # One BLAS thread: right after a backbone pass torch's threads still hold the cores and
         # a 2-thread BLAS on these small products was measured 50-80x slower (tools/bench_vpr.py).
-        with threadpool_limits(limits=1, user_api="blas"):
+        with one_blas_thread():
             return PlaceCodes(self.codebooks.stage1.transform(raw.stage1), self.codebooks.stage2.transform(raw.stage2))
 
     def encode(self, images: Sequence[np.ndarray]) -> PlaceCodes:
@@ -151,10 +151,8 @@ class _FitSamples:
     def fit(self) -> Codebooks:
         if not self.stage1:
             raise LoopClosureInputError("no images to fit the PCA codebooks on")
-        import sklearn.decomposition  # noqa: F401  (loads scipy's BLAS so the limit below reaches it)
-
         # one BLAS thread: right after backbone passes a 2-thread BLAS fit was measured 10x slower
-        with threadpool_limits(limits=1, user_api="blas"):
+        with one_blas_thread():
             return self._fit_both()
 
     def _fit_both(self) -> Codebooks:

@@ -15,9 +15,9 @@ from rich.console import Console
 from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
-from threadpoolctl import threadpool_limits
 
 from loopclosure.backbone import load_backbone
+from loopclosure.blas import one_blas_thread
 from loopclosure.config import SequenceMatchConfig
 from loopclosure.database import PlaceDatabase, PlaceInfo
 from loopclosure.encoder import Encoder, PlaceCodes, evenly_spaced
@@ -309,7 +309,7 @@ def run_vpr_eval(
         database = PlaceDatabase(encoder.codebooks, config.vpr.database)
         database.add(ref_codes, [PlaceInfo(frame_id=i, name=p.name) for i, p in enumerate(ref_files)])
         # one BLAS thread for the many small stage-II products (two contend on a shared 2-core CPU)
-        with threadpool_limits(limits=1, user_api="blas"):
+        with one_blas_thread():
             outcome = recognise_all(Recognizer(config.vpr, database), query_codes, sequential, progress,
                                     config.vpr_eval.sequence_lengths, config.vpr_eval.sequence)  # fmt: skip
 
