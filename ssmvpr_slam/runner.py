@@ -78,8 +78,10 @@ def open_camera_source(log: Path, config: SlamConfig, resume: Checkpoint | None 
 
 
 def build_system(config: SlamConfig, prior: PriorMap | None) -> SlamSystem:
-    """The core with its odometry and backbone (the slow part: the weights load here)."""
-    odometry = make_odometry(config.frontend.odometry, config.frontend.pose_files)
+    """The core with its odometry and backbone (the slow part: the weights load here). With the
+    stages overlapped the odometry runs in a process of its own: kiss-icp holds the GIL while it
+    registers a scan, so a thread beside it would stall the backbone's."""
+    odometry = make_odometry(config.frontend.odometry, config.frontend.pose_files, own_process=config.pipeline.overlap)
     return SlamSystem(config, odometry, load_backbone(config.vpr.backbone, progress=True), prior)
 
 

@@ -302,9 +302,13 @@ class SlamSystem:
         """Final optimisation (GNC when configured) and the run's result.
 
         Runs once: the final pass may remove loops from the graph, so a second call returns
-        the same result instead of optimising again (and ignores its `ending`)."""
+        the same result instead of optimising again (and ignores its `ending`). An odometry in
+        a process of its own (`OdometryProcess`) is ended here: nothing feeds it afterwards."""
         if self._result is None:
             self._result = self._final_result(ending or StreamEnd())
+            close = getattr(self.odometry, "close", None)
+            if close is not None:
+                close()
         return self._result
 
     def _final_result(self, ending: StreamEnd) -> RunResult:

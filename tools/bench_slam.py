@@ -108,7 +108,8 @@ def main(argv: list[str] | None = None) -> int:
         traverse = {"simulated": sim.route.preset, "laps": sim.route.laps, "max_frames": sim.max_frames,
                     "lidar": sim.lidar.enabled}  # fmt: skip
     backbone = load_backbone(config.vpr.backbone)
-    pipeline = SlamPipeline(config, make_odometry(config.frontend.odometry, config.frontend.pose_files), backbone)
+    odometry = make_odometry(config.frontend.odometry, config.frontend.pose_files, own_process=config.pipeline.overlap)
+    pipeline = SlamPipeline(config, odometry, backbone)
 
     samples: list[dict[str, float]] = []
     load_before = os.getloadavg()

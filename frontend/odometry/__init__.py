@@ -7,6 +7,7 @@ from frontend.errors import FrontendInputError
 from frontend.odometry.base import Odometry, OdometryStats
 from frontend.odometry.kiss_icp import KissIcpOdometry
 from frontend.odometry.logged import DriftModel, LoggedPoseOdometry
+from frontend.odometry.own_process import OdometryProcess, OdometryProcessError
 
 
 def choose_odometry(config: OdometryConfig, topics: dict[str, str], log: str) -> OdometryConfig:
@@ -35,11 +36,18 @@ def choose_odometry(config: OdometryConfig, topics: dict[str, str], log: str) ->
     return config.model_copy(update={"kind": kind})
 
 
-def make_odometry(config: OdometryConfig | None = None, pose_config: PoseFileConfig | None = None) -> Odometry:
-    """The odometry ``config.kind`` names (``auto`` must first be resolved by `choose_odometry`)."""
+def make_odometry(
+    config: OdometryConfig | None = None, pose_config: PoseFileConfig | None = None, own_process: bool = False
+) -> Odometry:
+    """The odometry ``config.kind`` names (``auto`` must first be resolved by `choose_odometry`).
+
+    own_process: run it in a process of its own (`OdometryProcess`), so that threads beside it
+    are not held up by kiss-icp, which keeps the GIL while it registers a scan."""
     config = config or OdometryConfig(kind="kiss_icp")
     if config.kind == "auto":
         raise FrontendInputError("odometry kind 'auto' depends on the log: resolve it with choose_odometry first")
+    if own_process:
+        return OdometryProcess(config, pose_config)
     if config.kind == "kiss_icp":
         return KissIcpOdometry(config.kiss_icp)
     return LoggedPoseOdometry(config.logged, pose_config)
@@ -50,6 +58,8 @@ __all__ = [
     "KissIcpOdometry",
     "LoggedPoseOdometry",
     "Odometry",
+    "OdometryProcess",
+    "OdometryProcessError",
     "OdometryStats",
     "choose_odometry",
     "make_odometry",

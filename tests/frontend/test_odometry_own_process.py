@@ -1,0 +1,125 @@
+"""Odometry in a process of its own: the same poses, scans and counters as in this process, the
+same errors, and a child that dies becomes an error naming the frame rather than a hang."""
+
+from __future__ import annotations
+
+import logging
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from frontend.config import KissIcpConfig, OdometryConfig
+from frontend.errors import FrontendInputError
+from frontend.frame import Frame
+from frontend.odometry import OdometryProcess, OdometryProcessError, make_odometry
+from frontend.odometry.own_process import _POLL_S
+
+ROOT = Path(__file__).resolve().parents[2]
+CONFIG = OdometryConfig(kind="kiss_icp", kiss_icp=KissIcpConfig(max_num_threads=1))
+
+
+@pytest.fixture(scope="module")
+def kitti_frames(shared_dir: Path) -> list[Frame]:
+    """Two consecutive real KITTI 00 Velodyne scans (x, y, z, reflectance as float32)."""
+    image = np.zeros((4, 4, 3), np.uint8)  # what the pipeline needs of a keyframe; the child never gets it
+    velodyne = shared_dir / "data" / "kitti00_scans" / "velodyne"
+    return [
+        Frame(k, 0.1 * k, image=image, points=np.fromfile(velodyne / name, np.float32).reshape(-1, 4)[:, :3])
+        for k, name in enumerate(["000094.bin", "000095.bin"])
+    ]
+
+
+def test_real_scans_give_the_same_poses_scans_and_counts_as_in_process(kitti_frames: list[Frame]) -> None:
+    frames = [*kitti_frames, Frame(2, 0.2, points=None)]  # a frame without a scan: counted, pose predicted
+    here = make_odometry(CONFIG)
+    with make_odometry(CONFIG, own_process=True) as there:
+        assert isinstance(there, OdometryProcess)
+        poses = []
+        for frame in frames:
+            poses.append(there.update(frame))
+            np.testing.assert_array_equal(poses[-1], here.update(frame))
+            expected = getattr(here, "last_scan", None)
+            if expected is None:
+                assert there.last_scan is None
+            else:
+                np.testing.assert_array_equal(there.last_scan, expected)
+        assert np.linalg.norm(poses[1][:3, 3]) > 0.3  # the car moved between the two scans (0.47 m)
+        assert there.stats.updates == len(frames) and there.stats.skipped == {"no_points": 1}
+
+
+def test_a_warning_in_the_child_is_logged_here(caplog: pytest.LogCaptureFixture) -> None:
+    with caplog.at_level(logging.WARNING), OdometryProcess(CONFIG) as odometry:
+        odometry.update(Frame(0, 0.0, points=np.zeros((0, 3))))
+    assert odometry.stats.skipped == {"empty_scan": 1}
+    assert any("frame 0" in r.getMessage() and r.name == "frontend.odometry" for r in caplog.records)
+
+
+def test_bad_input_raises_the_same_error_naming_the_frame() -> None:
+    with OdometryProcess(CONFIG) as odometry, pytest.raises(FrontendInputError, match=r"frame 7 .*shape \(5, 2\)"):
+        odometry.update(Frame(7, 0.7, points=np.zeros((5, 2))))
+
+
+def test_a_bad_config_fails_at_start_with_the_childs_error() -> None:
+    with pytest.raises(FrontendInputError, match="choose_odometry"):  # raised by make_odometry in the child
+        OdometryProcess(OdometryConfig(kind="auto"))
+
+
+def test_a_dead_child_is_an_error_naming_the_frame_not_a_hang(kitti_frames: list[Frame]) -> None:
+    odometry = OdometryProcess(CONFIG)
+    odometry._process.kill()
+    frame = kitti_frames[0]
+    result: list[BaseException | None] = []
+
+    def call() -> None:
+        try:
+            odometry.update(frame)
+            result.append(None)
+        except BaseException as exc:
+            result.append(exc)
+
+    worker = threading.Thread(target=call, daemon=True)
+    started = time.monotonic()
+    worker.start()
+    worker.join(timeout=30.0)
+    assert result, "update() hung on a dead child"
+    assert time.monotonic() - started < 10 * _POLL_S + 5.0
+    assert isinstance(result[0], OdometryProcessError)
+    assert "frame 0" in str(result[0]) and "exit code -9" in str(result[0])
+    with pytest.raises(OdometryProcessError, match="closed"):
+        odometry.update(frame)
+
+
+def test_close_ends_the_child_and_is_idempotent() -> None:
+    odometry = OdometryProcess(CONFIG)
+    odometry.close()
+    odometry.close()
+    assert odometry._process.poll() == 0
+    with pytest.raises(OdometryProcessError, match="frame 3 .*closed"):
+        odometry.update(Frame(3, 0.3, points=np.zeros((0, 3))))
+
+
+def test_a_script_without_a_main_guard_can_use_it(tmp_path: Path) -> None:
+    """multiprocessing's spawn would run such a script again in the child; a fresh python does not."""
+    script = textwrap.dedent(
+        """
+        import numpy as np
+        from frontend.config import OdometryConfig
+        from frontend.frame import Frame
+        from frontend.odometry import make_odometry
+        print("script ran")
+        odometry = make_odometry(OdometryConfig(kind="kiss_icp"), own_process=True)
+        print(odometry.update(Frame(0, 0.0, points=np.zeros((0, 3))))[0, 0])
+        odometry.close()
+        """
+    )
+    path = tmp_path / "no_guard.py"
+    path.write_text(script)
+    done = subprocess.run([sys.executable, str(path)], capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["script", "ran", "1.0"]
