@@ -83,6 +83,36 @@ def test_icp_recovers_known_yaw_and_translation(scans, registrar):
     assert reg.sigmas.shape == (6,) and np.all(reg.sigmas > 0)
 
 
+class _Counted:
+    """A kiss-icp Registration that counts its alignments."""
+
+    def __init__(self, inner):
+        self.inner, self.calls = inner, 0
+
+    def align_points_to_map(self, **kwargs):
+        self.calls += 1
+        return self.inner.align_points_to_map(**kwargs)
+
+
+def test_a_seed_that_already_passes_ends_screening_with_the_pose_of_screening_every_seed(scans):
+    """The default stops screening at the first seed whose inlier ratio reaches min_inlier_ratio;
+    screening all eight and refining each lands on the same pose, at eight times the screening."""
+    query, target = scans
+    default = LoopRegistrar()
+    assert default.config.lidar.early_stop_inlier_ratio == default.config.lidar.min_inlier_ratio
+    lidar = default.config.lidar.model_copy(update={"early_stop_inlier_ratio": 1.0, "refine_top_k": 8})
+    every = LoopRegistrar(default.config.model_copy(update={"lidar": lidar}))
+    counted = {}
+    for name, registrar in (("default", default), ("every", every)):
+        registrar._icp._screen = counted[name] = _Counted(registrar._icp._screen)
+    fast = default.register_scans(query, target, yaw_guess=np.radians(35.0))
+    slow = every.register_scans(query, target, yaw_guess=np.radians(35.0))
+    assert fast.accepted and slow.accepted
+    assert counted["default"].calls == 1 and counted["every"].calls == len(lidar.yaw_seed_offsets_deg)
+    np.testing.assert_allclose(fast.T_mq, slow.T_mq, atol=1e-6)
+    assert pose_error(fast.T_mq)[1] < TRANS_TOL_M
+
+
 @pytest.mark.parametrize("guess_offset_deg", [-95.0, 175.0])
 def test_icp_recovers_from_a_far_yaw_guess_within_the_seed_set(scans, registrar, guess_offset_deg):
     query, target = scans
