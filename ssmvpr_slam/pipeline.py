@@ -9,7 +9,9 @@ it too, and the caller re-raises once the frames so far are saved. Either way th
 With `pipeline.overlap` the source, the odometry and keyframe selection (`SlamSystem.front`)
 run in a producer thread that hands keyframes to this thread (`SlamSystem.back`: backbone,
 recognition, registration, iSAM2) through a queue of `pipeline.overlap_queue_keyframes`, so
-decoding and kiss-icp proceed while the backbone runs. Signals, progress and checkpoints stay
+decoding and kiss-icp proceed while the backbone runs. kiss-icp keeps the GIL while it
+registers a scan, so the runner then builds the odometry in a process of its own
+(`OdometryProcess`) and the producer thread only waits on it. Signals, progress and checkpoints stay
 in the calling thread. On a stop request the producer reads no further frame and the keyframes
 already queued are still processed (at most the queue's length), so the result covers exactly
 the frames read; the back half sees the same keyframes in the same order as without overlap.

@@ -11,8 +11,10 @@ odometry itself.
 The child is a fresh ``python -c`` rather than multiprocessing's spawn, which would re-run the
 caller's main script in the child. A child that
 dies (a C++ abort on a scan) becomes an `OdometryProcessError` naming the frame, so the caller
-keeps what it processed so far instead of the whole run going down. POSIX only (the socket is
-handed over as an inherited file descriptor).
+keeps what it processed so far instead of the whole run going down. The child has a session of
+its own, so a Ctrl-C in the terminal reaches only the parent, which stops after the current
+frame as it does without the child; the child ends when the parent closes the socket or exits.
+POSIX only (the socket is handed over as an inherited file descriptor).
 """
 
 from __future__ import annotations
@@ -114,6 +116,7 @@ class OdometryProcess:
             self._process = subprocess.Popen(
                 [sys.executable, "-c", _CHILD, str(theirs.fileno())],
                 pass_fds=(theirs.fileno(),), stdin=subprocess.DEVNULL, env=env,
+                start_new_session=True,  # a Ctrl-C in the terminal is the parent's to handle, not the child's
             )  # fmt: skip
         self._connection = Connection(ours.detach())
         self._closer = weakref.finalize(self, _stop, self._connection, self._process)

@@ -4,6 +4,7 @@ same errors, and a child that dies becomes an error naming the frame rather than
 from __future__ import annotations
 
 import logging
+import os
 import subprocess
 import sys
 import textwrap
@@ -97,6 +98,8 @@ def test_a_dead_child_is_an_error_naming_the_frame_not_a_hang(kitti_frames: list
 
 def test_close_ends_the_child_and_is_idempotent() -> None:
     odometry = OdometryProcess(CONFIG)
+    # a terminal's Ctrl-C goes to a process group: the child is not in ours, so it never sees one
+    assert os.getpgid(odometry._process.pid) != os.getpgid(0)
     odometry.close()
     odometry.close()
     assert odometry._process.poll() == 0
