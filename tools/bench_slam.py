@@ -5,7 +5,10 @@ Stages (metrics.json's `latency_per_keyframe`): backbone (CNN + cubes + PCA), da
 (stage I), spatial_matching (stage II), sequence_matching, gate, registration (ICP / two-view,
 only on gate-accepted proposals), isam2_update, total (the back end's time per keyframe), and
 front_end (source, odometry and keyframe selection since the previous keyframe; with
-`pipeline.overlap` it runs beside the back end, so the pace per keyframe is `wall_per_keyframe`).
+`pipeline.overlap` it runs beside the back end). `keyframe_interval_s` is the time from one
+keyframe leaving the back end to the next, everything included: the end-to-end time per
+keyframe a user sees, which the target (median <= 100 ms) is about. `wall_per_keyframe_s` also
+spreads the start (first inference, PCA fit) over the keyframes.
 
     python tools/bench_slam.py [--frames 200] [--odometry kiss_icp|logged] [--log demo.mcap]
         [--overlap | --no-overlap] [--precision fp32|bf16|int8|auto] [--omp-wait-policy PASSIVE|ACTIVE|inherit]
@@ -114,8 +117,12 @@ def main(argv: list[str] | None = None) -> int:
     samples: list[dict[str, float]] = []
     load_before = os.getloadavg()
 
+    finished_at: list[float] = []  # when each keyframe left the back end: the pace the user sees
+
     def sample(state: RunState) -> None:
         n = len(state.keyframes)
+        if n > len(finished_at):
+            finished_at.append(time.perf_counter())
         if args.rss_every and n and n % args.rss_every == 0 and (not samples or samples[-1]["keyframes"] != n):
             database = pipeline.detector.database
             samples.append({
@@ -127,11 +134,12 @@ def main(argv: list[str] | None = None) -> int:
             print(json.dumps(samples[-1]), file=sys.stderr, flush=True)  # a run cut short keeps its samples
 
     start = time.perf_counter()
-    state = pipeline.run(frames, sample if args.rss_every else None)
+    state = pipeline.run(frames, sample)
     wall = time.perf_counter() - start
     summary = state.times.summary()
-    total = summary.get("total", {}).get("median_s")
     n_kf = len(state.keyframes)
+    intervals = np.diff(finished_at)  # from keyframe to keyframe: front end, back end and waits alike
+    pace = float(np.median(intervals)) if len(intervals) else None
     result: dict[str, Any] = {
         "machine": {
             "cpus": os.cpu_count(),
@@ -163,7 +171,14 @@ def main(argv: list[str] | None = None) -> int:
         "keyframes_per_second": n_kf / wall,
         "wall_per_keyframe_s": wall / n_kf if n_kf else None,
         "latency_per_keyframe_s": summary,
-        "target": {"median_total_s": 0.1, "pass": bool(total is not None and total <= 0.1)},
+        "keyframe_interval_s": None
+        if pace is None
+        else {
+            "median_s": pace,
+            "p90_s": float(np.percentile(intervals, 90)),
+            "mean_s": float(np.mean(intervals)),
+        },
+        "target": {"median_keyframe_interval_s": 0.1, "pass": bool(pace is not None and pace <= 0.1)},
     }
     if args.rss_every:
         result["memory"] = _memory(samples, pipeline, state, np)

@@ -1,0 +1,32 @@
+"""tools/bench_slam.py runs end to end on a short simulated traverse, stages overlapped (the
+odometry in its own process), and prints one JSON object with the pace per keyframe."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+SCRIPT = Path(__file__).resolve().parents[2] / "tools" / "bench_slam.py"
+
+
+@pytest.mark.slow
+def test_bench_slam_reports_stages_and_the_pace_per_keyframe(weights_path: Path) -> None:
+    proc = subprocess.run(
+        [sys.executable, str(SCRIPT), "--frames", "12", "--overlap", "--weights", str(weights_path)],
+        capture_output=True, text=True, timeout=600, check=False,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    out = json.loads(proc.stdout)  # stdout is exactly one JSON object
+    assert out["frames"] == 12 and out["settings"]["overlap"] is True
+    n = out["keyframes"]
+    assert 2 <= n <= 12
+    stages = out["latency_per_keyframe_s"]
+    assert stages["backbone"]["median_s"] > 0 and stages["front_end"]["median_s"] > 0
+    pace = out["keyframe_interval_s"]
+    assert 0 < pace["median_s"] <= pace["p90_s"] and pace["mean_s"] > 0
+    assert pace["mean_s"] * (n - 1) <= out["wall_s"]  # the intervals lie within the run
+    assert out["target"]["pass"] == (pace["median_s"] <= out["target"]["median_keyframe_interval_s"])
