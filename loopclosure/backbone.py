@@ -145,7 +145,9 @@ class Backbone:
         calibration_images: np.ndarray | None = None,
     ) -> None:
         """`calibration_images` (uint8, as __call__ takes) calibrate int8; without them int8 reads
-        `config.int8_calibration`. Other precisions ignore them."""
+        `config.int8_calibration`, and without that it calibrates on the first
+        `int8_calibration_images` images it is given, answering in fp32 until then (a SLAM run's
+        first keyframes, as its PCA is fitted on them). Other precisions ignore them."""
         self.config = config
         self.device = resolve_device(config.device)
         self.precision = resolve_precision(config.precision, self.device)
@@ -166,6 +168,7 @@ class Backbone:
         self.net.eval().to(self.device)
         self._dtype = _TORCH_DTYPES.get(self.precision, torch.float32)
         self._int8: Int8Session | None = None
+        self._calibrating: list[np.ndarray] | None = None  # int8 from the stream: images seen so far
         self._i1 = CONV_INDEX[config.stage1_layer]
         self._i2 = CONV_INDEX[config.stage2_layer]
         self._taps = {self._i1: config.pre_relu, self._i2: config.pre_relu}
@@ -177,7 +180,12 @@ class Backbone:
             self._std = torch.ones(1, 3, 1, 1)
         self._mean, self._std = self._mean.to(self.device), self._std.to(self.device)
         if self.precision == "int8":
-            self._int8 = self._build_int8(calibration_images)
+            if calibration_images is None and not config.int8_calibration:
+                self._require_onnxruntime()
+                self._calibrating = []
+                log.info("int8: calibrating on the first %d images; fp32 until then", config.int8_calibration_images)
+            else:
+                self._int8 = self._build_int8(calibration_images)
         else:
             # NHWC: oneDNN's fast convolutions (fp32 on this CPU, quiet: 89 -> 66 ms per image at batch 1)
             self.net.to(dtype=self._dtype, memory_format=torch.channels_last)  # type: ignore[call-overload]  # torch's stub lacks memory_format
@@ -186,11 +194,17 @@ class Backbone:
             self.net.features[0].float()
         log.info("VGG16 backbone: %s on %s (requested %s)", self.precision, self.device, config.precision)
 
-    def _build_int8(self, images: np.ndarray | None) -> Int8Session:
-        from loopclosure.int8_runtime import build_int8_session, require_onnxruntime
-        from loopclosure.weights import default_cache_dir
+    @staticmethod
+    def _require_onnxruntime() -> None:
+        from loopclosure.int8_runtime import require_onnxruntime
 
         require_onnxruntime()  # the missing extra is reported before any image is read
+
+    def _build_int8(self, images: np.ndarray | None) -> Int8Session:
+        from loopclosure.int8_runtime import build_int8_session
+        from loopclosure.weights import default_cache_dir
+
+        self._require_onnxruntime()
         if images is None:
             images = self._calibration_from_config()
         else:
@@ -207,11 +221,7 @@ class Backbone:
         from loopclosure.images import as_rgb, list_images, read_image, resize_square
 
         folder = self.config.int8_calibration
-        if not folder:
-            raise LoopClosureInputError(
-                "backbone.precision='int8' needs backbone.int8_calibration: a folder of reference images "
-                "(e.g. the ones PCA is fitted on) to calibrate on"
-            )
+        assert folder  # without one, __init__ calibrates on the stream instead
         files = list_images(Path(folder).expanduser())
         chosen = [files[i] for i in evenly_spaced(len(files), self.config.int8_calibration_images)]
         size = self.config.input_size
@@ -241,9 +251,21 @@ class Backbone:
         if self._int8 is not None:
             return self._int8(x.cpu().numpy())
         maps = self.net(x.contiguous(memory_format=torch.channels_last), self._taps)
+        if self._calibrating is not None:
+            self._calibrate_on(images)
         return tuple(  # type: ignore[return-value]
             maps[i].to(torch.float32).contiguous().cpu().numpy() for i in (self._i1, self._i2)
         )
+
+    def _calibrate_on(self, images: np.ndarray) -> None:
+        """Keep the images until there are enough, then build the int8 session from them."""
+        assert self._calibrating is not None
+        self._calibrating.extend(np.array(image) for image in images)
+        if len(self._calibrating) >= self.config.int8_calibration_images:
+            chosen = np.stack(self._calibrating[: self.config.int8_calibration_images])
+            self._calibrating = None
+            self._int8 = self._build_int8(chosen)
+            log.info("int8: calibrated on the first %d images", len(chosen))
 
 
 def load_backbone(config: BackboneConfig, progress: bool = False) -> Backbone:

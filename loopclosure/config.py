@@ -38,13 +38,16 @@ class BackboneConfig(_Strict):
         default="fp32",
         description="fp32: torch fp32, the reference (reproducible results). auto: bf16 on a CPU with "
         "AVX512-BF16 or AMX (/proc/cpuinfo flags), bf16 (else fp16) on CUDA, fp32 otherwise. int8: ONNX "
-        "Runtime (extra 'int8') calibrated on int8_calibration. Outputs are float32 maps in every case.",
+        "Runtime (extra 'int8') calibrated on int8_calibration (or on the first images). Outputs are float32 maps in every case.",
     )
     int8_calibration: str | None = Field(
         default=None,
-        description="Folder of reference images (e.g. those PCA is fitted on) that calibrate precision int8.",
+        description="Folder of reference images (e.g. those PCA is fitted on) that calibrate precision int8. "
+        "None: the first int8_calibration_images images the backbone is given calibrate it (fp32 until then).",
     )
-    int8_calibration_images: int = Field(default=32, ge=1, description="Images taken evenly from int8_calibration.")
+    int8_calibration_images: int = Field(
+        default=32, ge=1, description="Images taken evenly from int8_calibration, or the first ones without it."
+    )
 
 
 class CubeConfig(_Strict):

@@ -143,10 +143,26 @@ def test_int8_without_the_extra_is_one_clear_line(monkeypatch, real_sd):
         Backbone(_config("int8", int8_calibration="/nonexistent"), real_sd)
 
 
-def test_int8_needs_a_calibration_folder(real_sd):
+def test_int8_without_a_folder_calibrates_on_the_first_images_in_fp32_meanwhile(
+    monkeypatch, tmp_path, real_sd, queries, reference_maps, gardens_dir
+):
     pytest.importorskip("onnxruntime")
-    with pytest.raises(LoopClosureInputError, match="int8_calibration"):
-        Backbone(_config("int8"), real_sd)
+    monkeypatch.setenv("SSMVPR_CACHE", str(tmp_path))
+    stream = np.stack([resize_square(read_image(f), SIZE) for f in list_images(gardens_dir / "ref")[:4]])
+    backbone = Backbone(_config("int8", int8_calibration_images=4), real_sd)
+    assert backbone.precision == "int8" and not list(tmp_path.glob("int8/*.onnx"))
+    fp32 = Backbone(_config("fp32"), real_sd)
+    for k in (0, 1):  # the first images (one, then a batch of three) are answered by the fp32 net
+        part = stream[:1] if k == 0 else stream[1:]
+        for got, want in zip(backbone(part), fp32(part)):
+            np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-3)
+    assert len(list(tmp_path.glob("int8/*.onnx"))) == 1  # calibrated once it had seen four
+    after = backbone(queries)
+    _check_agreement(after, reference_maps, "int8")
+    assert not np.allclose(after[0], reference_maps[0], rtol=1e-4, atol=1e-3)  # int8 answers now, not fp32
+    # the same images as calibration_images make the same model: the cache has no second one
+    Backbone(_config("int8"), real_sd, calibration_images=stream)
+    assert len(list(tmp_path.glob("int8/*.onnx"))) == 1
 
 
 def test_int8_calibrated_on_references_agrees_with_fp32(
