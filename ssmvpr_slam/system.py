@@ -31,7 +31,7 @@ from loopclosure.detector import LoopDetector, LoopProposal
 from loopclosure.encoder import Encoder
 from ssmvpr_slam.backend.g2o_io import from_pose_graph
 from ssmvpr_slam.backend.kept_scan import KeptScan, keep_scan
-from ssmvpr_slam.backend.loop_registration import LoopRegistrar, LoopRegistration, build_local_map
+from ssmvpr_slam.backend.loop_registration import LoopRegistrar, LoopRegistration, build_local_map, carry_loop
 from ssmvpr_slam.backend.pose_graph import PoseGraph
 from ssmvpr_slam.backend.two_view import reduce_image
 from ssmvpr_slam.config import SlamConfig
@@ -116,6 +116,7 @@ class SlamSystem:
             else PoseGraph(config.backend.pose_graph.for_odometry(config.frontend.odometry.kind))
         )
         self.state = RunState()
+        self._last_icp_loop: tuple[int, int, np.ndarray] | None = None  # (match, query, T_mq) accepted last
         self._front = FrontCounts()
         self._result: RunResult | None = None
 
@@ -265,7 +266,10 @@ class SlamSystem:
                 [scan for scan, _ in with_scans], [pose for _, pose in with_scans], match.odom_pose,
                 self.config.backend.registration.lidar.max_range,
             )  # fmt: skip
-            return self.registrar.register_scans(kf.scan.points, local_map, proposal.yaw_guess)
+            reg = self.registrar.register_scans(kf.scan.points, local_map, proposal.yaw_guess, self._carried(kf, match))
+            if reg.accepted:
+                self._last_icp_loop = (match.id, kf.id, reg.T_mq)
+            return reg
         if proposal.camera == "rear":  # the rear image saw what the match's forward camera saw
             if kf.rear_image is None:
                 return self.registrar.yaw_prior(proposal.yaw_guess, "rear camera match: no rear image kept")
@@ -277,6 +281,18 @@ class SlamSystem:
         if kf.image is None or match.image is None:
             return self.registrar.yaw_prior(proposal.yaw_guess, "a keyframe kept no image")
         return self.registrar.register_images(kf.image, match.image, proposal.yaw_guess)
+
+    def _carried(self, kf: Keyframe, match: Keyframe) -> np.ndarray | None:
+        """The last accepted ICP loop moved to (match, kf) when it is a few keyframes back on both
+        visits, as it is along a revisit; else None."""
+        reach = self.config.backend.registration.lidar.carry_loop_keyframes
+        if self._last_icp_loop is None or reach == 0:
+            return None
+        m, q, T_mq = self._last_icp_loop
+        if not (0 < kf.id - q <= reach and abs(match.id - m) <= reach):
+            return None
+        kfs = self.state.keyframes
+        return carry_loop(T_mq, kfs[m].odom_pose, kfs[q].odom_pose, match.odom_pose, kf.odom_pose)
 
     def _register_to_map(self, kf: Keyframe, proposal: LoopProposal) -> LoopRegistration:
         """ICP against the prior map's scans around the place, else the visual place prior."""

@@ -173,6 +173,12 @@ class LidarRegistrationConfig(_Strict):
     max_rmse: float = Field(0.3, gt=0, description="m; RMSE of the inlier distances")
     min_points: int = Field(50, ge=3, description="after down-sampling, per cloud")
     local_map_half_window: int = Field(2, ge=0, description="keyframes m-k..m+k make the target local map")
+    carry_loop_keyframes: int = Field(
+        3,
+        ge=0,
+        description="an ICP loop accepted at most this many keyframes earlier, moved along both visits by "
+        "odometry, is the first seed of the next registration (revisits come as runs of loops); 0: never",
+    )
     rot_sigma: float = Field(0.02, gt=0, description="rad; factor sigma of an accepted ICP loop")
     trans_sigma: float = Field(0.1, gt=0, description="m; factor sigma of an accepted ICP loop")
 

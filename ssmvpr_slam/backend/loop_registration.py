@@ -10,7 +10,9 @@ Which path is used when:
 * LiDAR scans available -> `LoopRegistrar.register_scans`: the query scan is aligned to the
   matched keyframe's scan, or to a small local map of keyframes m-k..m+k built with
   `build_local_map`, by kiss-icp's point-to-point ICP from zero translation and each yaw in
-  guess + `yaw_seed_offsets_deg`; the best seed (highest inlier ratio, then lowest RMSE) wins.
+  guess + `yaw_seed_offsets_deg`, after a full pose guess when the caller has one (`carry_loop`:
+  the previous loop of the same revisit); the best seed (highest inlier ratio, then lowest
+  RMSE) wins.
   Accepted only if the inlier ratio and the inlier RMSE pass the config thresholds; rejected
   (with a reason, never an exception) when either cloud is too small after cleaning.
 * No LiDAR -> `LoopRegistrar.register_images`: a place prior. Translation is zero with
@@ -32,7 +34,7 @@ import numpy as np
 from ssmvpr_slam.backend.config import LoopRegistrationConfig
 from ssmvpr_slam.backend.icp import SeededIcp, clean_points, transform_points
 from ssmvpr_slam.backend.noise import sigmas6
-from ssmvpr_slam.backend.se3 import as_pose, invert, make_pose, project_to_so3, rot_z
+from ssmvpr_slam.backend.se3 import as_pose, invert, make_pose, project_to_so3, rot_z, yaw_of
 from ssmvpr_slam.backend.two_view import ReducedImage, estimate_rotation
 
 
@@ -102,6 +104,16 @@ def build_local_map(
     return np.concatenate(parts, axis=0)
 
 
+def carry_loop(
+    T_mq: np.ndarray, match_odom: np.ndarray, query_odom: np.ndarray, new_match_odom: np.ndarray,
+    new_query_odom: np.ndarray,
+) -> np.ndarray:  # fmt: skip
+    """A loop q -> m moved to the keyframes q' and m' a little further along both visits: each end
+    is carried by its own visit's odometry over a few keyframes, which drifts far less than the
+    odometry across the two visits does. Returns the guess for T_m'q'."""
+    return invert(new_match_odom) @ match_odom @ T_mq @ invert(query_odom) @ new_query_odom
+
+
 class LoopRegistrar:
     """Computes `LoopRegistration`s from scans (ICP) or images (place prior)."""
 
@@ -111,9 +123,16 @@ class LoopRegistrar:
 
     # ------------------------------------------------------------------ LiDAR
     def register_scans(
-        self, query_points: np.ndarray, map_points: np.ndarray, yaw_guess: float = 0.0
+        self,
+        query_points: np.ndarray,
+        map_points: np.ndarray,
+        yaw_guess: float = 0.0,
+        pose_guess: np.ndarray | None = None,
     ) -> LoopRegistration:
-        """Align the query scan (query sensor frame) to `map_points` (matched keyframe frame)."""
+        """Align the query scan (query sensor frame) to `map_points` (matched keyframe frame).
+
+        pose_guess: a full T_mq guess (`carry_loop`), tried first; when it already aligns the
+        scans, screening ends there instead of starting from zero translation."""
         cfg = self.config.lidar
         yaw_guess = _finite_yaw(yaw_guess)
         query = clean_points("query_points", query_points, cfg.max_range)
@@ -127,6 +146,9 @@ class LoopRegistrar:
                 )
         seeds_yaw = [yaw_guess + math.radians(off) for off in cfg.yaw_seed_offsets_deg]
         seeds = [make_pose(rot_z(yaw), np.zeros(3)) for yaw in seeds_yaw]
+        if pose_guess is not None:
+            guess = as_pose("pose_guess", pose_guess)
+            seeds_yaw, seeds = [yaw_of(guess), *seeds_yaw], [guess, *seeds]
         best = self._icp.align(query, target, seeds)
         if not np.all(np.isfinite(best.pose)):
             return self._rejected("ICP returned a non-finite pose", yaw_guess)

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from ssmvpr_slam.backend.config import LoopRegistrationConfig
-from ssmvpr_slam.backend.loop_registration import LoopRegistrar, build_local_map
+from ssmvpr_slam.backend.loop_registration import LoopRegistrar, build_local_map, carry_loop
 from ssmvpr_slam.backend.se3 import invert, make_pose, rot_z, rotation_angle, yaw_of
 from ssmvpr_slam.backend.two_view import ReducedImage, intrinsics, reduce_image
 
@@ -111,6 +111,32 @@ def test_a_seed_that_already_passes_ends_screening_with_the_pose_of_screening_ev
     assert counted["default"].calls == 1 and counted["every"].calls == len(lidar.yaw_seed_offsets_deg)
     np.testing.assert_allclose(fast.T_mq, slow.T_mq, atol=1e-6)
     assert pose_error(fast.T_mq)[1] < TRANS_TOL_M
+
+
+def test_a_pose_guess_is_screened_first_and_ends_screening_when_it_aligns(scans):
+    """A carried loop's full pose aligns at once where the visual yaw guess is far off."""
+    query, target = scans
+    registrar = LoopRegistrar()
+    registrar._icp._screen = counted = _Counted(registrar._icp._screen)
+    guess = T_MQ @ make_pose(rot_z(np.radians(3.0)), [0.4, -0.3, 0.0])  # near the truth
+    reg = registrar.register_scans(query, target, yaw_guess=np.radians(40.0 + 150.0), pose_guess=guess)
+    assert reg.accepted, reg.reason
+    assert counted.calls == 1
+    rot_err, trans_err = pose_error(reg.T_mq)
+    assert rot_err < YAW_TOL_DEG and trans_err < TRANS_TOL_M
+
+
+def test_carry_loop_is_exact_when_each_visits_odometry_is_exact_over_the_carry():
+    """Each visit's odometry is off by its own rigid drift; carried along both, the drifts cancel."""
+    truth = {name: make_pose(rot_z(a), [x, y, 0.1 * a]) for name, a, x, y in
+             [("m", 0.3, 10.0, 2.0), ("q", 0.35, 11.0, 2.5), ("m2", 0.4, 12.0, 3.0), ("q2", 0.5, 14.0, 3.1)]}  # fmt: skip
+    first, second = make_pose(rot_z(0.7), [5.0, -3.0, 1.0]), make_pose(rot_z(-1.1), [-40.0, 8.0, 0.0])
+    odom = {"m": first @ truth["m"], "m2": first @ truth["m2"], "q": second @ truth["q"], "q2": second @ truth["q2"]}
+    T_mq = invert(truth["m"]) @ truth["q"]
+    carried = carry_loop(T_mq, odom["m"], odom["q"], odom["m2"], odom["q2"])
+    np.testing.assert_allclose(carried, invert(truth["m2"]) @ truth["q2"], atol=1e-12)
+    across = invert(odom["m2"]) @ odom["q2"]  # what the odometry alone says across the visits
+    assert np.linalg.norm(across[:3, 3] - carried[:3, 3]) > 10.0
 
 
 @pytest.mark.parametrize("guess_offset_deg", [-95.0, 175.0])
