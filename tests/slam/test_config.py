@@ -70,6 +70,11 @@ def test_fast_preset_inherits_default() -> None:
     fast = load_config("fast")
     assert fast.vpr.filtering.num_candidates == 15
     assert fast.vpr.database.stage1_dtype == "float16"
+    assert fast.vpr.backbone.precision == "auto"
+    assert (
+        fast.frontend.odometry.kiss_icp.convergence_criterion,
+        fast.frontend.odometry.kiss_icp.max_points_per_voxel,
+    ) == (1e-3, 10)
     assert fast.vpr.filtering.cubes == load_config().vpr.filtering.cubes
     assert fast.detector.min_score == 0.3
 
