@@ -182,6 +182,7 @@ class Backbone:
         if self.precision == "int8":
             if calibration_images is None and not config.int8_calibration:
                 self._require_onnxruntime()
+                self.net.to(memory_format=torch.channels_last)  # type: ignore[call-overload]  # fp32 until calibrated
                 self._calibrating = []
                 log.info("int8: calibrating on the first %d images; fp32 until then", config.int8_calibration_images)
             else:
@@ -263,8 +264,8 @@ class Backbone:
         self._calibrating.extend(np.array(image) for image in images)
         if len(self._calibrating) >= self.config.int8_calibration_images:
             chosen = np.stack(self._calibrating[: self.config.int8_calibration_images])
+            self._int8 = self._build_int8(chosen)  # a failure raises here, and the next call tries again
             self._calibrating = None
-            self._int8 = self._build_int8(chosen)
             log.info("int8: calibrated on the first %d images", len(chosen))
 
 

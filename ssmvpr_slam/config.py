@@ -92,8 +92,8 @@ class PipelineConfig(BaseModel):
     )  # fmt: skip
     overlap: bool = Field(
         default=False,
-        description="Run the source, odometry and keyframe selection in a thread of their own (the odometry in "
-        "a process of its own: kiss-icp keeps the GIL), alongside recognition, registration and iSAM2 (same "
+        description="Run the source, odometry and keyframe selection in a thread of their own (run and demo put "
+        "kiss-icp in a process of its own: it keeps the GIL), alongside recognition, registration and iSAM2 (same "
         "keyframes, loops and trajectory as false). Off by default: on a 2-core CPU every stage already uses both "
         'cores, and it saved nothing with -c fast and 9 % with int8 (README, "SLAM demo"); try it where cores are free.',
     )

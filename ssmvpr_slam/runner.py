@@ -19,7 +19,7 @@ from rich.table import Table
 
 from frontend.errors import FrontendInputError
 from frontend.frame import Frame
-from frontend.odometry import choose_odometry, make_odometry
+from frontend.odometry import Odometry, choose_odometry, make_odometry
 from frontend.sources import Source, open_source
 from loopclosure.backbone import load_backbone
 from ssmvpr_slam.checkpoint import Checkpoint, Checkpointer, CheckpointMeta, check_log, log_fingerprint
@@ -78,11 +78,16 @@ def open_camera_source(log: Path, config: SlamConfig, resume: Checkpoint | None 
 
 
 def build_system(config: SlamConfig, prior: PriorMap | None) -> SlamSystem:
-    """The core with its odometry and backbone (the slow part: the weights load here). With the
-    stages overlapped the odometry runs in a process of its own: kiss-icp holds the GIL while it
-    registers a scan, so a thread beside it would stall the backbone's."""
-    odometry = make_odometry(config.frontend.odometry, config.frontend.pose_files, own_process=config.pipeline.overlap)
-    return SlamSystem(config, odometry, load_backbone(config.vpr.backbone, progress=True), prior)
+    """The core with its odometry and backbone (the slow part: the weights load here)."""
+    return SlamSystem(config, build_odometry(config), load_backbone(config.vpr.backbone, progress=True), prior)
+
+
+def build_odometry(config: SlamConfig) -> Odometry:
+    """The configured odometry; kiss-icp with the stages overlapped runs in a process of its own,
+    because it holds the GIL while it registers a scan and would stall the backbone's thread."""
+    odometry = config.frontend.odometry
+    own_process = config.pipeline.overlap and odometry.kind == "kiss_icp"
+    return make_odometry(odometry, config.frontend.pose_files, own_process=own_process)
 
 
 def stream_frames(pipeline: SlamPipeline, frames: Iterator[Frame], source: Source, checkpoints: Checkpointer,

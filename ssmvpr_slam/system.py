@@ -321,10 +321,12 @@ class SlamSystem:
         the same result instead of optimising again (and ignores its `ending`). An odometry in
         a process of its own (`OdometryProcess`) is ended here: nothing feeds it afterwards."""
         if self._result is None:
-            self._result = self._final_result(ending or StreamEnd())
-            close = getattr(self.odometry, "close", None)
-            if close is not None:
-                close()
+            try:
+                self._result = self._final_result(ending or StreamEnd())
+            finally:
+                close = getattr(self.odometry, "close", None)
+                if close is not None:
+                    close()
         return self._result
 
     def _final_result(self, ending: StreamEnd) -> RunResult:
@@ -426,6 +428,11 @@ class SlamSystem:
                                      f"{restored.factor_handle}, the checkpoint says {record.factor_handle}")  # fmt: skip
                 self.state.loops.append(record)
             self.graph.update()
+        carried = [r for r in self.state.loops if _session_icp_loop(r)]  # the seed a run carries on with
+        if carried:
+            reg = carried[-1].registration
+            assert reg is not None
+            self._last_icp_loop = (carried[-1].proposal.match_id, carried[-1].proposal.query_id, reg.T_mq)
 
     def replay_odometry(self, frame: Frame) -> None:
         """Feed a frame processed before the checkpoint to the odometry only (its state is not
@@ -440,6 +447,12 @@ class SlamSystem:
             self.selector.select(last.odom_pose, last.timestamp)
             self.selector.count = len(self.state.keyframes)
         self._front.keyframes = len(self.state.keyframes)
+
+
+def _session_icp_loop(record: LoopRecord) -> bool:
+    """An ICP loop between two of the session's keyframes that was accepted (what `_carried` uses)."""
+    reg = record.registration
+    return reg is not None and reg.accepted and reg.method == "icp" and not record.proposal.prior_map
 
 
 def _odometry_stats(odometry: Odometry) -> dict[str, Any]:

@@ -129,8 +129,12 @@ class OdometryProcess:
 
     def update(self, frame: Frame) -> np.ndarray:
         what = f"frame {frame.index} (t={frame.timestamp})"
-        self._send(replace(frame, image=None, rear_image=None), what)
-        kind, payload = self._receive(what, None)
+        try:
+            self._send(replace(frame, image=None, rear_image=None), what)
+            kind, payload = self._receive(what, None)
+        except BaseException:  # e.g. a KeyboardInterrupt mid-wait: a reply left unread would answer the next frame
+            self.close()
+            raise
         if kind == "error":
             raise payload
         pose, self.last_scan, self.stats = payload
@@ -186,9 +190,9 @@ def _stop(connection: Connection, process: subprocess.Popen[bytes]) -> None:
         connection.send(None)
     except OSError:
         pass
+    connection.close()  # a child still writing a reply gets EPIPE, one waiting for a frame EOF: both end
     try:
         process.wait(timeout=5.0)
     except subprocess.TimeoutExpired:
         process.kill()
         process.wait()
-    connection.close()

@@ -161,12 +161,12 @@ class LidarRegistrationConfig(_Strict):
         50, ge=1, description="ICP iterations of the first stage when screening each seed"
     )
     refine_top_k: int = Field(2, ge=1, description="best screened seeds that run all stages")
-    early_stop_inlier_ratio: float = Field(
-        0.8,
+    early_stop_inlier_ratio: float | None = Field(
+        None,
         ge=0,
         le=1,
-        description="a screened seed this good ends screening; only it is refined. At min_inlier_ratio: "
-        "186 demo loops got the same poses as at 0.9, 3.1x faster (README, 'SLAM demo')",
+        description="a screened seed this good ends screening; only it is refined. None: min_inlier_ratio (186 "
+        "demo loops got the same poses as at 0.9, 3.1x faster; README, 'SLAM demo')",
     )
     inlier_distance: float = Field(0.5, gt=0, description="m; distance to the nearest raw map point counted as inlier")
     min_inlier_ratio: float = Field(0.8, ge=0, le=1)  # demo: true loops >= 0.89, aliased streets <= 0.69

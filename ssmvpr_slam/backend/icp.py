@@ -107,7 +107,7 @@ class SeededIcp:
             )
             ratio, _ = self._quality(tree, source_sparse, pose)
             screened.append((ratio, index, pose))
-            if ratio >= cfg.early_stop_inlier_ratio:
+            if ratio >= (cfg.min_inlier_ratio if cfg.early_stop_inlier_ratio is None else cfg.early_stop_inlier_ratio):
                 screened = screened[-1:]  # good enough: refine this seed only
                 break
         screened.sort(key=lambda item: (-item[0], item[1]))

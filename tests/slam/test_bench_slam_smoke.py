@@ -21,7 +21,7 @@ def test_bench_slam_reports_stages_and_the_pace_per_keyframe(weights_path: Path)
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-2000:]
     out = json.loads(proc.stdout)  # stdout is exactly one JSON object
-    assert out["frames"] == 12 and out["settings"]["overlap"] is True
+    assert out["frames"] == 12 and out["settings"]["overlap"] is True and out["error"] is None
     n = out["keyframes"]
     assert 2 <= n <= 12
     stages = out["latency_per_keyframe_s"]

@@ -99,7 +99,7 @@ def test_a_seed_that_already_passes_ends_screening_with_the_pose_of_screening_ev
     screening all eight and refining each lands on the same pose, at eight times the screening."""
     query, target = scans
     default = LoopRegistrar()
-    assert default.config.lidar.early_stop_inlier_ratio == default.config.lidar.min_inlier_ratio
+    assert default.config.lidar.early_stop_inlier_ratio is None  # follows min_inlier_ratio
     lidar = default.config.lidar.model_copy(update={"early_stop_inlier_ratio": 1.0, "refine_top_k": 8})
     every = LoopRegistrar(default.config.model_copy(update={"lidar": lidar}))
     counted = {}
