@@ -116,7 +116,6 @@ class SlamSystem:
             else PoseGraph(config.backend.pose_graph.for_odometry(config.frontend.odometry.kind))
         )
         self.state = RunState()
-        self._last_icp_loop: tuple[int, int, np.ndarray] | None = None  # (match, query, T_mq) accepted last
         self._front = FrontCounts()
         self._result: RunResult | None = None
 
@@ -266,10 +265,9 @@ class SlamSystem:
                 [scan for scan, _ in with_scans], [pose for _, pose in with_scans], match.odom_pose,
                 self.config.backend.registration.lidar.max_range,
             )  # fmt: skip
-            reg = self.registrar.register_scans(kf.scan.points, local_map, proposal.yaw_guess, self._carried(kf, match))
-            if reg.accepted:
-                self._last_icp_loop = (match.id, kf.id, reg.T_mq)
-            return reg
+            return self.registrar.register_scans(
+                kf.scan.points, local_map, proposal.yaw_guess, self._carried(kf, match)
+            )
         if proposal.camera == "rear":  # the rear image saw what the match's forward camera saw
             if kf.rear_image is None:
                 return self.registrar.yaw_prior(proposal.yaw_guess, "rear camera match: no rear image kept")
@@ -284,15 +282,21 @@ class SlamSystem:
 
     def _carried(self, kf: Keyframe, match: Keyframe) -> np.ndarray | None:
         """The last accepted ICP loop moved to (match, kf) when it is a few keyframes back on both
-        visits, as it is along a revisit; else None."""
+        visits, as it is along a revisit; else None. Read from the recorded loops (in query
+        order), so a run resumed from its checkpoint carries on as the uninterrupted one."""
         reach = self.config.backend.registration.lidar.carry_loop_keyframes
-        if self._last_icp_loop is None or reach == 0:
-            return None
-        m, q, T_mq = self._last_icp_loop
-        if not (0 < kf.id - q <= reach and abs(match.id - m) <= reach):
-            return None
-        kfs = self.state.keyframes
-        return carry_loop(T_mq, kfs[m].odom_pose, kfs[q].odom_pose, match.odom_pose, kf.odom_pose)
+        for record in reversed(self.state.loops):
+            q, m = record.proposal.query_id, record.proposal.match_id
+            if kf.id - q > reach:
+                return None
+            if q < kf.id and _session_icp_loop(record):
+                if abs(match.id - m) > reach:
+                    return None
+                assert record.registration is not None  # checked by _session_icp_loop
+                kfs = self.state.keyframes
+                return carry_loop(record.registration.T_mq, kfs[m].odom_pose, kfs[q].odom_pose, match.odom_pose,
+                                  kf.odom_pose)  # fmt: skip
+        return None
 
     def _register_to_map(self, kf: Keyframe, proposal: LoopProposal) -> LoopRegistration:
         """ICP against the prior map's scans around the place, else the visual place prior."""
@@ -428,11 +432,6 @@ class SlamSystem:
                                      f"{restored.factor_handle}, the checkpoint says {record.factor_handle}")  # fmt: skip
                 self.state.loops.append(record)
             self.graph.update()
-        carried = [r for r in self.state.loops if _session_icp_loop(r)]  # the seed a run carries on with
-        if carried:
-            reg = carried[-1].registration
-            assert reg is not None
-            self._last_icp_loop = (carried[-1].proposal.match_id, carried[-1].proposal.query_id, reg.T_mq)
 
     def replay_odometry(self, frame: Frame) -> None:
         """Feed a frame processed before the checkpoint to the odometry only (its state is not
@@ -450,7 +449,7 @@ class SlamSystem:
 
 
 def _session_icp_loop(record: LoopRecord) -> bool:
-    """An ICP loop between two of the session's keyframes that was accepted (what `_carried` uses)."""
+    """An accepted ICP loop between two of the session's keyframes (what `_carried` carries on)."""
     reg = record.registration
     return reg is not None and reg.accepted and reg.method == "icp" and not record.proposal.prior_map
 
