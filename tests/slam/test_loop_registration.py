@@ -95,12 +95,12 @@ class _Counted:
 
 
 def test_a_seed_that_already_passes_ends_screening_with_the_pose_of_screening_every_seed(scans):
-    """The default stops screening at the first seed whose inlier ratio reaches min_inlier_ratio;
+    """The default ends the search at the first seed whose refined alignment passes acceptance;
     screening all eight and refining each lands on the same pose, at eight times the screening."""
     query, target = scans
     default = LoopRegistrar()
     assert default.config.lidar.early_stop_inlier_ratio is None  # follows min_inlier_ratio
-    lidar = default.config.lidar.model_copy(update={"early_stop_inlier_ratio": 1.0, "refine_top_k": 8})
+    lidar = default.config.lidar.model_copy(update={"seed_search": "best", "refine_top_k": 8})
     every = LoopRegistrar(default.config.model_copy(update={"lidar": lidar}))
     counted = {}
     for name, registrar in (("default", default), ("every", every)):
@@ -126,6 +126,48 @@ def test_a_pose_guess_is_screened_first_and_ends_screening_when_it_aligns(scans)
     assert rot_err < YAW_TOL_DEG and trans_err < TRANS_TOL_M
 
 
+def _with_lidar(**update) -> LoopRegistrar:
+    default = LoopRegistrationConfig()
+    return LoopRegistrar(default.model_copy(update={"lidar": default.lidar.model_copy(update=update)}))
+
+
+def test_the_first_seed_is_refined_at_once_so_a_right_guess_ends_the_search_before_screening_converges(scans):
+    """Screening cut short (one iteration) scores the right guess far below min_inlier_ratio;
+    refined at once, it passes, so no other seed is screened (reverse revisits on the demo city:
+    screening every seed had made them 660 ms a loop)."""
+    query, target = scans
+    registrar = _with_lidar(screening_iterations=1)
+    registrar._icp._screen = counted = _Counted(registrar._icp._screen)
+    screen_ratios = []
+    quality = registrar._icp._quality
+
+    def recorded(tree, source, pose):
+        ratio, rmse = quality(tree, source, pose)
+        screen_ratios.append(ratio)
+        return ratio, rmse
+
+    registrar._icp._quality = recorded
+    guess = T_MQ @ make_pose(rot_z(np.radians(8.0)), [1.5, -1.0, 0.0])
+    reg = registrar.register_scans(query, target, yaw_guess=yaw_of(guess), pose_guess=guess)
+    assert reg.accepted, reg.reason
+    assert counted.calls == 1
+    assert screen_ratios[0] < registrar.config.lidar.min_inlier_ratio  # screening alone would go on
+    rot_err, trans_err = pose_error(reg.T_mq)
+    assert rot_err < YAW_TOL_DEG and trans_err < TRANS_TOL_M
+
+
+def test_a_refined_seed_that_fails_acceptance_does_not_end_the_search(scans):
+    """With an RMSE bound nothing can meet, every seed is screened and the best is reported
+    (rejected), rather than the search stopping at the first seed that screened well."""
+    query, target = scans
+    registrar = _with_lidar(max_rmse=1e-6)
+    registrar._icp._screen = counted = _Counted(registrar._icp._screen)
+    reg = registrar.register_scans(query, target, yaw_guess=np.radians(40.0))
+    assert not reg.accepted and "RMSE" in reg.reason
+    assert counted.calls == len(registrar.config.lidar.yaw_seed_offsets_deg)
+    assert pose_error(reg.T_mq)[1] < TRANS_TOL_M  # still the best alignment found
+
+
 def test_carry_loop_is_exact_when_each_visits_odometry_is_exact_over_the_carry():
     """Each visit's odometry is off by its own rigid drift; carried along both, the drifts cancel."""
     truth = {name: make_pose(rot_z(a), [x, y, 0.1 * a]) for name, a, x, y in
@@ -139,15 +181,28 @@ def test_carry_loop_is_exact_when_each_visits_odometry_is_exact_over_the_carry()
     assert np.linalg.norm(across[:3, 3] - carried[:3, 3]) > 10.0
 
 
-@pytest.mark.parametrize("guess_offset_deg", [-95.0, 175.0])
-def test_icp_recovers_from_a_far_yaw_guess_within_the_seed_set(scans, registrar, guess_offset_deg):
+@pytest.mark.parametrize(("guess_offset_deg", "seed_search"), [(-95.0, "first_acceptable"), (175.0, "best")])
+def test_icp_recovers_from_a_far_yaw_guess_within_the_seed_set(scans, guess_offset_deg, seed_search):
     query, target = scans
     guess = np.radians(40.0 + guess_offset_deg)
-    reg = registrar.register_scans(query, target, yaw_guess=guess)
+    reg = _with_lidar(seed_search=seed_search).register_scans(query, target, yaw_guess=guess)
     assert reg.accepted, reg.reason
     rot_err, trans_err = pose_error(reg.T_mq)
     assert rot_err < YAW_TOL_DEG and trans_err < TRANS_TOL_M
     assert reg.yaw_seed != pytest.approx(guess)  # another seed than the guess won
+
+
+def test_first_acceptable_takes_the_alias_nearest_the_guess_where_best_finds_the_truth(scans):
+    """The room is nearly symmetric under a half turn: flipped, 94 % of the query's points find a
+    wall, above min_inlier_ratio. From a guess near the flip the default search stops there;
+    `best` screens every seed and finds the true alignment (every point an inlier)."""
+    query, target = scans
+    guess = np.radians(40.0 + 175.0)
+    first = _with_lidar().register_scans(query, target, yaw_guess=guess)
+    best = _with_lidar(seed_search="best").register_scans(query, target, yaw_guess=guess)
+    assert first.accepted and pose_error(first.T_mq)[0] > 170.0
+    assert best.accepted and pose_error(best.T_mq)[0] < YAW_TOL_DEG
+    assert best.inlier_ratio > first.inlier_ratio
 
 
 def test_a_single_far_seed_fails_so_the_seed_set_matters(scans):
