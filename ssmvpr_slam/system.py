@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 import time
 from collections import Counter
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -281,22 +282,16 @@ class SlamSystem:
         return self.registrar.register_images(kf.image, match.image, proposal.yaw_guess)
 
     def _carried(self, kf: Keyframe, match: Keyframe) -> np.ndarray | None:
-        """The last accepted ICP loop moved to (match, kf) when it is a few keyframes back on both
-        visits, as it is along a revisit; else None. Read from the recorded loops (in query
-        order), so a run resumed from its checkpoint carries on as the uninterrupted one."""
+        """A recent accepted ICP loop of this revisit moved to (match, kf), else None (see
+        `loop_to_carry`). Read from the recorded loops, so a run resumed from its checkpoint
+        carries on as the uninterrupted one."""
         reach = self.config.backend.registration.lidar.carry_loop_keyframes
-        for record in reversed(self.state.loops):
-            q, m = record.proposal.query_id, record.proposal.match_id
-            if kf.id - q > reach:
-                return None
-            if q < kf.id and _session_icp_loop(record):
-                if abs(match.id - m) > reach:
-                    return None
-                assert record.registration is not None  # checked by _session_icp_loop
-                kfs = self.state.keyframes
-                return carry_loop(record.registration.T_mq, kfs[m].odom_pose, kfs[q].odom_pose, match.odom_pose,
-                                  kf.odom_pose)  # fmt: skip
-        return None
+        record = loop_to_carry(self.state.loops, kf.id, match.id, reach)
+        if record is None:
+            return None
+        assert record.registration is not None  # checked by loop_to_carry
+        kfs, q, m = self.state.keyframes, record.proposal.query_id, record.proposal.match_id
+        return carry_loop(record.registration.T_mq, kfs[m].odom_pose, kfs[q].odom_pose, match.odom_pose, kf.odom_pose)
 
     def _register_to_map(self, kf: Keyframe, proposal: LoopProposal) -> LoopRegistration:
         """ICP against the prior map's scans around the place, else the visual place prior."""
@@ -452,6 +447,22 @@ def _session_icp_loop(record: LoopRecord) -> bool:
     """An accepted ICP loop between two of the session's keyframes (what `_carried` carries on)."""
     reg = record.registration
     return reg is not None and reg.accepted and reg.method == "icp" and not record.proposal.prior_map
+
+
+def loop_to_carry(loops: Sequence[LoopRecord], query_id: int, match_id: int, reach: int) -> LoopRecord | None:
+    """The latest accepted ICP loop q -> m of the session with q at most `reach` keyframes before
+    `query_id` and m within `reach` of `match_id`: the same revisit, a little further back.
+
+    Not simply the latest loop: where a street was driven twice before, a revisit's matches
+    alternate between the two earlier visits (the demo's reverse streets: 533 -> 353,
+    534 -> 115, 540 -> 348), so the latest loop often belongs to the other one."""
+    for record in reversed(loops):
+        q, m = record.proposal.query_id, record.proposal.match_id
+        if query_id - q > reach:
+            return None
+        if q < query_id and abs(match_id - m) <= reach and _session_icp_loop(record):
+            return record
+    return None
 
 
 def _odometry_stats(odometry: Odometry) -> dict[str, Any]:

@@ -180,10 +180,11 @@ class LidarRegistrationConfig(_Strict):
     min_points: int = Field(50, ge=3, description="after down-sampling, per cloud")
     local_map_half_window: int = Field(2, ge=0, description="keyframes m-k..m+k make the target local map")
     carry_loop_keyframes: int = Field(
-        3,
+        8,
         ge=0,
-        description="an ICP loop accepted at most this many keyframes earlier, moved along both visits by "
-        "odometry, is the first seed of the next registration (revisits come as runs of loops); 0: never",
+        description="an ICP loop of the same revisit at most this many keyframes back on both visits, moved "
+        "along both by odometry, is the first seed of the next registration (revisits come as runs of loops, "
+        "the demo's reverse ones with gaps of up to 7 keyframes); 0: never",
     )
     rot_sigma: float = Field(0.02, gt=0, description="rad; factor sigma of an accepted ICP loop")
     trans_sigma: float = Field(0.1, gt=0, description="m; factor sigma of an accepted ICP loop")
