@@ -43,6 +43,17 @@ def transform_points(pose: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 
 @dataclass(frozen=True)
+class IcpCloud:
+    """A cleaned cloud and kiss-icp's two resolutions of it, made once per registration."""
+
+    raw: np.ndarray
+    dense: np.ndarray
+    """At the map resolution: what the voxel map holds, and what the final quality is scored on."""
+    sparse: np.ndarray
+    """At the ICP source resolution: what is aligned, and what screening is scored on."""
+
+
+@dataclass(frozen=True)
 class IcpOutcome:
     """Best alignment over the seeds: `pose` maps source points into the target frame.
 
@@ -81,30 +92,31 @@ class SeededIcp:
             max_num_threads=self.config.max_threads,
         )
 
-    def downsample(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(dense, sparse) clouds as kiss-icp makes them: map resolution and ICP source."""
+    def prepare(self, points: np.ndarray) -> IcpCloud:
+        """A cleaned cloud with its dense and sparse versions, as kiss-icp makes them."""
         cfg = self.config
-        dense = voxel_down_sample(points, cfg.voxel_size * cfg.map_downsample_factor)
-        sparse = voxel_down_sample(dense, cfg.voxel_size * cfg.source_downsample_factor)
-        return np.asarray(dense, dtype=np.float64), np.asarray(sparse, dtype=np.float64)
+        if len(points) == 0:
+            return IcpCloud(points, points, points)
+        dense = np.asarray(voxel_down_sample(points, cfg.voxel_size * cfg.map_downsample_factor), dtype=np.float64)
+        sparse = np.asarray(voxel_down_sample(dense, cfg.voxel_size * cfg.source_downsample_factor), dtype=np.float64)
+        return IcpCloud(points, dense, sparse)
 
     def passes(self, outcome: IcpOutcome) -> bool:
         """Whether an alignment is good enough to be accepted as a loop."""
         return outcome.inlier_ratio >= self.config.min_inlier_ratio and outcome.rmse <= self.config.max_rmse
 
-    def align(self, source: np.ndarray, target: np.ndarray, seeds: list[np.ndarray]) -> IcpOutcome:
-        """Align cleaned `source` to cleaned `target`; both must hold >= min_points after
-        down-sampling (checked by the caller via `downsample`)."""
+    def align(self, source: IcpCloud, target: IcpCloud, seeds: list[np.ndarray]) -> IcpOutcome:
+        """Align `source` to `target` (both from `prepare`); each must hold >= min_points dense
+        points (the caller checks)."""
         if not seeds:
             raise ValueError("seeds: need at least one initial guess")
         cfg = self.config
-        target_dense, _ = self.downsample(target)
-        source_dense, source_sparse = self.downsample(source)
+        target_dense, source_dense, source_sparse = target.dense, source.dense, source.sparse
         voxel_map = VoxelHashMap(cfg.voxel_size, cfg.max_range, cfg.max_points_per_voxel)
         voxel_map.add_points(target_dense)
         # Quality against the raw map, independent of voxel size. An unbalanced tree builds in
         # about half the time and finds the same nearest neighbours.
-        tree = cKDTree(target, balanced_tree=False, compact_nodes=False)
+        tree = cKDTree(target.raw, balanced_tree=False, compact_nodes=False)
         early_stop = cfg.min_inlier_ratio if cfg.early_stop_inlier_ratio is None else cfg.early_stop_inlier_ratio
         first_acceptable = cfg.seed_search == "first_acceptable"
 

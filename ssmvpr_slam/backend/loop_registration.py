@@ -135,10 +135,10 @@ class LoopRegistrar:
         scans, screening ends there instead of starting from zero translation."""
         cfg = self.config.lidar
         yaw_guess = _finite_yaw(yaw_guess)
-        query = clean_points("query_points", query_points, cfg.max_range)
-        target = clean_points("map_points", map_points, cfg.max_range)
+        query = self._icp.prepare(clean_points("query_points", query_points, cfg.max_range))
+        target = self._icp.prepare(clean_points("map_points", map_points, cfg.max_range))
         for name, cloud in (("query scan", query), ("map", target)):
-            n_dense = len(self._icp.downsample(cloud)[0]) if len(cloud) else 0
+            n_dense = len(cloud.dense)
             if n_dense < cfg.min_points:
                 return self._rejected(
                     f"{name} has {n_dense} points after cleaning and down-sampling (< {cfg.min_points})",
