@@ -9,7 +9,8 @@ Quantisation is static: activation ranges come from a calibration set the user s
 reference images, e.g. those the PCA codebooks are fitted on), weights are int8 per output
 channel, activations uint8 (the u8s8 layout the VNNI instructions take). The quantised model is
 cached on disk under a key of everything that shapes it (weights, layers, calibration images,
-ONNX Runtime version), so only the first run of a setting pays the ~10 s of calibration.
+ONNX Runtime version), so only the first run of a setting pays the ~10 s of calibration. Every
+calibration set makes its own model, so the cache keeps the `CACHE_KEEP` most recently used.
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ INSTALL_HINT = "precision 'int8' needs ONNX Runtime and onnx: pip install \"ssmv
 INPUT_NAME = "images"
 OUTPUT_NAMES = ("stage1", "stage2")
 CACHE_VERSION = 2  # bump when the export or quantisation recipe changes
+CACHE_KEEP = 8  # quantised models kept in the cache (12 MB each); the least recently used go first
 
 
 def require_onnxruntime() -> Any:
@@ -205,7 +207,9 @@ def build_int8_session(
     cached = cache_dir / f"vgg16_int8_{key}.onnx" if cache_dir is not None else None
     if cached is not None and cached.is_file():
         log.info("int8 VGG16 from the cache: %s", cached)
-        return Int8Session(cached, num_threads)
+        session = Int8Session(cached, num_threads)
+        _mark_used(cached)
+        return session
     with tempfile.TemporaryDirectory() as tmp:
         fp32 = export_onnx(net, i1, i2, pre_relu, input_size, Path(tmp) / "fp32.onnx")
         n = sum(len(b) for b in calibration)
@@ -213,4 +217,34 @@ def build_int8_session(
         target = cached if cached is not None else Path(tmp) / "int8.onnx"
         quantize(fp32, calibration, target, reduce_range)
         session = Int8Session(target, num_threads)  # the session holds the model in memory
+    if cached is not None:
+        prune_cache(cached.parent, CACHE_KEEP)
     return session
+
+
+def _mark_used(model: Path) -> None:
+    """Make a cache hit the most recently used model (its modification time is the use order)."""
+    with contextlib.suppress(OSError):  # a read-only cache still serves; it just is not reordered
+        model.touch()
+
+
+def prune_cache(cache_dir: Path, keep: int) -> list[Path]:
+    """Delete all but the `keep` most recently used quantised models; returns what went.
+
+    A model another process has open stays readable there until it closes it (POSIX)."""
+    models = sorted(cache_dir.glob("vgg16_int8_*.onnx"), key=_used_at, reverse=True)
+    removed = []
+    for model in models[keep:]:
+        with contextlib.suppress(OSError):  # gone already (another process pruned it), or not ours
+            model.unlink()
+            removed.append(model)
+    if removed:
+        log.info("int8 cache: removed %d least recently used model(s) from %s", len(removed), cache_dir)
+    return removed
+
+
+def _used_at(model: Path) -> float:
+    try:
+        return model.stat().st_mtime
+    except OSError:
+        return float("-inf")

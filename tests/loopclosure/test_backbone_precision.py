@@ -18,6 +18,7 @@ import pytest
 import torch
 
 from loopclosure import backbone as backbone_module
+from loopclosure import int8_runtime
 from loopclosure.backbone import Backbone, resolve_precision
 from loopclosure.config import BackboneConfig
 from loopclosure.errors import LoopClosureInputError
@@ -149,14 +150,20 @@ def test_int8_without_a_folder_calibrates_on_the_first_images_in_fp32_meanwhile(
     pytest.importorskip("onnxruntime")
     monkeypatch.setenv("SSMVPR_CACHE", str(tmp_path))
     stream = np.stack([resize_square(read_image(f), SIZE) for f in list_images(gardens_dir / "ref")[:4]])
+    stale = tmp_path / "int8" / "vgg16_int8_stale.onnx"  # an older setting's model, beyond the cache's size
+    stale.parent.mkdir()
+    stale.write_bytes(b"old")
+    os.utime(stale, (1e9, 1e9))
+    monkeypatch.setattr(int8_runtime, "CACHE_KEEP", 1)
     backbone = Backbone(_config("int8", int8_calibration_images=4), real_sd)
-    assert backbone.precision == "int8" and not list(tmp_path.glob("int8/*.onnx"))
+    assert backbone.precision == "int8" and list(tmp_path.glob("int8/*.onnx")) == [stale]
     fp32 = Backbone(_config("fp32"), real_sd)
     for k in (0, 1):  # the first images (one, then a batch of three) are answered by the fp32 net
         part = stream[:1] if k == 0 else stream[1:]
         for got, want in zip(backbone(part), fp32(part)):
             np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-3)
     assert len(list(tmp_path.glob("int8/*.onnx"))) == 1  # calibrated once it had seen four
+    assert not stale.exists()  # pruned: the cache keeps the CACHE_KEEP most recently used
     after = backbone(queries)
     _check_agreement(after, reference_maps, "int8")
     assert not np.allclose(after[0], reference_maps[0], rtol=1e-4, atol=1e-3)  # int8 answers now, not fp32
