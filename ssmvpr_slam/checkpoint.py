@@ -418,7 +418,7 @@ def _keyframes(arrays: dict[str, np.ndarray], images: Path) -> tuple[Keyframe, .
         length = int(arrays["scan_lengths"][i])
         scan = None
         if length >= 0:
-            scan = KeptScan(np.array(scans[offset : offset + length], np.int16))
+            scan = KeptScan.from_centimetres(np.array(scans[offset : offset + length], np.int16))
             offset += length
         out.append(Keyframe(
             id=kf_id,

@@ -7,11 +7,17 @@ sensor frame it is half that. The rounding (at most 5 mm per axis) is a hundredt
 the points already stand for, and ICP matches them against 1 m voxels. Points beyond
 `MAX_RANGE_M` cannot be held and are dropped: no LiDAR that loop registration uses reaches it
 (`registration.lidar.max_range` crops the local maps at 100 m).
+
+The centimetres are then sorted, delta-coded along each axis, split into high and low bytes
+and deflated: 1.7x smaller again on the demo city (about 42 kB a keyframe instead of 72), for
+about 1 ms a keyframe to pack and 0.3 ms a scan to unpack when a loop's local map is built.
+Order does not matter to registration: the points are a set (a voxel map and a k-d tree).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import zlib
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -19,18 +25,28 @@ SCALE_M = 0.01
 """Metres per stored unit: centimetres."""
 MAX_RANGE_M = np.iinfo(np.int16).max * SCALE_M
 """327.67 m: the farthest coordinate an int16 in centimetres holds."""
+_LEVEL = 1  # zlib: level 1 packs within 3% of level 6 at a third of the time
 
 
 @dataclass(frozen=True)
 class KeptScan:
-    """(N, 3) int16 centimetres in the sensor frame; `points` gives metres back."""
+    """N points as sorted int16 centimetres in the sensor frame, packed (see the module
+    docstring); `centimetres` and `points` unpack them."""
 
-    centimetres: np.ndarray
+    packed: bytes = field(repr=False)
+    count: int
 
-    def __post_init__(self) -> None:
-        cm = self.centimetres
+    @classmethod
+    def from_centimetres(cls, centimetres: np.ndarray) -> KeptScan:
+        """Pack (N, 3) int16 centimetres (the order is not kept)."""
+        cm = np.asarray(centimetres)
         if cm.dtype != np.int16 or cm.ndim != 2 or cm.shape[1] != 3:
             raise ValueError(f"kept scan: need (N, 3) int16 centimetres, got {cm.dtype} {cm.shape}")
+        biased = cm.astype(np.int64) + 32768  # 0..65535 per axis: one sortable 48-bit key
+        planes = cm[np.argsort((biased[:, 0] << 32) | (biased[:, 1] << 16) | biased[:, 2], kind="stable")].T
+        deltas = np.ascontiguousarray(np.diff(planes.astype(np.int32), axis=1, prepend=0), dtype="<i2")  # wraps
+        hi_lo = np.ascontiguousarray(deltas.view(np.uint8).reshape(3, -1, 2).transpose(0, 2, 1))
+        return cls(zlib.compress(hi_lo.tobytes(), _LEVEL), len(cm))
 
     @classmethod
     def from_points(cls, points: np.ndarray) -> KeptScan | None:
@@ -40,7 +56,14 @@ class KeptScan:
         keep = np.isfinite(points).all(axis=1) & (np.abs(points) < MAX_RANGE_M).all(axis=1)
         if not keep.any():
             return None
-        return cls(np.rint(points[keep] / SCALE_M).astype(np.int16))
+        return cls.from_centimetres(np.rint(points[keep] / SCALE_M).astype(np.int16))
+
+    @property
+    def centimetres(self) -> np.ndarray:
+        """(N, 3) int16, sorted by x, then y, then z."""
+        hi_lo = np.frombuffer(zlib.decompress(self.packed), dtype=np.uint8).reshape(3, 2, self.count)
+        deltas = np.ascontiguousarray(hi_lo.transpose(0, 2, 1)).view("<i2").reshape(3, self.count)
+        return np.cumsum(deltas, axis=1, dtype=np.int16).T.copy()
 
     @property
     def points(self) -> np.ndarray:
@@ -49,10 +72,10 @@ class KeptScan:
 
     @property
     def nbytes(self) -> int:
-        return int(self.centimetres.nbytes)
+        return len(self.packed)
 
     def __len__(self) -> int:
-        return len(self.centimetres)
+        return self.count
 
 
 def keep_scan(points: np.ndarray | None, voxel_m: float) -> KeptScan | None:
