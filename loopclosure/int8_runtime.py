@@ -206,10 +206,13 @@ def build_int8_session(
     key = cache_key(net.state_dict(), settings, calibration)
     cached = cache_dir / f"vgg16_int8_{key}.onnx" if cache_dir is not None else None
     if cached is not None and cached.is_file():
-        log.info("int8 VGG16 from the cache: %s", cached)
-        session = Int8Session(cached, num_threads)
-        _mark_used(cached)
-        return session
+        _mark_used(cached)  # first, so that a pruning process sees it as the newest
+        try:
+            session = Int8Session(cached, num_threads)
+            log.info("int8 VGG16 from the cache: %s", cached)
+            return session
+        except Exception as exc:  # removed meanwhile by another process's pruning, or unreadable
+            log.warning("int8 cache: %s could not be opened (%s); calibrating again", cached, exc)
     with tempfile.TemporaryDirectory() as tmp:
         fp32 = export_onnx(net, i1, i2, pre_relu, input_size, Path(tmp) / "fp32.onnx")
         n = sum(len(b) for b in calibration)

@@ -220,7 +220,7 @@ def _keyframe_arrays(result: RunResult) -> dict[str, np.ndarray]:
         "gt_present": np.array([k.gt_pose is not None for k in kfs], bool),
         "gt": gt,
         "scan_lengths": lengths,
-        "scans": stacked,  # int16 centimetres, as kept (a resume is exact)
+        "scans": stacked,  # int16 centimetres, unpacked (packing them again on resume is exact)
         "image_full_size": np.array([full_size(k.image) for k in kfs], np.int64).reshape(n, 2),
         "rear_image_full_size": np.array([full_size(k.rear_image) for k in kfs], np.int64).reshape(n, 2),
         "has_thumbnail": np.array([k.thumbnail is not None for k in kfs], bool),

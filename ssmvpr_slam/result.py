@@ -28,7 +28,7 @@ if TYPE_CHECKING:  # only for annotations: the result module stays light to impo
 @dataclass(frozen=True)
 class Keyframe:
     """What the back end, the evaluation and the outputs keep of a keyframe for the whole run,
-    bounded per keyframe: the voxelised scan (`KeptScan`, int16 centimetres) or, without one,
+    bounded per keyframe: the voxelised scan (`KeptScan`, packed int16 centimetres) or, without one,
     grey copies of the images within `pipeline.keyframe_image_pixels` for two-view
     registration, and a JPEG thumbnail. Never the full camera images (a KITTI image is 1.4 MB:
     gigabytes over a long drive)."""

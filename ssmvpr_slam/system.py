@@ -452,6 +452,7 @@ def _session_icp_loop(record: LoopRecord) -> bool:
 def loop_to_carry(loops: Sequence[LoopRecord], query_id: int, match_id: int, reach: int) -> LoopRecord | None:
     """The latest accepted ICP loop q -> m of the session with q at most `reach` keyframes before
     `query_id` and m within `reach` of `match_id`: the same revisit, a little further back.
+    `loops` are in query order (as recorded, and as a resume replays them).
 
     Not simply the latest loop: where a street was driven twice before, a revisit's matches
     alternate between the two earlier visits (the demo's reverse streets: 533 -> 353,

@@ -162,17 +162,19 @@ class LidarRegistrationConfig(_Strict):
     )
     seed_search: Literal["first_acceptable", "best"] = Field(
         "first_acceptable",
-        description="first_acceptable: seeds nearest the guess first, ending at the first whose refined "
-        "alignment passes acceptance (demo log: 143 -> 78 ms a loop, same 305 decisions; README, 'SLAM demo'); "
-        "best: screen every seed, refine the refine_top_k best, keep the best (for scenes with strong aliases)",
+        description="first_acceptable: seeds nearest the guess first; the first seed, and any that screens at "
+        "early_stop_inlier_ratio, is refined at once, and the first that passes acceptance ends the search (demo "
+        "log: 143 -> 78 ms a loop, same 305 decisions; README, 'SLAM demo'). Where a scene has an acceptable "
+        "alias (a half-turn symmetric hall) it takes the one nearest the guess. best: screen every seed, refine "
+        "the refine_top_k best, keep the best",
     )
     refine_top_k: int = Field(2, ge=1, description="best screened seeds that run all stages")
     early_stop_inlier_ratio: float | None = Field(
         None,
         ge=0,
         le=1,
-        description="first_acceptable: a screened seed this good is refined at once (the first seed always is). "
-        "None: min_inlier_ratio",
+        description="first_acceptable only (best ignores it): a screened seed this good is refined at once, as "
+        "the first seed always is. None: min_inlier_ratio",
     )
     inlier_distance: float = Field(0.5, gt=0, description="m; distance to the nearest raw map point counted as inlier")
     min_inlier_ratio: float = Field(0.8, ge=0, le=1)  # demo: true loops >= 0.89, aliased streets <= 0.69
@@ -182,7 +184,8 @@ class LidarRegistrationConfig(_Strict):
     carry_loop_keyframes: int = Field(
         8,
         ge=0,
-        description="an ICP loop of the same revisit at most this many keyframes back on both visits, moved "
+        description="an ICP loop of the same revisit, its query at most this many keyframes back and its match "
+        "within as many of the new match, moved "
         "along both by odometry, is the first seed of the next registration (revisits come as runs of loops, "
         "the demo's reverse ones with gaps of up to 7 keyframes); 0: never",
     )

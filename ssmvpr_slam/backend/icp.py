@@ -55,7 +55,7 @@ class IcpCloud:
 
 @dataclass(frozen=True)
 class IcpOutcome:
-    """Best alignment over the seeds: `pose` maps source points into the target frame.
+    """The alignment the seed search chose: `pose` maps source points into the target frame.
 
     inlier_ratio / rmse are measured from the down-sampled source to the raw target."""
 
@@ -68,7 +68,7 @@ class IcpOutcome:
 
 
 class SeededIcp:
-    """Aligns a source cloud to a target cloud from several initial guesses; keeps the best.
+    """Aligns a source cloud to a target cloud from several initial guesses.
 
     Each seed is screened with a short run of the first stage (cheap, scored on the sparse
     cloud); the `refine_top_k` best then run every stage, and the best refined seed wins. With

@@ -154,11 +154,11 @@ class LoopRegistrar:
             return self._rejected("ICP returned a non-finite pose", yaw_guess)
         pose = make_pose(project_to_so3(best.pose[:3, :3]), best.pose[:3, 3])
         problems = []
-        if best.inlier_ratio < cfg.min_inlier_ratio:
+        if not best.inlier_ratio >= cfg.min_inlier_ratio:
             problems.append(f"inlier ratio {best.inlier_ratio:.2f} < {cfg.min_inlier_ratio:.2f}")
         if not best.rmse <= cfg.max_rmse:
             problems.append(f"inlier RMSE {best.rmse:.3f} m > {cfg.max_rmse:.3f} m")
-        accepted = not problems
+        accepted = self._icp.passes(best)  # what ended the seed search; `problems` only words it
         reason = (
             f"ICP converged: inlier ratio {best.inlier_ratio:.2f}, RMSE {best.rmse:.3f} m"
             if accepted

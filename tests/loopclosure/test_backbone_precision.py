@@ -199,6 +199,20 @@ def test_int8_calibrated_on_references_agrees_with_fp32(
     assert len(list((tmp_path / "int8").glob("*.onnx"))) == 2
 
 
+def test_an_unreadable_cached_int8_model_is_calibrated_again(monkeypatch, tmp_path, real_sd, queries, caplog):
+    """A cache entry cut short (a full disk) or pruned by another process is not fatal."""
+    pytest.importorskip("onnxruntime")
+    monkeypatch.setenv("SSMVPR_CACHE", str(tmp_path))
+    config = _config("int8")
+    first = Backbone(config, real_sd, calibration_images=queries)(queries)
+    (model,) = (tmp_path / "int8").glob("*.onnx")
+    model.write_bytes(b"not an onnx model")
+    again = Backbone(config, real_sd, calibration_images=queries)
+    assert "could not be opened" in caplog.text and "calibrating again" in caplog.text
+    np.testing.assert_array_equal(again(queries)[0], first[0])
+    assert model.stat().st_size > 1_000_000  # rewritten whole
+
+
 # ---- the benchmark -------------------------------------------------------------------------
 
 

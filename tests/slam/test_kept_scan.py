@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from kiss_icp.voxelization import voxel_down_sample
 
 from ssmvpr_slam import checkpoint
 from ssmvpr_slam.backend.kept_scan import MAX_RANGE_M, KeptScan, keep_scan
@@ -39,8 +40,8 @@ def test_a_real_kitti_scan_packs_to_under_a_third_of_float32(shared_dir: Path) -
     kept = keep_scan(raw[:, :3], 0.5)
     assert kept is not None and len(kept) > 5000
     assert kept.nbytes <= 0.65 * len(kept) * 3 * 2  # the demo city: 0.58 of plain int16
-    voxelised = _rows(np.rint(kept.points * 100))
-    np.testing.assert_array_equal(kept.centimetres, voxelised.astype(np.int16))
+    voxelised = voxel_down_sample(raw[:, :3].astype(np.float64), 0.5)  # what keep_scan is given to hold
+    np.testing.assert_array_equal(kept.centimetres, _rows(np.rint(voxelised * 100).astype(np.int16)))
 
 
 def test_non_finite_and_unholdable_points_are_dropped() -> None:
@@ -54,8 +55,17 @@ def test_non_finite_and_unholdable_points_are_dropped() -> None:
 
 def test_extreme_coordinates_survive_the_delta_coding() -> None:
     """Deltas between int16 values overflow int16; they wrap, and the running sum wraps back."""
-    cm = np.array([[-32767, 32767, -32767], [32767, -32767, 32767], [0, 0, 0], [32767, 32767, -32767]], np.int16)
+    cm = np.array([[-32768, 32767, -32768], [32767, -32768, 32767], [0, 0, 0], [32767, 32767, -32768]], np.int16)
     np.testing.assert_array_equal(KeptScan.from_centimetres(cm).centimetres, _rows(cm))
+
+
+@pytest.mark.parametrize("n", [0, 1])
+def test_empty_and_single_point_scans_round_trip(n: int) -> None:
+    cm = np.full((n, 3), -7, np.int16)
+    kept = KeptScan.from_centimetres(cm)
+    assert len(kept) == n
+    np.testing.assert_array_equal(kept.centimetres, cm)
+    assert kept.points.shape == (n, 3)
 
 
 def test_keep_scan_voxelises_to_one_point_per_voxel() -> None:

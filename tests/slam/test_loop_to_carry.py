@@ -38,6 +38,13 @@ def test_only_accepted_icp_loops_of_the_session_before_the_query_are_carried():
         assert loop_to_carry([unusable], 12, 102, reach=3) is None
 
 
+def test_the_latest_loop_of_the_revisit_wins_and_the_reach_is_inclusive():
+    older, newer = record(10, 100), record(11, 101)
+    assert loop_to_carry([older, newer], 12, 102, reach=3) is newer
+    assert loop_to_carry([older], 13, 103, reach=3) is older  # exactly `reach` back on both visits
+    assert loop_to_carry([older], 13, 97, reach=3) is older  # a reverse revisit: the match runs backwards
+
+
 def test_nothing_is_carried_past_the_reach_or_with_no_loops():
     assert loop_to_carry([], 5, 1, reach=8) is None
     assert loop_to_carry([record(10, 100)], 19, 100, reach=8) is None  # query 9 keyframes on
