@@ -118,11 +118,13 @@ def main(argv: list[str] | None = None) -> int:
     load_before = os.getloadavg()
 
     finished_at: list[float] = []  # when each keyframe left the back end: the pace the user sees
+    cpu_at: list[float] = []  # this process's CPU seconds (all its threads) at the same moments
 
     def sample(state: RunState) -> None:
         n = len(state.keyframes)
         if n > len(finished_at):
             finished_at.append(time.perf_counter())
+            cpu_at.append(time.process_time())
         if args.rss_every and n and n % args.rss_every == 0 and (not samples or samples[-1]["keyframes"] != n):
             database = pipeline.detector.database
             samples.append({
@@ -133,7 +135,7 @@ def main(argv: list[str] | None = None) -> int:
             })  # fmt: skip
             print(json.dumps(samples[-1]), file=sys.stderr, flush=True)  # a run cut short keeps its samples
 
-    start = time.perf_counter()
+    start, cpu_start = time.perf_counter(), _cpu_seconds()
     state = pipeline.run(frames, sample)
     wall = time.perf_counter() - start
     summary = state.times.summary()
@@ -141,7 +143,8 @@ def main(argv: list[str] | None = None) -> int:
     # from keyframe to keyframe: front end, back end and waits alike
     interval = latency_summary([{"keyframe": float(t)} for t in np.diff(finished_at)]).get("keyframe")
     pace = None if interval is None else interval["median_s"]
-    pipeline.finish()  # ends an odometry process too
+    pipeline.finish()  # ends an odometry process too (its CPU time counts once it is reaped)
+    cpu = _cpu_use(cpu_start, _cpu_seconds(), wall, n_kf, np.diff(cpu_at), latency_summary)
     error = pipeline.step_error
     failure = f"{type(error).__name__}: {error}" if error is not None else pipeline.ending.source_error
     result: dict[str, Any] = {
@@ -176,6 +179,7 @@ def main(argv: list[str] | None = None) -> int:
         "wall_per_keyframe_s": wall / n_kf if n_kf else None,
         "latency_per_keyframe_s": summary,
         "keyframe_interval_s": interval,
+        "cpu": cpu,
         "error": failure,
         "target": {"median_keyframe_interval_s": 0.1, "pass": bool(pace is not None and pace <= 0.1)},
     }
@@ -187,6 +191,32 @@ def main(argv: list[str] | None = None) -> int:
         print(f"bench_slam: the run failed: {failure}", file=sys.stderr)
         return 1
     return 0
+
+
+def _cpu_seconds() -> tuple[float, float]:
+    """CPU seconds used so far by this process and by its reaped children (an odometry process)."""
+    import resource
+
+    own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime, children.ru_utime + children.ru_stime
+
+
+def _cpu_use(start: tuple[float, float], end: tuple[float, float], wall: float, n_kf: int, intervals: Any,
+             latency_summary: Any) -> dict[str, Any]:  # fmt: skip
+    """The work a keyframe needs in core-seconds, measured rather than assumed: divided by the
+    cores it is the floor no schedule of that work can beat on this machine."""
+    own, children = end[0] - start[0], end[1] - start[1]
+    cores = os.cpu_count() or 1
+    per_kf = (own + children) / n_kf if n_kf else None
+    steady = latency_summary([{"cpu": float(t)} for t in intervals]).get("cpu")  # this process, keyframe to keyframe
+    return {
+        "process_s": round(own, 2),
+        "child_processes_s": round(children, 2),
+        "utilisation_of_all_cores": round((own + children) / (wall * cores), 3) if wall else None,
+        "core_s_per_keyframe": per_kf,
+        "floor_per_keyframe_s": None if per_kf is None else per_kf / cores,
+        "process_core_s_keyframe_to_keyframe": steady,
+    }
 
 
 def _memory(samples: list[dict[str, float]], pipeline: Any, state: Any, np: Any) -> dict[str, Any]:
