@@ -15,7 +15,12 @@ exactly and votes. Modes (`vpr.filtering.index`):
   milestones new places are appended to the trained lists. The coarse quantizer is an HNSW
   graph over the centroids, so choosing the lists costs little even with 16k of them.
 - hnsw: `IndexHNSWFlat`, appended to vector by vector; no training, but slow to build.
-- auto: exact up to `ann_threshold_places`, ivf beyond.
+- auto: exact up to `ann_threshold_places`, ivf beyond; exact at any size when exact search
+  runs on a GPU.
+
+Exact search runs in faiss on the CPU, or (`exact_backend: torch`) as torch matrix products
+on `torch_device` (`loopclosure.device_search`): a GPU holds every stage-I vector and scans
+them all for a query. Both propose, and the same exact re-scoring decides.
 
 The index is not saved with a map: the first query after loading builds it (exact: one norm
 pass over the codes; IVF: 278 s for 1M places on this 2-core machine). A retrain at a growth
@@ -39,6 +44,7 @@ from typing import Any
 import numpy as np
 
 from loopclosure.config import FilteringConfig
+from loopclosure.device_search import TorchExactSearch
 from loopclosure.filtering import similarity_margin
 
 Rows = Callable[[int, int], np.ndarray]  # (start, stop) vector ids -> float32 (stop - start, d)
@@ -78,6 +84,7 @@ class StageOneIndex:
         self.max_norm = 0.0  # largest stage-I vector norm seen (the exactness margin needs it)
         self.kind = "exact" if config.index in ("auto", "exact") else config.index
         self._mirror: np.ndarray | None = None  # float32 vectors for exact search (compact storage)
+        self._device = TorchExactSearch(dim, config.torch_device) if config.exact_backend == "torch" else None
         self._index: Any = None  # faiss index (ivf, hnsw); faiss's stubs cover little of its API
         self._trained_at = 0  # places when the IVF lists were trained
         self.build_seconds: list[tuple[str, int, float]] = []  # (what, places, seconds), newest last
@@ -98,10 +105,15 @@ class StageOneIndex:
                     self.max_norm,
                     float(np.sqrt(np.einsum("ij,ij->i", part, part, dtype=np.float64).max())) * (1 + 1e-6),
                 )
+        on_gpu = self._device is not None and self._device.device != "cpu"
         if self.config.index == "auto" and self.kind == "exact" and n_places > self.config.ann_threshold_places:
-            self.kind, self._mirror = "ivf", None
+            if not on_gpu:  # a GPU scans a city exactly in time; two CPU cores do not
+                self.kind, self._mirror, self._device = "ivf", None, None
         if self.kind == "exact":
-            if view is None:
+            if self._device is not None:
+                for lo in range(start_vec, stop_vec, 1 << 18):
+                    self._device.append(rows(lo, min(stop_vec, lo + (1 << 18))))
+            elif view is None:
                 self._mirror = _grow(self._mirror, stop_vec, self.dim)
                 self._mirror[start_vec:stop_vec] = rows(start_vec, stop_vec)
             self.n_places = n_places
@@ -192,6 +204,10 @@ class StageOneIndex:
         limit: int | None,
         view: np.ndarray | None,
     ) -> list[np.ndarray]:
+        if self._device is not None:
+            stop = self.n_places * self.per_place if limit is None else limit * self.per_place
+            excluded_ids = np.empty(0, np.int64) if limit is not None else excluded_ids_of(excluded, self.per_place)
+            return self._device.propose(query, k, stop, excluded_ids, similarity_margin(query, self.max_norm))
         import faiss
 
         mirror = view if view is not None else self._mirror
@@ -199,7 +215,7 @@ class StageOneIndex:
         base = mirror[: self.n_places * self.per_place]
         if limit is not None:
             base, excluded = base[: limit * self.per_place], excluded[:0]
-        excluded_ids = (excluded[:, None] * self.per_place + np.arange(self.per_place)).ravel()
+        excluded_ids = excluded_ids_of(excluded, self.per_place)
         margin = similarity_margin(query, self.max_norm)
         out: list[np.ndarray | None] = [None] * len(query)
         todo = np.arange(len(query))
@@ -229,7 +245,7 @@ class StageOneIndex:
             selector = faiss.IDSelectorRange(0, limit * self.per_place)
             keep_alive: tuple = (selector,)
         elif len(excluded):
-            batch = faiss.IDSelectorBatch((excluded[:, None] * self.per_place + np.arange(self.per_place)).ravel())
+            batch = faiss.IDSelectorBatch(excluded_ids_of(excluded, self.per_place))
             selector = faiss.IDSelectorNot(batch)
             keep_alive = (batch, selector)
         else:
@@ -246,6 +262,11 @@ class StageOneIndex:
         _, ids = self._index.search(query, fetch, params=params)
         del keep_alive
         return [np.sort(i[i >= 0]) for i in ids]
+
+
+def excluded_ids_of(places: np.ndarray, per_place: int) -> np.ndarray:
+    """Vector ids of the given places."""
+    return (np.asarray(places, np.int64)[:, None] * per_place + np.arange(per_place)).ravel()
 
 
 def _grow(array: np.ndarray | None, rows: int, dim: int) -> np.ndarray:

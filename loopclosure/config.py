@@ -86,6 +86,15 @@ class FilteringConfig(_Strict):
         "hnsw: faiss HNSW graph (no training, slow to build); auto: exact up to ann_threshold_places, "
         "ivf beyond; numpy: the reference brute force without faiss.",
     )
+    exact_backend: Literal["faiss", "torch"] = Field(
+        default="faiss",
+        description="exact search: faiss's brute force on the CPU, or torch matrix products on torch_device "
+        "(a GPU keeps a float32 copy of every stage-I vector and scans them all per query; the same votes, "
+        "bit for bit, as the exact re-scoring decides in both).",
+    )
+    torch_device: Literal["auto", "cpu", "cuda"] = Field(
+        default="auto", description="exact_backend torch: where it runs; auto is cuda when torch sees a GPU, else cpu."
+    )
     ann_threshold_places: int = Field(
         default=50_000, ge=1, description="auto: places from which IVF replaces exact search."
     )

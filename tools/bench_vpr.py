@@ -6,7 +6,8 @@ Usage:
   python tools/bench_vpr.py [--weights PATH|random] [--images DIR] [--device auto|cpu|cuda]
                             [--precision auto|fp32|bf16|int8]
                             [--sizes 1000,10000,100000] [--repeats N] [--quick]
-                            [--index-sizes 10000,100000,1000000 [--nlists 4096] [--only-index]]
+                            [--index-sizes 10000,100000,1000000 [--nlists 4096] [--only-index]
+                             [--exact-backend faiss|torch --torch-device auto|cpu|cuda]]
                             [--mapped-places 100000]
 
 What is measured (all through the library's own code paths):
@@ -28,8 +29,8 @@ What is measured (all through the library's own code paths):
                        --mapped-places P: a saved map of P places opened memory-mapped vs read into
                        RAM (seconds, resident memory), and add + commit of one place in place.
   stage1_index         (--index-sizes) `loopclosure.ann_index.StageOneIndex` + `filtering.rank_neighbours`
-                       as `PlaceDatabase.filter` runs them, exact vs IVF (--nlists, --nprobes; --hnsw-ef
-                       adds HNSW) on `street_codes` (synthetic codes with Corridor's spectrum and
+                       as `PlaceDatabase.filter` runs them, exact (faiss, or torch on --torch-device with
+                       --exact-backend torch: the GPU path) vs IVF (--nlists, --nprobes; --hnsw-ef adds HNSW) on `street_codes` (synthetic codes with Corridor's spectrum and
                        street-to-street drift; queries keep --query-cosine to their place): query ms,
                        recall@N of the IVF candidates against exact voting, whether the revisited place
                        (within 2) is a candidate, build seconds, append ms per place after the build.
@@ -561,7 +562,12 @@ def bench_stage1_index(args, config: VPRConfig, sizes: list[int], repeats: int) 
         excluded = np.arange(n_places - window, n_places)
         rows = lambda lo, hi: flat[lo:hi]  # noqa: E731
 
-        exact = StageOneIndex(config.filtering.model_copy(update={"index": "exact"}), d, per)
+        exact_config = config.filtering.model_copy(
+            update={"index": "exact", "exact_backend": args.exact_backend, "torch_device": args.torch_device}
+        )
+        exact = StageOneIndex(exact_config, d, per)
+        entry["exact_search"] = {"backend": args.exact_backend,
+                                 "device": exact._device.device if exact._device is not None else "cpu (faiss)"}  # fmt: skip
         t0 = time.perf_counter()
         exact.sync(n_places, rows, flat[: n_places * per])
         entry["exact_build_s"] = round(time.perf_counter() - t0, 3)
@@ -935,6 +941,10 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--nlists", default="", help="IVF lists for --index-sizes (default: auto, 4 sqrt(vectors))")
     ap.add_argument("--nprobes", default="8,16,32,64,128", help="IVF lists probed, swept")
     ap.add_argument("--exact-repeats", type=int, default=20, help="queries whose exact votes are the recall reference")
+    ap.add_argument("--exact-backend", choices=("faiss", "torch"), default="faiss",
+                    help="--index-sizes: exact search in faiss or as torch matrix products (the GPU path)")  # fmt: skip
+    ap.add_argument("--torch-device", choices=("auto", "cpu", "cuda"), default="auto",
+                    help="--exact-backend torch: its device")  # fmt: skip
     ap.add_argument("--hnsw-ef", default="", help="also build HNSW and sweep these efSearch values (slow to build)")
     ap.add_argument("--ivf-codes", choices=("flat", "sq8"), default="flat", help="IVF list storage")
     ap.add_argument("--append-places", type=int, default=20, help="places appended one by one after the IVF build")

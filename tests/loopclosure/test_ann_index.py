@@ -1,6 +1,7 @@
 """Stage I through faiss (loopclosure.ann_index): exact mode votes as numpy brute force does,
 bit for bit (places, counts, tie order), on random data, exact ties and real Corridor codes;
-IVF and HNSW honour exclusions, append incrementally and find most of the exact candidates."""
+IVF and HNSW honour exclusions, append incrementally and find most of the exact candidates.
+Exact search through torch (the GPU path, run here on the CPU device) is held to the same votes."""
 
 from __future__ import annotations
 
@@ -85,6 +86,10 @@ def _unit(x: np.ndarray) -> np.ndarray:
     return (x / np.linalg.norm(x, axis=-1, keepdims=True)).astype(np.float32)
 
 
+# exact search in faiss, and through torch matrix products (on the CPU here; a GPU runs the same code)
+BACKENDS = {"faiss": {}, "torch": {"exact_backend": "torch", "torch_device": "cpu"}}
+
+
 def _exclusions(draw, places: int) -> list[np.ndarray | None]:
     window = draw(st.integers(0, places))
     arbitrary = np.array(draw(st.lists(st.integers(0, places - 1), max_size=places, unique=True)), np.int64)
@@ -100,10 +105,11 @@ def _exclusions(draw, places: int) -> list[np.ndarray | None]:
     d=st.integers(1, 12),
     k=st.integers(1, 60),
     lattice=st.booleans(),
+    backend=st.sampled_from(sorted(BACKENDS)),
     data=st.data(),
 )
-@settings(max_examples=120, deadline=None)
-def test_exact_index_votes_as_numpy_brute_force(seed, n, per_place, places, d, k, lattice, data):
+@settings(max_examples=160, deadline=None)
+def test_exact_index_votes_as_numpy_brute_force(seed, n, per_place, places, d, k, lattice, backend, data):
     """Random vectors, and vectors on a small integer lattice (many exact ties, duplicated
     vectors and places), under no, a suffix and an arbitrary exclusion."""
     rng = np.random.default_rng(seed)
@@ -113,7 +119,7 @@ def test_exact_index_votes_as_numpy_brute_force(seed, n, per_place, places, d, k
     else:
         db = rng.standard_normal((places, per_place, d)).astype(np.float32)
         query = rng.standard_normal((n, d)).astype(np.float32)
-    database = _database(db)
+    database = _database(db, **BACKENDS[backend])
     for excluded in _exclusions(data.draw, places):
         expected = vote(query, db, k, places, excluded)
         _same(database.filter(query, k, places, excluded), expected)
@@ -121,13 +127,14 @@ def test_exact_index_votes_as_numpy_brute_force(seed, n, per_place, places, d, k
             _same(expected, _vote_float32_before_faiss(query, db, k, places, excluded))
 
 
+@pytest.mark.parametrize("backend", sorted(BACKENDS))
 @pytest.mark.parametrize("dtype", ["float32", "float16", "int8"])
-def test_exact_equals_numpy_for_every_storage(dtype):
+def test_exact_equals_numpy_for_every_storage(dtype, backend):
     rng = np.random.default_rng(3)
     db = _unit(rng.standard_normal((300, 16, 20)))
     query = _unit(db[17] + 0.4 * rng.standard_normal((16, 20)))
     config = DatabaseConfig(stage1_dtype=dtype)
-    exact, numpy_ = _database(db, config, "exact"), _database(db, config, "numpy")
+    exact, numpy_ = _database(db, config, "exact", **BACKENDS[backend]), _database(db, config, "numpy")
     stored = np.asarray(exact.stage1)  # the values as stored (float16 / int8 * scale)
     for excluded in (None, np.arange(250, 300), np.array([17, 3, 299, 150])):
         expected = vote(query, stored, 50, 50, excluded)
@@ -136,23 +143,26 @@ def test_exact_equals_numpy_for_every_storage(dtype):
     assert exact.filter(query, 50, 50).places[0] == 17
 
 
-def test_exact_widens_until_every_tie_is_in():
+@pytest.mark.parametrize("backend", sorted(BACKENDS))
+def test_exact_widens_until_every_tie_is_in(backend):
     """200 copies of one vector: the k-th similarity is shared by all of them; the lowest ids win."""
     db = np.tile(_unit(np.ones((1, 1, 8))), (200, 1, 1))
     query = _unit(np.ones((1, 8)))
-    database = _database(db)
+    database = _database(db, **BACKENDS[backend])
     got = database.filter(query, 5, 10)
     _same(got, vote(query, db, 5, 10))
     np.testing.assert_array_equal(got.places, [0, 1, 2, 3, 4])
 
 
-def test_exact_index_grows_with_the_database():
+@pytest.mark.parametrize("backend", sorted(BACKENDS))
+def test_exact_index_grows_with_the_database(backend):
+    """Places added one and many at a time, past the device buffer's first capacity (1,024 vectors)."""
     rng = np.random.default_rng(4)
-    db = _unit(rng.standard_normal((120, 4, 10)))
+    db = _unit(rng.standard_normal((400, 4, 10)))
     query = _unit(rng.standard_normal((4, 10)))
-    database = _database(db[:50])
+    database = _database(db[:50], **BACKENDS[backend])
     database.filter(query, 8, 10)
-    for lo, hi in ((50, 51), (51, 120)):
+    for lo, hi in ((50, 51), (51, 120), (120, 400)):
         database.add(PlaceCodes(db[lo:hi], np.zeros((hi - lo, 2, 2, 3), np.float32)))
         _same(database.filter(query, 8, 10, np.arange(hi - 5, hi)), vote(query, db[:hi], 8, 10, np.arange(hi - 5, hi)))
 
@@ -174,11 +184,12 @@ def corridor_codes(corridor_dir: Path, weights_path: Path) -> tuple[PlaceCodes, 
     return ref_codes, encoder.encode(queries)
 
 
+@pytest.mark.parametrize("backend", sorted(BACKENDS))
 @pytest.mark.parametrize("dtype", ["float32", "int8"])
-def test_exact_votes_as_numpy_on_real_corridor_codes(corridor_codes, dtype):
+def test_exact_votes_as_numpy_on_real_corridor_codes(corridor_codes, dtype, backend):
     refs, queries = corridor_codes
     config = DatabaseConfig(stage1_dtype=dtype)
-    database = _database(refs.stage1, config)
+    database = _database(refs.stage1, config, **BACKENDS[backend])
     stored = np.asarray(database.stage1)
     p = len(refs)
     for q in range(len(queries)):
@@ -245,6 +256,45 @@ def test_auto_switches_from_exact_to_ivf_past_the_threshold():
     database.add(PlaceCodes(db[100:], np.zeros((300, 2, 2, 3), np.float32)))
     assert database.filter(query, 10, 10).places[0] == 50
     assert database.search_index().kind == "ivf"
+
+
+def test_auto_on_the_cpu_switches_to_ivf_with_the_torch_backend_too():
+    """Only a GPU keeps `auto` exact past the threshold: torch on the CPU scans no faster than faiss."""
+    db = _streets(400, 4, 12, seed=8)
+    database = _database(db[:100], index="auto", ann_threshold_places=300, **BACKENDS["torch"])
+    query = _unit(db[50] + 0.05)
+    assert database.filter(query, 10, 10).places[0] == 50
+    assert database.search_index().kind == "exact" and database.search_index()._device is not None
+    database.add(PlaceCodes(db[100:], np.zeros((300, 2, 2, 3), np.float32)))
+    assert database.filter(query, 10, 10).places[0] == 50
+    assert database.search_index().kind == "ivf" and database.search_index()._device is None
+
+
+def test_torch_device_cuda_without_a_gpu_is_a_clear_error(monkeypatch):
+    import torch
+
+    from loopclosure.device_search import resolve_device
+    from loopclosure.errors import LoopClosureInputError
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert resolve_device("auto") == "cpu"
+    with pytest.raises(LoopClosureInputError, match="torch_device: cuda"):
+        StageOneIndex(FilteringConfig(exact_backend="torch", torch_device="cuda"), 8, 2)
+
+
+def test_torch_exact_search_leaves_the_float32_matmul_precision_as_it_was():
+    """The product runs in full float32 (the rounding margin assumes it), and a caller's setting returns."""
+    import torch
+
+    before = torch.get_float32_matmul_precision()
+    torch.set_float32_matmul_precision("medium")
+    try:
+        db = _unit(np.random.default_rng(9).standard_normal((60, 4, 10)))
+        query = _unit(np.random.default_rng(10).standard_normal((4, 10)))
+        _same(_database(db, **BACKENDS["torch"]).filter(query, 8, 10), vote(query, db, 8, 10))
+        assert torch.get_float32_matmul_precision() == "medium"
+    finally:
+        torch.set_float32_matmul_precision(before)
 
 
 def test_auto_nlist():

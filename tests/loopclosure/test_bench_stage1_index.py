@@ -30,6 +30,21 @@ def test_stage1_index_and_mapped_map_sections() -> None:
     assert mapped["open_mapped_s"] >= 0 and mapped["append_commit_ms"]["n"] == 5
 
 
+def test_stage1_index_through_the_torch_exact_backend() -> None:
+    """The GPU path's timing, here on the CPU device: its votes are the recall reference IVF meets."""
+    args = ["--only-index", "--index-sizes", "400", "--repeats", "2", "--exact-repeats", "3", "--nprobes", "1024",
+            "--append-places", "1", "--exclude-recent", "10", "--exact-backend", "torch", "--torch-device", "cpu"]  # fmt: skip
+    proc = subprocess.run(
+        [sys.executable, str(SCRIPT), *args], capture_output=True, text=True, timeout=300, check=False
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    size = json.loads(proc.stdout)["stage1_index"]["sizes"]["400"]
+    assert size["exact_search"] == {"backend": "torch", "device": "cpu"}
+    assert size["exact_query_ms"]["median"] > 0
+    (ivf,) = [v for k, v in size.items() if k.startswith("ivf_nlist_")]
+    assert ivf["nprobe"]["1024"]["recall_at_n_mean"] == 1.0
+
+
 def test_storage_rows_include_int8() -> None:
     sys.path.insert(0, str(SCRIPT.parent))
     import bench_vpr
