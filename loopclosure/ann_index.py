@@ -84,7 +84,8 @@ class StageOneIndex:
         self.max_norm = 0.0  # largest stage-I vector norm seen (the exactness margin needs it)
         self.kind = "exact" if config.index in ("auto", "exact") else config.index
         self._mirror: np.ndarray | None = None  # float32 vectors for exact search (compact storage)
-        self._device = TorchExactSearch(dim, config.torch_device) if config.exact_backend == "torch" else None
+        torch_exact = self.kind == "exact" and config.exact_backend == "torch"
+        self._device = TorchExactSearch(dim, config.torch_device) if torch_exact else None
         self._index: Any = None  # faiss index (ivf, hnsw); faiss's stubs cover little of its API
         self._trained_at = 0  # places when the IVF lists were trained
         self.build_seconds: list[tuple[str, int, float]] = []  # (what, places, seconds), newest last
@@ -105,14 +106,16 @@ class StageOneIndex:
                     self.max_norm,
                     float(np.sqrt(np.einsum("ij,ij->i", part, part, dtype=np.float64).max())) * (1 + 1e-6),
                 )
-        on_gpu = self._device is not None and self._device.device != "cpu"
+        on_gpu = self._device is not None and self._device.on_gpu
         if self.config.index == "auto" and self.kind == "exact" and n_places > self.config.ann_threshold_places:
             if not on_gpu:  # a GPU scans a city exactly in time; two CPU cores do not
                 self.kind, self._mirror, self._device = "ivf", None, None
         if self.kind == "exact":
             if self._device is not None:
+                if self.n_places == 0:  # a bulk load (a map, a first query): one allocation
+                    self._device.reserve(stop_vec)
                 for lo in range(start_vec, stop_vec, 1 << 18):
-                    self._device.append(rows(lo, min(stop_vec, lo + (1 << 18))))
+                    self._device.write(lo, rows(lo, min(stop_vec, lo + (1 << 18))))
             elif view is None:
                 self._mirror = _grow(self._mirror, stop_vec, self.dim)
                 self._mirror[start_vec:stop_vec] = rows(start_vec, stop_vec)

@@ -84,7 +84,8 @@ class FilteringConfig(_Strict):
         default="auto",
         description="exact: faiss brute-force inner products; ivf: faiss IVF (trained k-means lists), "
         "hnsw: faiss HNSW graph (no training, slow to build); auto: exact up to ann_threshold_places, "
-        "ivf beyond; numpy: the reference brute force without faiss.",
+        "ivf beyond (exact at any size when exact_backend torch runs on a GPU); numpy: the reference "
+        "brute force without faiss.",
     )
     exact_backend: Literal["faiss", "torch"] = Field(
         default="faiss",
@@ -96,7 +97,7 @@ class FilteringConfig(_Strict):
         default="auto", description="exact_backend torch: where it runs; auto is cuda when torch sees a GPU, else cpu."
     )
     ann_threshold_places: int = Field(
-        default=50_000, ge=1, description="auto: places from which IVF replaces exact search."
+        default=50_000, ge=1, description="auto: places from which IVF replaces exact search on the CPU."
     )
     ivf_nlist: int | None = Field(
         default=None, ge=1, description="IVF lists; None: 4*sqrt(vectors) as a power of two in [64, 16384]."

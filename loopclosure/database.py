@@ -369,6 +369,10 @@ class PlaceDatabase:
     # ---- stage I -----------------------------------------------------------------------
     def configure_search(self, filtering: FilteringConfig) -> None:
         """Search stage I as `filtering` says (index kind and its settings); a change drops the index."""
+        if filtering.exact_backend == "torch" and filtering.index in ("auto", "exact"):
+            from loopclosure.device_search import resolve_device
+
+            resolve_device(filtering.torch_device)  # a missing GPU is refused now, not at the first query
         if filtering != self.filtering:
             self.filtering, self._index = filtering, None
 

@@ -6,19 +6,25 @@ of them: the database's stage-I vectors live on the device as float32, a query's
 are multiplied against every one, and top-k picks the proposals. As with faiss these are
 float32 similarities, so every vector within the rounding margin of the k-th is proposed and
 `filtering.rank_neighbours` decides on exact float64 values: the votes equal numpy brute
-force, bit for bit, whatever order the device sums in. TF32 is switched off for the product,
-since its 10-bit mantissa would break that margin.
+force, bit for bit, whatever order the device sums in. That margin holds for full float32
+products only, so TF32 (GPU) and bf16 (oneDNN) products are switched off around the
+product. torch keeps that setting per process: a lock keeps two searches from restoring it
+under each other, and matmuls of other threads run in full float32 meanwhile (slower, never
+less exact).
 """
 
 from __future__ import annotations
 
 import contextlib
+import threading
 from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
 
-from loopclosure.errors import LoopClosureInputError
+from loopclosure.errors import LoopClosureError, LoopClosureInputError
+
+_PRECISION_LOCK = threading.Lock()
 
 
 def resolve_device(device: str) -> str:
@@ -33,20 +39,39 @@ def resolve_device(device: str) -> str:
 
 
 @contextlib.contextmanager
-def _full_float32() -> Iterator[None]:
-    """float32 products in full float32 (no TF32 on a GPU, no bf16 on a CPU) for one call."""
+def full_float32() -> Iterator[None]:
+    """float32 products in full float32 for the duration, the caller's setting restored after.
+
+    torch >= 2.9 keeps one setting per backend (reading the old global one after a backend's
+    was set raises), so those are set when they exist, the global one otherwise."""
     import torch
 
-    before = torch.get_float32_matmul_precision()
-    torch.set_float32_matmul_precision("highest")
-    try:
-        yield
-    finally:
-        torch.set_float32_matmul_precision(before)
+    with _PRECISION_LOCK:
+        backends = [
+            b
+            for b in (getattr(torch.backends.cuda, "matmul", None), getattr(torch.backends.mkldnn, "matmul", None))
+            if b is not None and hasattr(b, "fp32_precision")
+        ]
+        if backends:
+            before = [b.fp32_precision for b in backends]
+            try:
+                for b in backends:
+                    b.fp32_precision = "ieee"
+                yield
+            finally:
+                for b, value in zip(backends, before):
+                    b.fp32_precision = value
+        else:
+            legacy = torch.get_float32_matmul_precision()
+            torch.set_float32_matmul_precision("highest")
+            try:
+                yield
+            finally:
+                torch.set_float32_matmul_precision(legacy)
 
 
 class TorchExactSearch:
-    """Every stage-I vector on one torch device, grown by doubling as places are added."""
+    """Every stage-I vector on one torch device; vector i is row i, written at its own offset."""
 
     def __init__(self, dim: int, device: str) -> None:
         self.dim = dim
@@ -57,21 +82,50 @@ class TorchExactSearch:
     def __len__(self) -> int:
         return self._count
 
-    def append(self, rows: np.ndarray) -> None:
+    @property
+    def on_gpu(self) -> bool:
         import torch
 
-        rows = np.ascontiguousarray(rows, np.float32)
+        return torch.device(self.device).type != "cpu"
+
+    def reserve(self, rows: int) -> None:
+        """Room for `rows` vectors: a bulk load asks once for all, appends grow by half."""
+        import torch
+
+        capacity = 0 if self._rows is None else len(self._rows)
+        if rows <= capacity:
+            return
+        try:
+            grown = torch.empty((rows, self.dim), dtype=torch.float32, device=self.device)
+        except torch.cuda.OutOfMemoryError as exc:
+            gb = rows * self.dim * 4 / 1e9
+            raise LoopClosureError(
+                f"stage-I vectors ({gb:.1f} GB float32) do not fit on {self.device}: "
+                "use vpr.filtering.index ivf, or exact_backend faiss"
+            ) from exc
+        if self._count:
+            grown[: self._count] = self._rows[: self._count]
+        self._rows = grown
+
+    def write(self, offset: int, rows: np.ndarray) -> None:
+        """Vectors [offset, offset + len(rows)); what lay at or past `offset` is dropped, so a
+        sync interrupted half way (out of memory, say) is redone at the right place."""
+        import torch
+
+        if not 0 <= offset <= self._count:
+            raise ValueError(f"write at vector {offset}, but {self._count} are held")
+        rows = np.asarray(rows, np.float32)
         if rows.ndim != 2 or rows.shape[1] != self.dim:
             raise ValueError(f"stage-I rows must be (m, {self.dim}), got {rows.shape}")
-        needed = self._count + len(rows)
-        if self._rows is None or len(self._rows) < needed:
-            capacity = max(needed, 2 * (0 if self._rows is None else len(self._rows)), 1024)
-            grown = torch.empty((capacity, self.dim), dtype=torch.float32, device=self.device)
-            if self._count:
-                grown[: self._count] = self._rows[: self._count]
-            self._rows = grown
-        self._rows[self._count : needed] = torch.from_numpy(rows).to(self.device)
-        self._count = needed
+        if not rows.flags.writeable or not rows.flags.c_contiguous:  # a read-only memory-mapped map
+            rows = np.array(rows, np.float32, order="C")
+        stop = offset + len(rows)
+        capacity = 0 if self._rows is None else len(self._rows)
+        if stop > capacity:
+            self.reserve(max(stop, capacity + capacity // 2, 1024))
+        self._count = offset
+        self._rows[offset:stop] = torch.from_numpy(rows).to(self.device)
+        self._count = stop
 
     def propose(
         self, query: np.ndarray, k: int, limit: int, excluded_ids: np.ndarray, margin: np.ndarray
@@ -82,7 +136,7 @@ class TorchExactSearch:
         import torch
 
         n_allowed = limit - len(excluded_ids)
-        with _full_float32(), torch.inference_mode():
+        with full_float32(), torch.inference_mode():
             q = torch.from_numpy(np.ascontiguousarray(query, np.float32)).to(self.device)
             sims = q @ self._rows[:limit].T  # (n, limit)
             if len(excluded_ids):
@@ -91,7 +145,8 @@ class TorchExactSearch:
             todo = np.arange(len(query))
             kk = min(k + max(8, k // 4), n_allowed)
             while len(todo):
-                top = torch.topk(sims[torch.from_numpy(todo).to(self.device)], kk, dim=1, sorted=True)
+                rows = sims if len(todo) == len(query) else sims[torch.from_numpy(todo).to(self.device)]
+                top = torch.topk(rows, kk, dim=1, sorted=True)
                 values, ids = top.values.cpu().numpy().astype(np.float64), top.indices.cpu().numpy()
                 again = []
                 for row, s, i in zip(todo, values, ids):

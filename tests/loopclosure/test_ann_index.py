@@ -105,11 +105,11 @@ def _exclusions(draw, places: int) -> list[np.ndarray | None]:
     d=st.integers(1, 12),
     k=st.integers(1, 60),
     lattice=st.booleans(),
-    backend=st.sampled_from(sorted(BACKENDS)),
     data=st.data(),
 )
-@settings(max_examples=160, deadline=None)
-def test_exact_index_votes_as_numpy_brute_force(seed, n, per_place, places, d, k, lattice, backend, data):
+@settings(max_examples=120, deadline=None)
+@pytest.mark.parametrize("backend", sorted(BACKENDS))
+def test_exact_index_votes_as_numpy_brute_force(backend, seed, n, per_place, places, d, k, lattice, data):
     """Random vectors, and vectors on a small integer lattice (many exact ties, duplicated
     vectors and places), under no, a suffix and an arbitrary exclusion."""
     rng = np.random.default_rng(seed)
@@ -270,7 +270,23 @@ def test_auto_on_the_cpu_switches_to_ivf_with_the_torch_backend_too():
     assert database.search_index().kind == "ivf" and database.search_index()._device is None
 
 
-def test_torch_device_cuda_without_a_gpu_is_a_clear_error(monkeypatch):
+def test_auto_stays_exact_past_the_threshold_on_a_gpu(monkeypatch):
+    """The device's kind decides (a GPU is stood in for by the CPU device here): exact votes at
+    every size, appended to the device rows as places come."""
+    from loopclosure.device_search import TorchExactSearch
+
+    monkeypatch.setattr(TorchExactSearch, "on_gpu", property(lambda self: True))
+    db = _streets(400, 4, 12, seed=8)
+    database = _database(db[:100], index="auto", ann_threshold_places=300, **BACKENDS["torch"])
+    query = _unit(db[50] + 0.05)
+    database.filter(query, 10, 10)
+    for lo, hi in ((100, 350), (350, 400)):
+        database.add(PlaceCodes(db[lo:hi], np.zeros((hi - lo, 2, 2, 3), np.float32)))
+        _same(database.filter(query, 10, 10), vote(query, db[:hi], 10, 10))
+    assert database.search_index().kind == "exact" and len(database.search_index()._device) == 400 * 4
+
+
+def test_torch_device_cuda_without_a_gpu_is_refused_when_configured(monkeypatch):
     import torch
 
     from loopclosure.device_search import resolve_device
@@ -280,21 +296,64 @@ def test_torch_device_cuda_without_a_gpu_is_a_clear_error(monkeypatch):
     assert resolve_device("auto") == "cpu"
     with pytest.raises(LoopClosureInputError, match="torch_device: cuda"):
         StageOneIndex(FilteringConfig(exact_backend="torch", torch_device="cuda"), 8, 2)
+    database = _database(_unit(np.ones((3, 2, 4))))
+    with pytest.raises(LoopClosureInputError, match="torch_device: cuda"):  # before any query
+        database.configure_search(FilteringConfig(exact_backend="torch", torch_device="cuda"))
+    # IVF and HNSW never use it
+    assert StageOneIndex(FilteringConfig(index="ivf", exact_backend="torch", torch_device="cuda"), 8, 2)._device is None
 
 
-def test_torch_exact_search_leaves_the_float32_matmul_precision_as_it_was():
-    """The product runs in full float32 (the rounding margin assumes it), and a caller's setting returns."""
+def test_a_sync_cut_short_is_redone_at_the_right_rows():
+    """An error half way through a load (out of device memory, say) leaves no misplaced rows."""
+    from loopclosure.device_search import TorchExactSearch
+
+    search = TorchExactSearch(3, "cpu")
+    search.write(0, np.ones((5, 3), np.float32))
+    search.write(5, np.full((4, 3), 2.0, np.float32))  # rows 5..8 of a load that then failed
+    search.write(5, np.full((2, 3), 3.0, np.float32))  # the next sync starts again at row 5
+    assert len(search) == 7
+    margin = np.zeros(1)
+    got = search.propose(np.ones((1, 3), np.float32), 2, len(search), np.empty(0, np.int64), margin)
+    np.testing.assert_array_equal(got[0], [5, 6])
+    with pytest.raises(ValueError, match="write at vector 9"):
+        search.write(9, np.ones((1, 3), np.float32))
+
+
+def _matmul_precision() -> tuple[str, ...]:
     import torch
 
-    before = torch.get_float32_matmul_precision()
-    torch.set_float32_matmul_precision("medium")
+    backends = (torch.backends.cuda.matmul, torch.backends.mkldnn.matmul)
+    if all(hasattr(b, "fp32_precision") for b in backends):  # torch >= 2.9: one setting per backend
+        return tuple(b.fp32_precision for b in backends)
+    return (torch.get_float32_matmul_precision(),)
+
+
+@pytest.mark.parametrize("caller", ["legacy", "per_backend"])
+def test_torch_exact_search_multiplies_in_full_float32_and_restores_the_callers_setting(monkeypatch, caller):
+    """The rounding margin assumes full float32 products: TF32 / bf16 are off while the
+    similarities are computed, and the caller's setting (either API) is back afterwards."""
+    import torch
+
+    seen: list[tuple[str, ...]] = []
+    topk = torch.topk
+    monkeypatch.setattr(torch, "topk", lambda *a, **kw: (seen.append(_matmul_precision()), topk(*a, **kw))[1])
+    before = _matmul_precision()
+    if caller == "legacy":
+        torch.set_float32_matmul_precision("medium")
+    elif hasattr(torch.backends.cuda.matmul, "fp32_precision"):
+        torch.backends.cuda.matmul.fp32_precision = "tf32"  # legacy reads raise after this (torch >= 2.9)
+    setting = _matmul_precision()
     try:
         db = _unit(np.random.default_rng(9).standard_normal((60, 4, 10)))
         query = _unit(np.random.default_rng(10).standard_normal((4, 10)))
         _same(_database(db, **BACKENDS["torch"]).filter(query, 8, 10), vote(query, db, 8, 10))
-        assert torch.get_float32_matmul_precision() == "medium"
+        assert seen and all(s in (("ieee", "ieee"), ("highest",)) for s in seen)
+        assert _matmul_precision() == setting
     finally:
-        torch.set_float32_matmul_precision(before)
+        if len(before) == 2:
+            torch.backends.cuda.matmul.fp32_precision, torch.backends.mkldnn.matmul.fp32_precision = before
+        else:
+            torch.set_float32_matmul_precision(before[0])
 
 
 def test_auto_nlist():
