@@ -8,7 +8,9 @@ front_end (source, odometry and keyframe selection since the previous keyframe; 
 `pipeline.overlap` it runs beside the back end). `keyframe_interval_s` is the time from one
 keyframe leaving the back end to the next, everything included: the end-to-end time per
 keyframe a user sees, which the target (median <= 100 ms) is about. `wall_per_keyframe_s` also
-spreads the start (first inference, PCA fit) over the keyframes.
+spreads the start (first inference, PCA fit) over the keyframes. `cpu` is the CPU time the run
+used (this process and an odometry child, all threads) per keyframe, and that divided by the
+cores: the floor under which no schedule of the same work can bring `keyframe_interval_s`.
 
     python tools/bench_slam.py [--frames 200] [--odometry kiss_icp|logged] [--log demo.mcap]
         [--overlap | --no-overlap] [--precision fp32|bf16|int8|auto] [--omp-wait-policy PASSIVE|ACTIVE|inherit]

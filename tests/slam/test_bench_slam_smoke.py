@@ -1,5 +1,6 @@
 """tools/bench_slam.py runs end to end on a short simulated traverse, stages overlapped (the
-odometry in its own process), and prints one JSON object with the pace per keyframe."""
+odometry in its own process), and prints one JSON object with the pace per keyframe and the
+CPU time it cost."""
 
 from __future__ import annotations
 
@@ -30,3 +31,10 @@ def test_bench_slam_reports_stages_and_the_pace_per_keyframe(weights_path: Path)
     assert 0 < pace["median_s"] <= pace["p90_s"] and pace["mean_s"] > 0
     assert pace["mean_s"] * (n - 1) <= out["wall_s"]  # the intervals lie within the run
     assert out["target"]["pass"] == (pace["median_s"] <= out["target"]["median_keyframe_interval_s"])
+    # the CPU time the run used, the odometry child's included (overlap puts kiss-icp there)
+    cpu = out["cpu"]
+    assert cpu["child_processes_s"] > 0 and cpu["process_s"] > 0
+    assert cpu["core_s_per_keyframe"] == pytest.approx((cpu["process_s"] + cpu["child_processes_s"]) / n, rel=0.01)
+    assert cpu["floor_per_keyframe_s"] == pytest.approx(cpu["core_s_per_keyframe"] / out["machine"]["cpus"])
+    assert 0 < cpu["utilisation_of_all_cores"] <= 1.05  # no more CPU than the cores had
+    assert cpu["floor_per_keyframe_s"] * n <= out["wall_s"] * 1.05
