@@ -35,6 +35,7 @@ import numpy as np
 from pydantic import ValidationError
 
 from loopclosure.config import DatabaseConfig, FilteringConfig
+from loopclosure.device_search import check_search_device
 from loopclosure.encoder import PlaceCodes
 from loopclosure.errors import LoopClosureInputError
 from loopclosure.filtering import Candidates, empty_candidates, max_row_norm, rank_neighbours, vote
@@ -369,10 +370,7 @@ class PlaceDatabase:
     # ---- stage I -----------------------------------------------------------------------
     def configure_search(self, filtering: FilteringConfig) -> None:
         """Search stage I as `filtering` says (index kind and its settings); a change drops the index."""
-        if filtering.exact_backend == "torch" and filtering.index in ("auto", "exact"):
-            from loopclosure.device_search import resolve_device
-
-            resolve_device(filtering.torch_device)  # a missing GPU is refused now, not at the first query
+        check_search_device(filtering)  # a missing GPU is refused now, not at the first query
         if filtering != self.filtering:
             self.filtering, self._index = filtering, None
 

@@ -23,6 +23,7 @@ import numpy as np
 from loopclosure.blas import one_blas_thread
 from loopclosure.config import DetectorConfig, VPRConfig, feature_side, grid_side
 from loopclosure.database import PlaceDatabase, PlaceInfo
+from loopclosure.device_search import check_search_device
 from loopclosure.encoder import Encoder, PlaceCodes, RawCubes
 from loopclosure.errors import LoopClosureInputError
 from loopclosure.filtering import Candidates
@@ -67,6 +68,7 @@ class LoopDetector:
     def __init__(
         self, vpr: VPRConfig, config: DetectorConfig, encoder: Encoder, database: PlaceDatabase | None = None
     ) -> None:
+        check_search_device(vpr.filtering)  # before the first frame, not after the PCA warm-up
         self.vpr = vpr
         self.config = config
         self.encoder = encoder

@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 
+from loopclosure.config import FilteringConfig
 from loopclosure.errors import LoopClosureError, LoopClosureInputError
 
 _PRECISION_LOCK = threading.Lock()
@@ -36,6 +37,13 @@ def resolve_device(device: str) -> str:
     if device == "cuda" and not torch.cuda.is_available():
         raise LoopClosureInputError("vpr.filtering.torch_device: cuda, but torch sees no CUDA device")
     return device
+
+
+def check_search_device(filtering: FilteringConfig) -> None:
+    """Refuse a torch exact search on a GPU that is not there before any work is done (a SLAM
+    run would otherwise fail only once its PCA warm-up is over, a benchmark after encoding)."""
+    if filtering.exact_backend == "torch" and filtering.index in ("auto", "exact"):
+        resolve_device(filtering.torch_device)
 
 
 @contextlib.contextmanager

@@ -20,6 +20,7 @@ from loopclosure.backbone import load_backbone
 from loopclosure.blas import one_blas_thread
 from loopclosure.config import SequenceMatchConfig
 from loopclosure.database import PlaceDatabase, PlaceInfo
+from loopclosure.device_search import check_search_device
 from loopclosure.encoder import Encoder, PlaceCodes, evenly_spaced
 from loopclosure.frame_correlation import FrameCorrelationPrior
 from loopclosure.ground_truth import GroundTruth, correct_mask, load_ground_truth
@@ -295,6 +296,7 @@ def run_vpr_eval(
 
     Sequence matching runs for each of `config.vpr_eval.sequence_lengths` beside single frames."""
     console = console or Console()
+    check_search_device(config.vpr.filtering)  # before minutes of encoding
     ref_files, query_files = list_images(ref_dir), list_images(query_dir)
     gt = load_ground_truth(ground_truth, ref_files, query_files)
     encoder = Encoder(config.vpr, load_backbone(config.vpr.backbone, progress=True))

@@ -112,6 +112,21 @@ def test_bad_environment_variable(variable: str) -> None:
     assert_user_error(invoke("config", env={variable: value}), variable, fragment)
 
 
+@pytest.mark.parametrize("command", ["run", "vpr-eval"])
+def test_torch_search_on_a_missing_gpu_is_refused_before_any_work(
+    command: str, inputs: SimpleNamespace, weights_path: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """`torch_device: cuda` where torch sees no GPU: one line before the first frame (a run of
+    six frames never leaves the PCA warm-up, where the search would first be built)."""
+    import torch
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    env = {"SSMVPR_VPR__FILTERING__EXACT_BACKEND": "torch", "SSMVPR_VPR__FILTERING__TORCH_DEVICE": "cuda"}
+    out = tmp_path / "out"
+    assert_user_error(invoke(*_command(command, inputs, weights_path, out), env=env), "torch_device: cuda")
+    assert not out.exists() or not any(out.iterdir())  # no results, not even a partial run's
+
+
 def test_config_path_that_is_a_folder(tmp_path: Path) -> None:
     assert_user_error(invoke("config", "-c", tmp_path), str(tmp_path), "neither a file nor a preset")
 
