@@ -45,7 +45,7 @@ import numpy as np
 
 from loopclosure.config import FilteringConfig
 from loopclosure.device_search import TorchExactSearch
-from loopclosure.filtering import similarity_margin
+from loopclosure.filtering import similarity_margin, widen_until_complete
 
 Rows = Callable[[int, int], np.ndarray]  # (start, stop) vector ids -> float32 (stop - start, d)
 
@@ -99,26 +99,29 @@ class StageOneIndex:
         if n_places == self.n_places:
             return
         start_vec, stop_vec = self.n_places * self.per_place, n_places * self.per_place
-        for lo in range(start_vec, stop_vec, 1 << 18):
-            part = rows(lo, min(stop_vec, lo + (1 << 18)))
+        on_gpu = self._device is not None and self._device.on_gpu
+        if self.config.index == "auto" and self.kind == "exact" and n_places > self.config.ann_threshold_places:
+            if not on_gpu:  # a GPU scans a city exactly in time; two CPU cores do not
+                self.kind, self._mirror, self._device = "ivf", None, None
+        exact = self.kind == "exact"
+        if exact and self._device is not None and self.n_places == 0:  # a bulk load: one allocation
+            self._device.reserve(stop_vec)
+        elif exact and self._device is None and view is None:
+            self._mirror = _grow(self._mirror, stop_vec, self.dim)
+        for lo in range(start_vec, stop_vec, 1 << 18):  # each chunk read once (int8 storage dequantises)
+            hi = min(stop_vec, lo + (1 << 18))
+            part = rows(lo, hi)
             if len(part):
                 self.max_norm = max(
                     self.max_norm,
                     float(np.sqrt(np.einsum("ij,ij->i", part, part, dtype=np.float64).max())) * (1 + 1e-6),
                 )
-        on_gpu = self._device is not None and self._device.on_gpu
-        if self.config.index == "auto" and self.kind == "exact" and n_places > self.config.ann_threshold_places:
-            if not on_gpu:  # a GPU scans a city exactly in time; two CPU cores do not
-                self.kind, self._mirror, self._device = "ivf", None, None
-        if self.kind == "exact":
-            if self._device is not None:
-                if self.n_places == 0:  # a bulk load (a map, a first query): one allocation
-                    self._device.reserve(stop_vec)
-                for lo in range(start_vec, stop_vec, 1 << 18):
-                    self._device.write(lo, rows(lo, min(stop_vec, lo + (1 << 18))))
-            elif view is None:
-                self._mirror = _grow(self._mirror, stop_vec, self.dim)
-                self._mirror[start_vec:stop_vec] = rows(start_vec, stop_vec)
+            if exact and self._device is not None:
+                self._device.write(lo, part)
+            elif exact and view is None:
+                assert self._mirror is not None  # grown above
+                self._mirror[lo:hi] = part
+        if exact:
             self.n_places = n_places
             return
         t0 = time.perf_counter()
@@ -219,25 +222,16 @@ class StageOneIndex:
         if limit is not None:
             base, excluded = base[: limit * self.per_place], excluded[:0]
         excluded_ids = excluded_ids_of(excluded, self.per_place)
-        margin = similarity_margin(query, self.max_norm)
-        out: list[np.ndarray | None] = [None] * len(query)
-        todo = np.arange(len(query))
-        kk = min(k + max(8, k // 4), n_allowed)
-        while len(todo):
-            fetch = min(kk + len(excluded_ids), len(base))
-            sims, ids = faiss.knn(query[todo], base, fetch, metric=faiss.METRIC_INNER_PRODUCT)
-            again = []
-            for row, s, i in zip(todo, sims, ids):
+
+        def fetch(todo: np.ndarray, kk: int) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+            # excluded ids are dropped after the search, so ask for as many more
+            sims, ids = faiss.knn(query[todo], base, min(kk + len(excluded_ids), len(base)),
+                                  metric=faiss.METRIC_INNER_PRODUCT)  # fmt: skip
+            for s, i in zip(sims, ids):
                 keep = (i >= 0) & ~np.isin(i, excluded_ids) if len(excluded_ids) else i >= 0
-                s, i = s[keep][:kk], i[keep][:kk]
-                kth = s[k - 1]
-                # complete: nothing left out can be within the margin of the k-th
-                if len(i) < kk or kk >= n_allowed or s[-1] < kth - margin[row]:
-                    out[row] = np.sort(i[s >= kth - margin[row]])
-                else:
-                    again.append(row)
-            todo, kk = np.asarray(again, np.int64), min(2 * kk, n_allowed)
-        return out  # type: ignore[return-value]
+                yield s[keep][:kk], i[keep][:kk]
+
+        return widen_until_complete(len(query), k, n_allowed, similarity_margin(query, self.max_norm), fetch)
 
     def _approximate(self, query: np.ndarray, k: int, excluded: np.ndarray, limit: int | None) -> list[np.ndarray]:
         import faiss

@@ -24,6 +24,7 @@ import numpy as np
 
 from loopclosure.config import FilteringConfig
 from loopclosure.errors import LoopClosureError, LoopClosureInputError
+from loopclosure.filtering import widen_until_complete
 
 _PRECISION_LOCK = threading.Lock()
 
@@ -143,26 +144,15 @@ class TorchExactSearch:
         superset of the exact top k."""
         import torch
 
-        n_allowed = limit - len(excluded_ids)
         with full_float32(), torch.inference_mode():
             q = torch.from_numpy(np.ascontiguousarray(query, np.float32)).to(self.device)
             sims = q @ self._rows[:limit].T  # (n, limit)
             if len(excluded_ids):
                 sims[:, torch.from_numpy(np.asarray(excluded_ids, np.int64)).to(self.device)] = -torch.inf
-            out: list[np.ndarray | None] = [None] * len(query)
-            todo = np.arange(len(query))
-            kk = min(k + max(8, k // 4), n_allowed)
-            while len(todo):
+
+            def fetch(todo: np.ndarray, kk: int) -> zip[tuple[np.ndarray, np.ndarray]]:
                 rows = sims if len(todo) == len(query) else sims[torch.from_numpy(todo).to(self.device)]
-                top = torch.topk(rows, kk, dim=1, sorted=True)
-                values, ids = top.values.cpu().numpy().astype(np.float64), top.indices.cpu().numpy()
-                again = []
-                for row, s, i in zip(todo, values, ids):
-                    floor = s[k - 1] - margin[row]
-                    # complete: nothing left out can be within the margin of the k-th
-                    if kk >= n_allowed or s[-1] < floor:
-                        out[row] = np.sort(i[s >= floor])
-                    else:
-                        again.append(row)
-                todo, kk = np.asarray(again, np.int64), min(2 * kk, n_allowed)
-        return out  # type: ignore[return-value]
+                top = torch.topk(rows, kk, dim=1, sorted=True)  # kk <= allowed: no excluded -inf among them
+                return zip(top.values.cpu().numpy(), top.indices.cpu().numpy())
+
+            return widen_until_complete(len(query), k, limit - len(excluded_ids), margin, fetch)

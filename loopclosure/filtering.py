@@ -15,7 +15,7 @@ neighbours, votes and tie order, bit for bit, whatever order their kernels sum i
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,6 +47,32 @@ def similarity_margin(query: np.ndarray, max_norm: float) -> np.ndarray:
     gamma = d * _F32_UNIT_ROUNDOFF / (1.0 - d * _F32_UNIT_ROUNDOFF)
     norms = np.linalg.norm(query.astype(np.float64), axis=1)
     return 4.0 * gamma * norms * max(float(max_norm), 1e-30) + 1e-300
+
+
+Fetch = Callable[[np.ndarray, int], Iterable[tuple[np.ndarray, np.ndarray]]]
+
+
+def widen_until_complete(n_rows: int, k: int, n_allowed: int, margin: np.ndarray, fetch: Fetch) -> list[np.ndarray]:
+    """Per query row, ascending ids of every vector within `margin[row]` of the k-th largest
+    float32 similarity: a superset of the exact top k, for `rank_neighbours` to decide.
+
+    `fetch(rows, kk)` gives, for each of those rows, its best (at most) kk allowed similarities,
+    descending, and their ids. A row is settled once the last fetched value lies below the
+    margin of the k-th, so nothing unfetched can be within it; the others ask for twice as
+    many. An index's exact mode only supplies `fetch`."""
+    out: list[np.ndarray | None] = [None] * n_rows
+    todo = np.arange(n_rows)
+    kk = min(k + max(8, k // 4), n_allowed)
+    while len(todo):
+        again = []
+        for row, (s, i) in zip(todo, fetch(todo, kk)):
+            floor = s[k - 1] - margin[row]
+            if len(i) < kk or kk >= n_allowed or s[-1] < floor:
+                out[row] = np.sort(i[s >= floor])
+            else:
+                again.append(row)
+        todo, kk = np.asarray(again, np.int64), min(2 * kk, n_allowed)
+    return out  # type: ignore[return-value]
 
 
 def max_row_norm(rows: np.ndarray, chunk: int = 1 << 16) -> float:
