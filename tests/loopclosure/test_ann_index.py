@@ -359,3 +359,20 @@ def test_torch_exact_search_multiplies_in_full_float32_and_restores_the_callers_
 def test_auto_nlist():
     assert auto_nlist(100) == 64 and auto_nlist(16_000_000) == 16384
     assert auto_nlist(1_600_000) == 4096
+
+
+def test_a_map_too_large_for_the_device_is_an_error_naming_its_size(monkeypatch):
+    import torch
+
+    from loopclosure.device_search import TorchExactSearch
+    from loopclosure.errors import LoopClosureError
+
+    def no_room(*args, **kwargs):
+        raise torch.cuda.OutOfMemoryError("CUDA out of memory")
+
+    search = TorchExactSearch(100, "cpu")
+    search.write(0, np.ones((3, 100), np.float32))
+    monkeypatch.setattr(torch, "empty", no_room)
+    with pytest.raises(LoopClosureError, match=r"stage-I vectors \(6\.4 GB float32\) do not fit on cpu"):
+        search.reserve(16_000_000)
+    assert len(search) == 3  # what was held stays
