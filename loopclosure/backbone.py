@@ -172,6 +172,7 @@ class Backbone:
         self._dtype = _TORCH_DTYPES.get(self.precision, torch.float32)
         self._int8: Int8Session | None = None
         self._calibrating: list[np.ndarray] | None = None  # int8 from the stream: images seen so far
+        self._stream_calibration: np.ndarray | None = None  # int8 from the stream: the images it used
         self._i1 = CONV_INDEX[config.stage1_layer]
         self._i2 = CONV_INDEX[config.stage2_layer]
         self._taps = {self._i1: config.pre_relu, self._i2: config.pre_relu}
@@ -269,7 +270,43 @@ class Backbone:
             chosen = np.stack(self._calibrating[: self.config.int8_calibration_images])
             self._int8 = self._build_int8(chosen)  # a failure raises here, and the next call tries again
             self._calibrating = None
+            self._stream_calibration = chosen
             log.info("int8: calibrated on the first %d images", len(chosen))
+
+    @property
+    def calibrates_on_stream(self) -> bool:
+        """int8 whose calibration images come from the images it is given (no folder, none passed)."""
+        return self._stream_calibration is not None or self._calibrating is not None
+
+    def stream_calibration(self) -> np.ndarray | None:
+        """The stream images int8 calibration has taken so far (all of them once calibrated), or
+        None when it does not calibrate on the stream. A checkpoint keeps them: a resumed run must
+        quantise with the model the run had, not calibrate again on the images after the resume
+        (another model, and fp32 answers until then, would make codes the map was not built with)."""
+        if self._stream_calibration is not None:
+            return self._stream_calibration
+        if self._calibrating is None:
+            return None
+        size = self.config.input_size
+        return np.stack(self._calibrating) if self._calibrating else np.zeros((0, size, size, 3), np.uint8)
+
+    def resume_stream_calibration(self, images: np.ndarray) -> None:
+        """Continue from `stream_calibration()` of an earlier backbone of the same config: the
+        same int8 model (from the cache, or calibrated again on the same images), or, if that one
+        had not seen enough images yet, the same images kept and the calibration still to come."""
+        if self._calibrating is None or self._calibrating:
+            raise LoopClosureInputError(
+                "int8 stream calibration can only be resumed by a fresh int8 backbone that calibrates on "
+                f"the stream (precision {self.precision}, int8_calibration {self.config.int8_calibration!r})"
+            )
+        images = np.asarray(images)
+        if len(images):
+            self._check_images(images)
+        self._calibrating = []
+        if len(images) < self.config.int8_calibration_images:
+            self._calibrating.extend(np.array(image) for image in images)
+        else:
+            self._calibrate_on(images)
 
 
 def load_backbone(config: BackboneConfig, progress: bool = False) -> Backbone:

@@ -13,6 +13,7 @@ the first keyframes are buffered, PCA is fitted on them, and querying starts aft
 from __future__ import annotations
 
 import bisect
+import logging
 import math
 import time
 from dataclasses import dataclass
@@ -31,6 +32,8 @@ from loopclosure.recognizer import Recognition, Recognizer
 from loopclosure.sequence_gate import SequenceGate
 from loopclosure.sequence_matcher import SequenceMatch, SequenceMatcher
 from loopclosure.spatial import spatial_scores
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -134,7 +137,8 @@ class LoopDetector:
     # ---- state, for checkpoints: the database is saved on its own, the rest as plain arrays --
     def state_arrays(self) -> dict[str, np.ndarray]:
         """Everything besides the place database that the next `process` call depends on: the
-        travelled distance per place, the gate's and both sequence matchers' recent queries.
+        travelled distance per place, the gate's and both sequence matchers' recent queries, and
+        the images an int8 backbone calibrated on from the stream.
 
         Only once the detector is `ready`: the PCA warm-up's raw cubes are megabytes per keyframe
         and are not saved, so a checkpoint waits until they have become codes."""
@@ -149,6 +153,9 @@ class LoopDetector:
             **self.sequence.state_arrays("sequence_"),
             **self.rear_sequence.state_arrays("rear_sequence_"),
         }
+        calibration = self.encoder.backbone.stream_calibration()
+        if calibration is not None:
+            out["int8_stream_calibration"] = calibration
         return out
 
     def load_state_arrays(self, arrays: dict[str, np.ndarray], database: PlaceDatabase) -> None:
@@ -171,6 +178,15 @@ class LoopDetector:
         self.gate.load_state_arrays(arrays)
         self.sequence.load_state_arrays(arrays, "sequence_")
         self.rear_sequence.load_state_arrays(arrays, "rear_sequence_")
+        calibration = arrays.get("int8_stream_calibration")
+        if calibration is not None:
+            self.encoder.backbone.resume_stream_calibration(calibration)
+        elif self.encoder.backbone.calibrates_on_stream:  # a checkpoint written before it was kept
+            log.warning(
+                "the checkpoint does not hold the images int8 was calibrated on: it calibrates again on the next "
+                "%d images (fp32 until then), so codes after the resume come from another int8 model",
+                self.encoder.backbone.config.int8_calibration_images,
+            )
 
     def _advance(self, position: np.ndarray | None) -> None:
         if position is None:

@@ -234,3 +234,89 @@ def test_bench_backbone_prints_one_json(tmp_path):
     assert fp32["batch_2"]["ms_per_image"] > 0 and fp32["physical_limit_ms_per_image"] > 0
     int8 = out["precisions"]["int8"]
     assert ("skipped" in int8) != int8_available()
+
+
+# ---- int8 calibrated on the stream, across a checkpoint ----------------------------------------
+
+
+def test_stream_calibration_resumes_with_the_same_model(monkeypatch, tmp_path, real_sd, queries, gardens_dir):
+    """What a checkpoint keeps (`stream_calibration`) rebuilds the model the run had, whether
+    the run had calibrated already or was still collecting images."""
+    pytest.importorskip("onnxruntime")
+    monkeypatch.setenv("SSMVPR_CACHE", str(tmp_path))
+    config = _config("int8", int8_calibration_images=4)
+    stream = np.stack([resize_square(read_image(f), SIZE) for f in list_images(gardens_dir / "ref")[:4]])
+    run = Backbone(config, real_sd)
+    assert run.calibrates_on_stream and run.stream_calibration().shape == (0, SIZE, SIZE, 3)
+    run(stream[:2])
+    halfway = run.stream_calibration()
+    np.testing.assert_array_equal(halfway, stream[:2])
+    run(stream[2:])  # the fourth image: calibrated now
+    np.testing.assert_array_equal(run.stream_calibration(), stream)
+    want = run(queries)
+
+    after_calibration = Backbone(config, real_sd)
+    after_calibration.resume_stream_calibration(run.stream_calibration())
+    np.testing.assert_array_equal(after_calibration(queries)[0], want[0])  # int8 at once, the same model
+
+    during_calibration = Backbone(config, real_sd)
+    during_calibration.resume_stream_calibration(halfway)
+    during_calibration(stream[2:])  # the rest of the run's calibration images, after the resume
+    np.testing.assert_array_equal(during_calibration(queries)[0], want[0])
+    assert len(list(tmp_path.glob("int8/*.onnx"))) == 1
+
+    with pytest.raises(LoopClosureInputError, match="fresh int8 backbone"):
+        run.resume_stream_calibration(halfway)  # one that has its own calibration already
+    with pytest.raises(LoopClosureInputError, match="fresh int8 backbone"):
+        Backbone(_config("fp32"), real_sd).resume_stream_calibration(halfway)
+    assert Backbone(_config("fp32"), real_sd).stream_calibration() is None
+    folder = Backbone(_config("int8", int8_calibration=str(gardens_dir / "ref"), int8_calibration_images=4), real_sd)
+    assert folder.stream_calibration() is None and not folder.calibrates_on_stream  # the folder is read again
+
+
+def test_a_restored_detector_encodes_with_the_runs_int8_model(monkeypatch, tmp_path, real_sd, corridor_dir, caplog):
+    """A SLAM run's int8 backbone calibrates on its first keyframes; the detector's state keeps
+    those images, so the places added after a resume are the codes an uninterrupted run adds
+    (without them the resumed detector answers fp32, then calibrates on other images)."""
+    pytest.importorskip("onnxruntime")
+    from loopclosure.config import DetectorConfig, VPRConfig
+    from loopclosure.database import PlaceDatabase
+    from loopclosure.detector import LoopDetector
+    from loopclosure.encoder import Encoder
+
+    monkeypatch.setenv("SSMVPR_CACHE", str(tmp_path))
+    vpr = VPRConfig.model_validate({
+        "backbone": {"weights": "x", "device": "cpu", "input_size": 112, "precision": "int8",
+                     "int8_calibration_images": 4},
+        "filtering": {"pca": {"dim": 8}}, "spatial": {"pca": {"dim": 8}},
+    })  # fmt: skip
+    settings = DetectorConfig(pca_warmup_keyframes=9)
+    images = [read_image(f) for f in list_images(corridor_dir / "ref")[:14]]
+
+    def new_detector() -> LoopDetector:
+        return LoopDetector(vpr, settings, Encoder(vpr, Backbone(vpr.backbone, real_sd)))
+
+    whole = new_detector()
+    for k, image in enumerate(images):
+        whole.process(image, k)
+    cut = 11
+    first = new_detector()
+    for k, image in enumerate(images[:cut]):
+        first.process(image, k)
+    state = first.state_arrays()
+    assert state["int8_stream_calibration"].shape == (4, 112, 112, 3)
+    first.database.save(tmp_path / "db")
+
+    resumed = new_detector()
+    resumed.load_state_arrays(state, PlaceDatabase.load(tmp_path / "db"))
+    legacy = new_detector()  # a checkpoint from before the calibration images were kept
+    with caplog.at_level("WARNING"):
+        legacy.load_state_arrays({k: v for k, v in state.items() if k != "int8_stream_calibration"},
+                                 PlaceDatabase.load(tmp_path / "db"))  # fmt: skip
+    assert "does not hold the images int8 was calibrated on" in caplog.text
+    for k in range(cut, len(images)):
+        resumed.process(images[k], k)
+        legacy.process(images[k], k)
+    want = np.asarray(whole.database.stage1)[cut:]
+    np.testing.assert_array_equal(np.asarray(resumed.database.stage1)[cut:], want)
+    assert not np.array_equal(np.asarray(legacy.database.stage1)[cut:], want)  # what the state prevents

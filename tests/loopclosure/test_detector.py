@@ -43,8 +43,13 @@ def _one_blas_thread():  # noqa: ANN202
 class FakeBackbone:
     """(B, 224, 224, 3) uint8 -> (B, 512, 14, 14) conv5_2-like and (B, 512, 28, 28) conv4_2-like maps."""
 
+    calibrates_on_stream = False
+
     def __init__(self) -> None:
         self.images = 0
+
+    def stream_calibration(self) -> None:
+        return None  # not int8: nothing a checkpoint must keep
 
     def __call__(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         assert images.dtype == np.uint8 and images.shape[1:] == (224, 224, 3)

@@ -85,6 +85,9 @@ class MemoBackbone:
             self._memo[key] = self.backbone(images)
         return self._memo[key]
 
+    def __getattr__(self, name: str):  # noqa: ANN204  # the rest of the backbone's API
+        return getattr(self.backbone, name)
+
 
 def slam_config(weights_path: Path, odometry: str) -> SlamConfig:
     cfg = load_config()  # the default (paper) preset
