@@ -85,10 +85,15 @@ class StageOneIndex:
         self.kind = "exact" if config.index in ("auto", "exact") else config.index
         self._mirror: np.ndarray | None = None  # float32 vectors for exact search (compact storage)
         torch_exact = self.kind == "exact" and config.exact_backend == "torch"
-        self._device = TorchExactSearch(dim, config.torch_device) if torch_exact else None
+        self._device = TorchExactSearch(dim, config.torch_device, config.torch_block_rows) if torch_exact else None
         self._index: Any = None  # faiss index (ivf, hnsw); faiss's stubs cover little of its API
         self._trained_at = 0  # places when the IVF lists were trained
         self.build_seconds: list[tuple[str, int, float]] = []  # (what, places, seconds), newest last
+
+    @property
+    def search_device(self) -> str | None:
+        """The torch device exact search runs on ('cuda', 'cpu'), or None (faiss, or approximate)."""
+        return None if self._device is None else self._device.device
 
     # ---- keeping up with the database ---------------------------------------------------
     def sync(self, n_places: int, rows: Rows, view: np.ndarray | None = None) -> None:

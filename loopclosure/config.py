@@ -96,6 +96,13 @@ class FilteringConfig(_Strict):
     torch_device: Literal["auto", "cpu", "cuda"] = Field(
         default="auto", description="exact_backend torch: where it runs; auto is cuda when torch sees a GPU, else cpu."
     )
+    torch_block_rows: int | None = Field(
+        default=None,
+        ge=1,
+        description="exact_backend torch: stage-I vectors multiplied per block, so a query holds one block of "
+        "similarities on the device, not the whole map's (1M places are 16M vectors: 1 GB per query); "
+        "None: as many as 256 MB of similarities hold.",
+    )
     ann_threshold_places: int = Field(
         default=50_000, ge=1, description="auto: places from which IVF replaces exact search on the CPU."
     )

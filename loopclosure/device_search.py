@@ -27,6 +27,7 @@ from loopclosure.errors import LoopClosureError, LoopClosureInputError
 from loopclosure.filtering import widen_until_complete
 
 _PRECISION_LOCK = threading.Lock()
+SIMILARITY_BYTES = 256 << 20  # one query's block of similarities on the device (vpr.filtering.torch_block_rows)
 
 
 def resolve_device(device: str) -> str:
@@ -82,9 +83,10 @@ def full_float32() -> Iterator[None]:
 class TorchExactSearch:
     """Every stage-I vector on one torch device; vector i is row i, written at its own offset."""
 
-    def __init__(self, dim: int, device: str) -> None:
+    def __init__(self, dim: int, device: str, block_rows: int | None = None) -> None:
         self.dim = dim
         self.device = resolve_device(device)
+        self.block_rows = block_rows
         self._rows: Any = None  # torch (capacity, dim) float32 on the device
         self._count = 0
 
@@ -146,13 +148,50 @@ class TorchExactSearch:
 
         with full_float32(), torch.inference_mode():
             q = torch.from_numpy(np.ascontiguousarray(query, np.float32)).to(self.device)
-            sims = q @ self._rows[:limit].T  # (n, limit)
-            if len(excluded_ids):
-                sims[:, torch.from_numpy(np.asarray(excluded_ids, np.int64)).to(self.device)] = -torch.inf
+            excluded = np.sort(np.asarray(excluded_ids, np.int64))
+            block = self.block_rows or max(1, SIMILARITY_BYTES // (4 * max(1, len(query))))
+            held = self._similarities(q, 0, limit, excluded) if limit <= block else None
 
             def fetch(todo: np.ndarray, kk: int) -> zip[tuple[np.ndarray, np.ndarray]]:
-                rows = sims if len(todo) == len(query) else sims[torch.from_numpy(todo).to(self.device)]
-                top = torch.topk(rows, kk, dim=1, sorted=True)  # kk <= allowed: no excluded -inf among them
-                return zip(top.values.cpu().numpy(), top.indices.cpu().numpy())
+                rows = q if len(todo) == len(query) else q[torch.from_numpy(todo).to(self.device)]
+                if held is not None:  # the whole map in one block: multiplied once, widening reuses it
+                    sims = held if len(todo) == len(query) else held[torch.from_numpy(todo).to(self.device)]
+                    top = torch.topk(sims, kk, dim=1, sorted=True)
+                    values, ids = top.values, top.indices
+                else:
+                    values, ids = self._top_by_blocks(rows, kk, limit, excluded, block)
+                # kk <= allowed: no excluded -inf among the kk kept
+                return zip(values.cpu().numpy(), ids.cpu().numpy())
 
-            return widen_until_complete(len(query), k, limit - len(excluded_ids), margin, fetch)
+            return widen_until_complete(len(query), k, limit - len(excluded), margin, fetch)
+
+    def _similarities(self, q: Any, start: int, stop: int, excluded: np.ndarray) -> Any:
+        """q against vectors [start, stop), the excluded ones at -inf."""
+        import torch
+
+        sims = q @ self._rows[start:stop].T
+        inside = excluded[(excluded >= start) & (excluded < stop)] - start
+        if len(inside):
+            sims[:, torch.from_numpy(inside).to(self.device)] = -torch.inf
+        return sims
+
+    def _top_by_blocks(self, q: Any, kk: int, limit: int, excluded: np.ndarray, block: int) -> tuple[Any, Any]:
+        """The kk largest similarities of each row over all blocks: each block's own kk largest,
+        merged into the running best (a block's -inf only survive while the map has fewer)."""
+        import torch
+
+        values: Any = None
+        ids: Any = None
+        for start in range(0, limit, block):
+            stop = min(limit, start + block)
+            top = torch.topk(self._similarities(q, start, stop, excluded), min(kk, stop - start), dim=1, sorted=False)
+            block_ids = top.indices + start
+            if values is None:
+                values, ids = top.values, block_ids
+            else:
+                values, ids = torch.cat([values, top.values], dim=1), torch.cat([ids, block_ids], dim=1)
+            if values.shape[1] > kk:
+                best = torch.topk(values, kk, dim=1, sorted=False)
+                values, ids = best.values, torch.gather(ids, 1, best.indices)
+        order = torch.argsort(values, dim=1, descending=True)
+        return torch.gather(values, 1, order), torch.gather(ids, 1, order)

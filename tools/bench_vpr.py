@@ -567,7 +567,7 @@ def bench_stage1_index(args, config: VPRConfig, sizes: list[int], repeats: int) 
         )
         exact = StageOneIndex(exact_config, d, per)
         entry["exact_search"] = {"backend": args.exact_backend,
-                                 "device": exact._device.device if exact._device is not None else "cpu (faiss)"}  # fmt: skip
+                                 "device": exact.search_device or "cpu (faiss)"}  # fmt: skip
         t0 = time.perf_counter()
         exact.sync(n_places, rows, flat[: n_places * per])
         entry["exact_build_s"] = round(time.perf_counter() - t0, 3)

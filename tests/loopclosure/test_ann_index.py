@@ -87,7 +87,12 @@ def _unit(x: np.ndarray) -> np.ndarray:
 
 
 # exact search in faiss, and through torch matrix products (on the CPU here; a GPU runs the same code)
-BACKENDS = {"faiss": {}, "torch": {"exact_backend": "torch", "torch_device": "cpu"}}
+# and torch scanning the map in blocks of 7 vectors (a city on a GPU: 256 MB of similarities per block)
+BACKENDS = {
+    "faiss": {},
+    "torch": {"exact_backend": "torch", "torch_device": "cpu"},
+    "torch-blocks": {"exact_backend": "torch", "torch_device": "cpu", "torch_block_rows": 7},
+}
 
 
 def _exclusions(draw, places: int) -> list[np.ndarray | None]:
@@ -264,10 +269,10 @@ def test_auto_on_the_cpu_switches_to_ivf_with_the_torch_backend_too():
     database = _database(db[:100], index="auto", ann_threshold_places=300, **BACKENDS["torch"])
     query = _unit(db[50] + 0.05)
     assert database.filter(query, 10, 10).places[0] == 50
-    assert database.search_index().kind == "exact" and database.search_index()._device is not None
+    assert database.search_index().kind == "exact" and database.search_index().search_device == "cpu"
     database.add(PlaceCodes(db[100:], np.zeros((300, 2, 2, 3), np.float32)))
     assert database.filter(query, 10, 10).places[0] == 50
-    assert database.search_index().kind == "ivf" and database.search_index()._device is None
+    assert database.search_index().kind == "ivf" and database.search_index().search_device is None
 
 
 def test_auto_stays_exact_past_the_threshold_on_a_gpu(monkeypatch):
@@ -300,7 +305,10 @@ def test_torch_device_cuda_without_a_gpu_is_refused_when_configured(monkeypatch)
     with pytest.raises(LoopClosureInputError, match="torch_device: cuda"):  # before any query
         database.configure_search(FilteringConfig(exact_backend="torch", torch_device="cuda"))
     # IVF and HNSW never use it
-    assert StageOneIndex(FilteringConfig(index="ivf", exact_backend="torch", torch_device="cuda"), 8, 2)._device is None
+    assert (
+        StageOneIndex(FilteringConfig(index="ivf", exact_backend="torch", torch_device="cuda"), 8, 2).search_device
+        is None
+    )
 
 
 def test_a_sync_cut_short_is_redone_at_the_right_rows():
