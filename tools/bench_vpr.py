@@ -7,7 +7,7 @@ Usage:
                             [--precision auto|fp32|bf16|int8]
                             [--sizes 1000,10000,100000] [--repeats N] [--quick]
                             [--index-sizes 10000,100000,1000000 [--nlists 4096] [--only-index]
-                             [--exact-backend faiss|torch --torch-device auto|cpu|cuda]]
+                             [--exact-backend faiss|torch --torch-device auto|cpu|cuda] [--check-votes N]]
                             [--mapped-places 100000]
 
 What is measured (all through the library's own code paths):
@@ -33,7 +33,8 @@ What is measured (all through the library's own code paths):
                        --exact-backend torch: the GPU path) vs IVF (--nlists, --nprobes; --hnsw-ef adds HNSW) on `street_codes` (synthetic codes with Corridor's spectrum and
                        street-to-street drift; queries keep --query-cosine to their place): query ms,
                        recall@N of the IVF candidates against exact voting, whether the revisited place
-                       (within 2) is a candidate, build seconds, append ms per place after the build.
+                       (within 2) is a candidate, build seconds, append ms per place after the build;
+                       --check-votes N: whether N queries' exact votes equal numpy brute force's.
   sequence_query_ms    One query of a stream with sequence matching, as `LoopDetector` runs it:
                        stage-I vote over --store-places places (minus the exclusion window),
                        stage II of the N candidates plus the continued places, then
@@ -534,6 +535,10 @@ def revisit_queries(db: np.ndarray, count: int, cosine: float, seed: int) -> tup
     return unit_rows(db[places] + sigma * noise), places
 
 
+def _same_votes(a, b) -> bool:
+    return all(np.array_equal(getattr(a, f), getattr(b, f)) for f in ("places", "votes", "scores"))
+
+
 def bench_stage1_index(args, config: VPRConfig, sizes: list[int], repeats: int) -> dict:
     """Exact (faiss) vs IVF stage I: query ms and recall@N of the candidates against exact voting,
     build and append seconds, on street-like synthetic codes with an exclusion window."""
@@ -582,6 +587,12 @@ def bench_stage1_index(args, config: VPRConfig, sizes: list[int], repeats: int) 
         entry["exact_query_ms"] = stats(
             time_ms(lambda i: run(exact, queries[i], view), min(repeats, args.exact_repeats))
         )
+        if args.check_votes:  # the index's exact votes against numpy brute force (places, votes, scores)
+            log(f"stage-I index P={n_places}: {args.check_votes} queries against numpy brute force")
+            stored = db[:n_places]
+            agree = [_same_votes(truth[i], vote(queries[i], stored, k, n_cand, excluded))
+                     for i in range(min(args.check_votes, len(truth)))]  # fmt: skip
+            entry["exact_equals_numpy"] = {"queries": len(agree), "equal": int(sum(agree))}
         exact = None  # freed before the next size (the lambdas above ran already)
         gc.collect()
         for nlist in (_ints(args.nlists) or [None]) if args.nprobes else []:
@@ -941,6 +952,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--nlists", default="", help="IVF lists for --index-sizes (default: auto, 4 sqrt(vectors))")
     ap.add_argument("--nprobes", default="8,16,32,64,128", help="IVF lists probed, swept")
     ap.add_argument("--exact-repeats", type=int, default=20, help="queries whose exact votes are the recall reference")
+    ap.add_argument("--check-votes", type=int, default=0,
+                    help="--index-sizes: compare this many queries' exact votes with numpy brute force")  # fmt: skip
     ap.add_argument("--exact-backend", choices=("faiss", "torch"), default="faiss",
                     help="--index-sizes: exact search in faiss or as torch matrix products (the GPU path)")  # fmt: skip
     ap.add_argument("--torch-device", choices=("auto", "cpu", "cuda"), default="auto",

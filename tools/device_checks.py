@@ -1,0 +1,282 @@
+"""The GPU measurements of issue 10, prepared on this machine and run on a lent GPU machine.
+
+A session is lent a GPU only now and then, for 15 minutes in all, and that machine has torch
+with CUDA but none of this project's other dependencies, no shared weights, and no network.
+So everything it needs is made ready here, and each call there runs prepared steps with a
+timeout each, writing one JSON per step:
+
+    python tools/device_checks.py prepare            # here: wheels for its Python, fp16 weights, images
+
+    device run, call 1 (carry .device/core .device/weights .device/images):
+        python3 tools/device_checks.py run stage1 backbone --out $OUT
+    device run, call 2, at once on the same warm machine (carry .device/slam):
+        python3 tools/device_checks.py run slam --out $OUT
+
+Steps:
+  stage1    stage I exact search as torch matrix products on the GPU at 100k and 1M places
+            (tools/bench_vpr.py --only-index --exact-backend torch --torch-device cuda): query ms,
+            build seconds, and whether its votes equal numpy brute force on 3 queries.
+  backbone  VGG16 to conv5_2 on the GPU at fp32 and auto (bf16 on a card that has it):
+            ms per image at batch 1 and 8, agreement with fp32 (tools/bench_backbone.py).
+  slam      the demo traverse simulated into a log, then the whole pipeline on it with the
+            backbone on the GPU (tools/bench_slam.py --device cuda --precision auto):
+            keyframes per second and the stages' latency.
+
+The wheels of both calls together are too large for one call's carry (64 MiB), so the second
+call relies on what the first installed under .device/site; if the machine was given back in
+between, `run` says which folder to carry again. `--device cpu --quick` runs the same steps
+small on this machine (the test does), so a GPU session spends its minutes measuring.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))  # on the device nothing is installed: the checkout is the package
+
+from ssmvpr_common.atomic import atomic_write_text  # noqa: E402  (the standard library only)
+
+KIT = REPO / ".device"
+SITE = KIT / "site"
+SHARED = REPO.parent / "shared"
+DEVICE_PYTHON = "3.12"  # the GPU image's python3 (.library/device/KINDS.md)
+CARRY_LIMIT_BYTES = 64 << 20
+
+# What the GPU image lacks, by the call that carries it (the image has torch, numpy, scipy,
+# scikit-learn, opencv, matplotlib, typer, rich, pyyaml, threadpoolctl and onnxruntime).
+WHEELS = {
+    "core": ["pydantic", "pydantic-core", "annotated-types", "typing-inspection", "typing-extensions",
+             "pydantic-settings", "python-dotenv", "faiss-cpu", "packaging"],
+    "slam": ["gtsam", "kiss-icp", "natsort", "pyquaternion", "mcap", "mcap-ros2-support", "zstandard", "lz4"],
+}  # fmt: skip
+NEEDS = {"stage1": ["core"], "backbone": ["core", "weights", "images"], "slam": ["core", "slam", "weights"]}
+TIMEOUT_S = {"stage1": 300, "backbone": 180, "slam": 480}
+PLATFORMS = ["manylinux_2_17_x86_64", "manylinux2014_x86_64", "manylinux_2_24_x86_64", "manylinux_2_27_x86_64",
+             "manylinux_2_28_x86_64", "manylinux_2_31_x86_64", "manylinux_2_34_x86_64", "manylinux_2_35_x86_64"]  # fmt: skip
+
+
+def log(message: str) -> None:
+    print(f"[device_checks] {message}", file=sys.stderr, flush=True)
+
+
+# ---- here: make the kit ------------------------------------------------------------------------
+def _pinned(name: str) -> str:
+    """name==the version this checkout is tested with, when installed here (else the newest)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return f"{name}=={version(name)}"
+    except PackageNotFoundError:
+        return name
+
+
+def _download(group: str, python: str) -> None:
+    folder = KIT / group
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir(parents=True)
+    platforms = [arg for p in PLATFORMS for arg in ("--platform", p)]
+    command = [sys.executable, "-m", "pip", "download", "-q", "--no-deps", "--only-binary=:all:",
+               "--python-version", python, "--implementation", "cp", *platforms, "-d", str(folder),
+               *(_pinned(n) for n in WHEELS[group])]  # fmt: skip
+    subprocess.run(command, check=True)
+
+
+def _weights(source: Path) -> None:
+    """The VGG16 conv weights as float16 (half the bytes; the backbone loads them as float32)."""
+    import torch
+
+    from loopclosure.weights import load_state_dict
+
+    folder = KIT / "weights"
+    folder.mkdir(parents=True, exist_ok=True)
+    half = {k: v.half() for k, v in load_state_dict(source).items()}
+    staged = folder / "vgg16_fp16.pth.tmp"
+    torch.save(half, staged)
+    os.replace(staged, folder / "vgg16_fp16.pth")
+
+
+def _images(source: Path, count: int = 16) -> None:
+    from loopclosure.images import list_images
+
+    folder = KIT / "images"
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir(parents=True)
+    for path in list_images(source)[:count]:
+        shutil.copy2(path, folder / path.name)
+
+
+def _size(path: Path) -> int:
+    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file()) if path.exists() else 0
+
+
+def prepare(args: argparse.Namespace) -> dict:
+    for group in WHEELS:
+        log(f"downloading the {group} wheels for Python {args.python}")
+        _download(group, args.python)
+    _weights(Path(args.weights))
+    _images(Path(args.images))
+    tracked = subprocess.run(["git", "ls-files", "-z"], cwd=REPO, capture_output=True, check=True).stdout
+    repo_bytes = sum((REPO / f).stat().st_size for f in tracked.decode().split("\0") if f and (REPO / f).is_file())
+    calls = {"1": ["core", "weights", "images"], "2": ["slam"]}
+    out: dict = {"kit": str(KIT), "repo_bytes": repo_bytes, "calls": {}}
+    for name, folders in calls.items():
+        total = repo_bytes + sum(_size(KIT / f) for f in folders)
+        out["calls"][name] = {"carry": [f".device/{f}" for f in folders], "bytes": total,
+                              "fits": total < CARRY_LIMIT_BYTES}  # fmt: skip
+    out["commands"] = {
+        "1": "python3 tools/device_checks.py run stage1 backbone --out $OUT",
+        "2": "python3 tools/device_checks.py run slam --out $OUT",
+    }
+    return out
+
+
+# ---- there: run the steps ------------------------------------------------------------------------
+def _install(groups: list[str]) -> None:
+    """pip-install the carried wheels of `groups` into .device/site (once per machine)."""
+    for group in groups:
+        marker = SITE / f".installed-{group}"
+        wheels = sorted((KIT / group).glob("*.whl"))
+        if marker.exists():
+            continue
+        if not wheels:
+            raise SystemExit(f"error: .device/{group} holds no wheels: carry .device/{group} (made by `prepare`)")
+        log(f"installing {len(wheels)} {group} wheels into {SITE}")
+        subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-index", "--no-deps", "--no-compile",
+                        "--no-cache-dir", "--upgrade", "--target", str(SITE), *map(str, wheels)], check=True)  # fmt: skip
+        marker.write_text(" ".join(w.name for w in wheels) + "\n")
+
+
+def _environment(local: bool) -> dict[str, str]:
+    env = dict(os.environ, PYTHONUNBUFFERED="1")
+    if not local:
+        env["PYTHONPATH"] = os.pathsep.join([str(SITE), str(REPO)])
+    return env
+
+
+def _step_commands(step: str, args: argparse.Namespace) -> list[tuple[list[str], bool]]:
+    """(command, whether its stdout is the step's JSON) in order."""
+    py, tools, quick, device = sys.executable, REPO / "tools", args.quick, args.device
+    weights = args.weights or str(KIT / "weights" / "vgg16_fp16.pth")
+    images = args.images or str(KIT / "images")
+    if step == "stage1":
+        sizes = "2000" if quick else "100000,1000000"
+        return [([py, str(tools / "bench_vpr.py"), "--only-index", "--index-sizes", sizes, "--nprobes", "",
+                  "--exact-backend", "torch", "--torch-device", device, "--exact-repeats", "8", "--repeats", "8",
+                  "--check-votes", "3", "--append-places", "0"], True)]  # fmt: skip
+    if step == "backbone":
+        return [([py, str(tools / "bench_backbone.py"), "--device", device, "--precisions", "fp32,auto",
+                  "--batch-sizes", "1" if quick else "1,8", "--repeats", "2" if quick else "9",
+                  "--weights", weights, "--images", images, *(["--quick", "--no-gemm"] if quick else [])], True)]  # fmt: skip
+    if step == "slam":
+        log_path = KIT / ("quick.mcap" if quick else "demo.mcap")
+        simulate = [py, "-c", "from ssmvpr_slam.cli import app; app()", "simulate", "--out", str(log_path)]
+        if quick:
+            simulate += ["--frames", "12"]
+        return [(simulate, False), ([py, str(tools / "bench_slam.py"), "--log", str(log_path), "--device", device,
+                                     "--precision", "auto", "--overlap", "--weights", weights], True)]  # fmt: skip
+    raise SystemExit(f"error: unknown step {step!r} (stage1, backbone, slam)")
+
+
+def _missing(step: str, args: argparse.Namespace, local: bool) -> list[str]:
+    """The kit's folders `step` needs that are neither here nor installed already."""
+    out = []
+    for need in NEEDS[step]:
+        if need in WHEELS:
+            installed = (SITE / f".installed-{need}").exists() or any((KIT / need).glob("*.whl"))
+            if not local and not installed:  # a rehearsal here uses this machine's packages
+                out.append(need)
+        elif getattr(args, need) is None and not (KIT / need).exists():
+            out.append(need)
+    return out
+
+
+def run_step(step: str, args: argparse.Namespace, out_dir: Path) -> dict:
+    local = args.device == "cpu" and not args.use_kit  # this machine's own packages: nothing to install
+    missing = _missing(step, args, local)
+    if missing:
+        return {"step": step, "ok": False,
+                "error": f"carry {' '.join('.device/' + m for m in missing)} (made by `prepare`)"}  # fmt: skip
+    if not local:
+        _install([g for g in NEEDS[step] if g in WHEELS])
+    env = _environment(local)
+    record: dict = {"step": step, "ok": True, "commands": []}
+    started = time.monotonic()
+    for command, gives_json in _step_commands(step, args):
+        remaining = TIMEOUT_S[step] - (time.monotonic() - started)
+        t0 = time.monotonic()
+        returncode: int | None
+        try:
+            proc = subprocess.run(command, cwd=REPO, env=env, capture_output=True, timeout=max(1.0, remaining),
+                                  check=False)  # fmt: skip
+            returncode, out, err = proc.returncode, proc.stdout, proc.stderr
+        except subprocess.TimeoutExpired as exc:  # what it printed until then is kept
+            returncode, out, err = None, exc.stdout or b"", exc.stderr or b""
+        stdout, stderr = out.decode(errors="replace"), err.decode(errors="replace")
+        label = " ".join(Path(c).name if c.endswith(".py") else c for c in command[1:5])
+        entry = {"command": label, "returncode": returncode,
+                 "seconds": round(time.monotonic() - t0, 1)}  # fmt: skip
+        with (out_dir / f"{step}.log").open("a") as handle:  # appended as it goes: a log, not a result
+            handle.write(stderr)
+        record["commands"].append(entry)
+        if returncode != 0:
+            record["ok"] = False
+            record["error"] = "timed out" if returncode is None else (stderr.strip().splitlines() or ["?"])[-1]
+            break
+        if gives_json:
+            record["result"] = json.loads(stdout)
+    return record
+
+
+def run(args: argparse.Namespace) -> dict:
+    out_dir = Path(args.out or os.environ.get("OUT") or KIT / "out")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    summary: dict = {"steps": {}}
+    for step in args.steps:
+        log(f"step {step}")
+        record = run_step(step, args, out_dir)
+        atomic_write_text(out_dir / f"{step}.json", json.dumps(record, indent=1) + "\n")
+        summary["steps"][step] = {k: record[k] for k in ("ok", "commands", "error") if k in record}
+        log(f"step {step}: {'ok' if record['ok'] else record.get('error')}")
+    return summary
+
+
+def main(argv: list[str] | None = None) -> int:
+    global KIT, SITE
+    ap = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    sub = ap.add_subparsers(dest="verb", required=True)
+    p = sub.add_parser("prepare", help="here: wheels, fp16 weights and images into .device/")
+    p.add_argument("--python", default=DEVICE_PYTHON, help="the device's Python (wheels are built per version)")
+    p.add_argument("--weights", default=str(SHARED / "weights" / "vgg16_imagenet_conv.pth"))
+    p.add_argument("--images", default=str(SHARED / "data" / "corridor" / "ref"))
+    r = sub.add_parser("run", help="there: run steps, one JSON each under --out")
+    r.add_argument("steps", nargs="+", choices=sorted(NEEDS))
+    r.add_argument("--out", default=None, help="folder for the JSON and logs (default: $OUT)")
+    r.add_argument("--device", choices=("cuda", "cpu"), default="cuda", help="cpu: a rehearsal on this machine")
+    r.add_argument("--quick", action="store_true", help="small sizes (a rehearsal)")
+    r.add_argument(
+        "--use-kit", action="store_true", help="with --device cpu: install and use the kit's wheels as the device does"
+    )
+    r.add_argument("--weights", default=None, help="default: .device/weights/vgg16_fp16.pth")
+    r.add_argument("--images", default=None, help="default: .device/images")
+    ap.add_argument("--kit", default=str(KIT), help="the kit's folder (default: .device in the checkout)")
+    args = ap.parse_args(argv)
+    KIT = Path(args.kit).resolve()
+    SITE = KIT / "site"
+    result = prepare(args) if args.verb == "prepare" else run(args)
+    print(json.dumps(result, indent=1))
+    ok = args.verb == "prepare" or all(s["ok"] for s in result["steps"].values())
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
