@@ -278,19 +278,22 @@ class Backbone:
         """int8 whose calibration images come from the images it is given (no folder, none passed)."""
         return self._stream_calibration is not None or self._calibrating is not None
 
-    def stream_calibration(self) -> np.ndarray | None:
-        """The stream images int8 calibration has taken so far (all of them once calibrated), or
-        None when it does not calibrate on the stream. A checkpoint keeps them: a resumed run must
-        quantise with the model the run had, not calibrate again on the images after the resume
-        (another model, and fp32 answers until then, would make codes the map was not built with)."""
+    def stream_calibration(self) -> tuple[np.ndarray, bool] | None:
+        """(the stream images int8 calibration has taken, whether it has calibrated on them), or
+        None when it does not calibrate on the stream. Once calibrated these are the
+        `int8_calibration_images` images the model was built from; before, those seen so far
+        (rear images included, when a keyframe brought one). A checkpoint keeps them: a resumed
+        run must quantise with the model the run had, not calibrate again on the images after
+        the resume (another model, and fp32 answers until then: codes the map was not built with)."""
         if self._stream_calibration is not None:
-            return self._stream_calibration
+            return self._stream_calibration, True
         if self._calibrating is None:
             return None
         size = self.config.input_size
-        return np.stack(self._calibrating) if self._calibrating else np.zeros((0, size, size, 3), np.uint8)
+        seen = np.stack(self._calibrating) if self._calibrating else np.zeros((0, size, size, 3), np.uint8)
+        return seen, False
 
-    def resume_stream_calibration(self, images: np.ndarray) -> None:
+    def resume_stream_calibration(self, images: np.ndarray, calibrated: bool) -> None:
         """Continue from `stream_calibration()` of an earlier backbone of the same config: the
         same int8 model (from the cache, or calibrated again on the same images), or, if that one
         had not seen enough images yet, the same images kept and the calibration still to come."""
@@ -300,13 +303,15 @@ class Backbone:
                 f"the stream (precision {self.precision}, int8_calibration {self.config.int8_calibration!r})"
             )
         images = np.asarray(images)
-        if len(images):
-            self._check_images(images)
-        self._calibrating = []
-        if len(images) < self.config.int8_calibration_images:
-            self._calibrating.extend(np.array(image) for image in images)
-        else:
-            self._calibrate_on(images)
+        self._check_images(images)
+        wanted = self.config.int8_calibration_images
+        if calibrated != (len(images) >= wanted) or (calibrated and len(images) != wanted):
+            state = "calibrated on" if calibrated else "collecting, with"
+            raise LoopClosureInputError(
+                f"int8 stream calibration {state} {len(images)} images, but int8_calibration_images is {wanted}: "
+                "resume with the run's settings"
+            )
+        self._calibrate_on(images)  # keeps them, and builds the model once there are enough
 
 
 def load_backbone(config: BackboneConfig, progress: bool = False) -> Backbone:

@@ -155,7 +155,8 @@ class LoopDetector:
         }
         calibration = self.encoder.backbone.stream_calibration()
         if calibration is not None:
-            out["int8_stream_calibration"] = calibration
+            out["int8_stream_calibration"] = calibration[0]
+            out["int8_stream_calibrated"] = np.array(calibration[1])
         return out
 
     def load_state_arrays(self, arrays: dict[str, np.ndarray], database: PlaceDatabase) -> None:
@@ -165,6 +166,15 @@ class LoopDetector:
         if len(database) != prior + len(travelled):
             raise LoopClosureInputError(
                 f"detector state for {prior} prior + {len(travelled)} session places, database holds {len(database)}"
+            )
+        calibration = arrays.get("int8_stream_calibration")
+        if calibration is not None:  # first: a state it refuses leaves the detector as it was
+            self.encoder.backbone.resume_stream_calibration(calibration, bool(arrays["int8_stream_calibrated"]))
+        elif self.encoder.backbone.calibrates_on_stream:  # a checkpoint written before it was kept
+            log.warning(
+                "the checkpoint does not hold the images int8 was calibrated on: it calibrates again on the next "
+                "%d images (fp32 until then), so codes after the resume come from another int8 model",
+                self.encoder.backbone.config.int8_calibration_images,
             )
         self.database = database
         self.encoder.codebooks = database.codebooks
@@ -178,15 +188,6 @@ class LoopDetector:
         self.gate.load_state_arrays(arrays)
         self.sequence.load_state_arrays(arrays, "sequence_")
         self.rear_sequence.load_state_arrays(arrays, "rear_sequence_")
-        calibration = arrays.get("int8_stream_calibration")
-        if calibration is not None:
-            self.encoder.backbone.resume_stream_calibration(calibration)
-        elif self.encoder.backbone.calibrates_on_stream:  # a checkpoint written before it was kept
-            log.warning(
-                "the checkpoint does not hold the images int8 was calibrated on: it calibrates again on the next "
-                "%d images (fp32 until then), so codes after the resume come from another int8 model",
-                self.encoder.backbone.config.int8_calibration_images,
-            )
 
     def _advance(self, position: np.ndarray | None) -> None:
         if position is None:

@@ -153,12 +153,13 @@ class TorchExactSearch:
             held = self._similarities(q, 0, limit, excluded) if limit <= block else None
 
             def fetch(todo: np.ndarray, kk: int) -> zip[tuple[np.ndarray, np.ndarray]]:
-                rows = q if len(todo) == len(query) else q[torch.from_numpy(todo).to(self.device)]
+                every = len(todo) == len(query)
                 if held is not None:  # the whole map in one block: multiplied once, widening reuses it
-                    sims = held if len(todo) == len(query) else held[torch.from_numpy(todo).to(self.device)]
+                    sims = held if every else held[torch.from_numpy(todo).to(self.device)]
                     top = torch.topk(sims, kk, dim=1, sorted=True)
                     values, ids = top.values, top.indices
-                else:
+                else:  # widening multiplies the blocks again, for the rows still unsettled only
+                    rows = q if every else q[torch.from_numpy(todo).to(self.device)]
                     values, ids = self._top_by_blocks(rows, kk, limit, excluded, block)
                 # kk <= allowed: no excluded -inf among the kk kept
                 return zip(values.cpu().numpy(), ids.cpu().numpy())
@@ -177,7 +178,8 @@ class TorchExactSearch:
 
     def _top_by_blocks(self, q: Any, kk: int, limit: int, excluded: np.ndarray, block: int) -> tuple[Any, Any]:
         """The kk largest similarities of each row over all blocks: each block's own kk largest,
-        merged into the running best (a block's -inf only survive while the map has fewer)."""
+        merged into the running best (a block's -inf only survive while the map has fewer). The
+        merge holds 2 kk per row; kk is k plus slack unless mass ties make the widening double it."""
         import torch
 
         values: Any = None

@@ -135,7 +135,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--calibration", default=None, help="int8 calibration folder (default: --images)")
     ap.add_argument("--calibration-images", type=int, default=32)
     ap.add_argument("--input-size", type=int, default=224)
-    ap.add_argument("--device", choices=("cpu", "cuda"), default="cpu", help="cuda: torch precisions on the GPU (int8 is CPU-only)")
+    ap.add_argument(
+        "--device", choices=("cpu", "cuda"), default="cpu", help="cuda: torch precisions on the GPU (int8 is CPU-only)"
+    )
     ap.add_argument("--threads", type=int, default=None, help="torch / ONNX Runtime threads (default: all cores)")
     ap.add_argument(
         "--peak-gflops",
@@ -247,11 +249,15 @@ def main(argv: list[str] | None = None) -> dict:
     if not args.no_gemm:
         result["gemm_peak_gflops_torch"] = gemm_peak(3 if args.quick else 5, args.device)
     result["targets_ms_per_image"] = {"bf16": 80.0, "int8": 45.0}  # the CPU's (issue 10)
-    result["pass"] = {} if args.device != "cpu" else {
-        p: bool(min(sections[p][f"batch_{bs}"]["ms_per_image"] for bs in batch_sizes) <= target)
-        for p, target in result["targets_ms_per_image"].items()
-        if p in timed
-    }
+    result["pass"] = (
+        {}
+        if args.device != "cpu"
+        else {
+            p: bool(min(sections[p][f"batch_{bs}"]["ms_per_image"] for bs in batch_sizes) <= target)
+            for p, target in result["targets_ms_per_image"].items()
+            if p in timed
+        }
+    )
     result["machine"]["loadavg_mid"] = load_mid
     result["machine"]["loadavg_end"] = loadavg()
     return emit(result, t_start, args.output)

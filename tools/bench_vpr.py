@@ -568,7 +568,12 @@ def bench_stage1_index(args, config: VPRConfig, sizes: list[int], repeats: int) 
         rows = lambda lo, hi: flat[lo:hi]  # noqa: E731
 
         exact_config = config.filtering.model_copy(
-            update={"index": "exact", "exact_backend": args.exact_backend, "torch_device": args.torch_device}
+            update={
+                "index": "exact",
+                "exact_backend": args.exact_backend,
+                "torch_device": args.torch_device,
+                "torch_block_rows": args.torch_block_rows,
+            }
         )
         exact = StageOneIndex(exact_config, d, per)
         entry["exact_search"] = {"backend": args.exact_backend,
@@ -958,6 +963,8 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
                     help="--index-sizes: exact search in faiss or as torch matrix products (the GPU path)")  # fmt: skip
     ap.add_argument("--torch-device", choices=("auto", "cpu", "cuda"), default="auto",
                     help="--exact-backend torch: its device")  # fmt: skip
+    ap.add_argument("--torch-block-rows", type=int, default=None,
+                    help="--exact-backend torch: vectors per block (default: 256 MB of similarities)")  # fmt: skip
     ap.add_argument("--hnsw-ef", default="", help="also build HNSW and sweep these efSearch values (slow to build)")
     ap.add_argument("--ivf-codes", choices=("flat", "sq8"), default="flat", help="IVF list storage")
     ap.add_argument("--append-places", type=int, default=20, help="places appended one by one after the IVF build")

@@ -31,9 +31,11 @@ small on this machine (the test does), so a GPU session spends its minutes measu
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import time
@@ -49,6 +51,7 @@ SITE = KIT / "site"
 SHARED = REPO.parent / "shared"
 DEVICE_PYTHON = "3.12"  # the GPU image's python3 (.library/device/KINDS.md)
 CARRY_LIMIT_BYTES = 64 << 20
+WEIGHTS_FILE = "vgg16_fp16.pth"
 
 # What the GPU image lacks, by the call that carries it (the image has torch, numpy, scipy,
 # scikit-learn, opencv, matplotlib, typer, rich, pyyaml, threadpoolctl and onnxruntime).
@@ -58,7 +61,10 @@ WHEELS = {
     "slam": ["gtsam", "kiss-icp", "natsort", "pyquaternion", "mcap", "mcap-ros2-support", "zstandard", "lz4"],
 }  # fmt: skip
 NEEDS = {"stage1": ["core"], "backbone": ["core", "weights", "images"], "slam": ["core", "slam", "weights"]}
-TIMEOUT_S = {"stage1": 300, "backbone": 180, "slam": 480}
+# Each command's limit (a first call runs stage1 and backbone: 480 s at most, inside the
+# device's 600 s a call; the second, slam: 480 s).
+TIMEOUT_S = {"stage1_100000": 100, "stage1_1000000": 240, "stage1_2000": 60, "backbone": 140, "simulate": 200,
+             "bench_slam": 280}  # fmt: skip
 PLATFORMS = ["manylinux_2_17_x86_64", "manylinux2014_x86_64", "manylinux_2_24_x86_64", "manylinux_2_27_x86_64",
              "manylinux_2_28_x86_64", "manylinux_2_31_x86_64", "manylinux_2_34_x86_64", "manylinux_2_35_x86_64"]  # fmt: skip
 
@@ -78,15 +84,27 @@ def _pinned(name: str) -> str:
         return name
 
 
+def _fill(name: str, fill) -> None:  # noqa: ANN001 - fill(folder) writes the folder's files
+    """Make .device/`name` whole or not at all: filled beside it, then renamed into place (an
+    interrupted `prepare` leaves no half folder that `run` would take for the kit)."""
+    staged = KIT / f".{name}.partial"
+    shutil.rmtree(staged, ignore_errors=True)
+    staged.mkdir(parents=True)
+    fill(staged)
+    shutil.rmtree(KIT / name, ignore_errors=True)
+    os.replace(staged, KIT / name)
+
+
 def _download(group: str, python: str) -> None:
-    folder = KIT / group
-    shutil.rmtree(folder, ignore_errors=True)
-    folder.mkdir(parents=True)
     platforms = [arg for p in PLATFORMS for arg in ("--platform", p)]
-    command = [sys.executable, "-m", "pip", "download", "-q", "--no-deps", "--only-binary=:all:",
-               "--python-version", python, "--implementation", "cp", *platforms, "-d", str(folder),
-               *(_pinned(n) for n in WHEELS[group])]  # fmt: skip
-    subprocess.run(command, check=True)
+
+    def fill(folder: Path) -> None:
+        command = [sys.executable, "-m", "pip", "download", "-q", "--no-deps", "--only-binary=:all:",
+                   "--python-version", python, "--implementation", "cp", *platforms, "-d", str(folder),
+                   *(_pinned(n) for n in WHEELS[group])]  # fmt: skip
+        subprocess.run(command, check=True)
+
+    _fill(group, fill)
 
 
 def _weights(source: Path) -> None:
@@ -95,22 +113,18 @@ def _weights(source: Path) -> None:
 
     from loopclosure.weights import load_state_dict
 
-    folder = KIT / "weights"
-    folder.mkdir(parents=True, exist_ok=True)
     half = {k: v.half() for k, v in load_state_dict(source).items()}
-    staged = folder / "vgg16_fp16.pth.tmp"
-    torch.save(half, staged)
-    os.replace(staged, folder / "vgg16_fp16.pth")
+    _fill("weights", lambda folder: torch.save(half, folder / WEIGHTS_FILE))
 
 
 def _images(source: Path, count: int = 16) -> None:
     from loopclosure.images import list_images
 
-    folder = KIT / "images"
-    shutil.rmtree(folder, ignore_errors=True)
-    folder.mkdir(parents=True)
-    for path in list_images(source)[:count]:
-        shutil.copy2(path, folder / path.name)
+    def fill(folder: Path) -> None:
+        for path in list_images(source)[:count]:
+            shutil.copy2(path, folder / path.name)
+
+    _fill("images", fill)
 
 
 def _size(path: Path) -> int:
@@ -151,7 +165,7 @@ def _install(groups: list[str]) -> None:
         log(f"installing {len(wheels)} {group} wheels into {SITE}")
         subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-index", "--no-deps", "--no-compile",
                         "--no-cache-dir", "--upgrade", "--target", str(SITE), *map(str, wheels)], check=True)  # fmt: skip
-        marker.write_text(" ".join(w.name for w in wheels) + "\n")
+        atomic_write_text(marker, " ".join(w.name for w in wheels) + "\n")
 
 
 def _environment(local: bool) -> dict[str, str]:
@@ -161,18 +175,18 @@ def _environment(local: bool) -> dict[str, str]:
     return env
 
 
-def _step_commands(step: str, args: argparse.Namespace) -> list[tuple[list[str], bool]]:
-    """(command, whether its stdout is the step's JSON) in order."""
+def _step_commands(step: str, args: argparse.Namespace) -> list[tuple[str, list[str], bool]]:
+    """(name, command, whether its stdout is a JSON result) in order; each has its own timeout."""
     py, tools, quick, device = sys.executable, REPO / "tools", args.quick, args.device
-    weights = args.weights or str(KIT / "weights" / "vgg16_fp16.pth")
+    weights = args.weights or str(KIT / "weights" / WEIGHTS_FILE)
     images = args.images or str(KIT / "images")
-    if step == "stage1":
-        sizes = "2000" if quick else "100000,1000000"
-        return [([py, str(tools / "bench_vpr.py"), "--only-index", "--index-sizes", sizes, "--nprobes", "",
-                  "--exact-backend", "torch", "--torch-device", device, "--exact-repeats", "8", "--repeats", "8",
-                  "--check-votes", "3", "--append-places", "0"], True)]  # fmt: skip
+    if step == "stage1":  # a size per command: a slow 1M run keeps the 100k result
+        return [(f"stage1_{size}", [py, str(tools / "bench_vpr.py"), "--only-index", "--index-sizes", str(size),
+                 "--nprobes", "", "--exact-backend", "torch", "--torch-device", device, "--exact-repeats", "8",
+                 "--repeats", "8", "--check-votes", "3", "--append-places", "0"], True)
+                for size in ((2000,) if quick else (100_000, 1_000_000))]  # fmt: skip
     if step == "backbone":
-        return [([py, str(tools / "bench_backbone.py"), "--device", device, "--precisions", "fp32,auto",
+        return [("backbone", [py, str(tools / "bench_backbone.py"), "--device", device, "--precisions", "fp32,auto",
                   "--batch-sizes", "1" if quick else "1,8", "--repeats", "2" if quick else "9",
                   "--weights", weights, "--images", images, *(["--quick", "--no-gemm"] if quick else [])], True)]  # fmt: skip
     if step == "slam":
@@ -180,7 +194,7 @@ def _step_commands(step: str, args: argparse.Namespace) -> list[tuple[list[str],
         simulate = [py, "-c", "from ssmvpr_slam.cli import app; app()", "simulate", "--out", str(log_path)]
         if quick:
             simulate += ["--frames", "12"]
-        return [(simulate, False), ([py, str(tools / "bench_slam.py"), "--log", str(log_path), "--device", device,
+        return [("simulate", simulate, False), ("bench_slam", [py, str(tools / "bench_slam.py"), "--log", str(log_path), "--device", device,
                                      "--precision", "auto", "--overlap", "--weights", weights], True)]  # fmt: skip
     raise SystemExit(f"error: unknown step {step!r} (stage1, backbone, slam)")
 
@@ -193,9 +207,41 @@ def _missing(step: str, args: argparse.Namespace, local: bool) -> list[str]:
             installed = (SITE / f".installed-{need}").exists() or any((KIT / need).glob("*.whl"))
             if not local and not installed:  # a rehearsal here uses this machine's packages
                 out.append(need)
-        elif getattr(args, need) is None and not (KIT / need).exists():
+        elif getattr(args, need) is None and not _kit_has(need):
             out.append(need)
     return out
+
+
+def _kit_has(need: str) -> bool:
+    if need == "weights":
+        return (KIT / "weights" / WEIGHTS_FILE).is_file()
+    return (KIT / need).is_dir() and any((KIT / need).iterdir())
+
+
+def _execute(command: list[str], env: dict[str, str], timeout: float) -> tuple[int | None, str, str]:
+    """(return code or None on timeout, stdout, stderr). The command gets a process group of its
+    own, killed whole at the timeout: bench_slam's odometry child holds the pipes too."""
+    proc = subprocess.Popen(command, cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            start_new_session=True)  # fmt: skip
+    try:
+        out, err = proc.communicate(timeout=timeout)
+        code: int | None = proc.returncode
+    except subprocess.TimeoutExpired:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(proc.pid, signal.SIGKILL)
+        out, err = proc.communicate()
+        code = None
+    return code, out.decode(errors="replace"), err.decode(errors="replace")
+
+
+def _verdict(step: str, result: dict) -> str | None:
+    """A reason the measurement itself is wrong, though the command succeeded."""
+    if step == "stage1":
+        for size, entry in result.get("stage1_index", {}).get("sizes", {}).items():
+            check = entry.get("exact_equals_numpy", {})
+            if check.get("equal") != check.get("queries"):
+                return f"{size} places: the exact votes differ from numpy's on {check} queries"
+    return None
 
 
 def run_step(step: str, args: argparse.Namespace, out_dir: Path) -> dict:
@@ -207,31 +253,27 @@ def run_step(step: str, args: argparse.Namespace, out_dir: Path) -> dict:
     if not local:
         _install([g for g in NEEDS[step] if g in WHEELS])
     env = _environment(local)
-    record: dict = {"step": step, "ok": True, "commands": []}
-    started = time.monotonic()
-    for command, gives_json in _step_commands(step, args):
-        remaining = TIMEOUT_S[step] - (time.monotonic() - started)
+    record: dict = {"step": step, "ok": True, "commands": [], "results": {}}
+    for name, command, gives_json in _step_commands(step, args):
         t0 = time.monotonic()
-        returncode: int | None
-        try:
-            proc = subprocess.run(command, cwd=REPO, env=env, capture_output=True, timeout=max(1.0, remaining),
-                                  check=False)  # fmt: skip
-            returncode, out, err = proc.returncode, proc.stdout, proc.stderr
-        except subprocess.TimeoutExpired as exc:  # what it printed until then is kept
-            returncode, out, err = None, exc.stdout or b"", exc.stderr or b""
-        stdout, stderr = out.decode(errors="replace"), err.decode(errors="replace")
-        label = " ".join(Path(c).name if c.endswith(".py") else c for c in command[1:5])
-        entry = {"command": label, "returncode": returncode,
-                 "seconds": round(time.monotonic() - t0, 1)}  # fmt: skip
+        code, stdout, stderr = _execute(command, env, TIMEOUT_S[name])
+        record["commands"].append({"name": name, "returncode": code, "seconds": round(time.monotonic() - t0, 1)})
         with (out_dir / f"{step}.log").open("a") as handle:  # appended as it goes: a log, not a result
             handle.write(stderr)
-        record["commands"].append(entry)
-        if returncode != 0:
-            record["ok"] = False
-            record["error"] = "timed out" if returncode is None else (stderr.strip().splitlines() or ["?"])[-1]
+        if code != 0:
+            last = (stderr.strip().splitlines() or ["?"])[-1]
+            record.update(
+                ok=False, error=f"{name}: timed out after {TIMEOUT_S[name]} s" if code is None else f"{name}: {last}"
+            )
             break
         if gives_json:
-            record["result"] = json.loads(stdout)
+            try:
+                record["results"][name] = json.loads(stdout)
+            except ValueError:
+                record.update(ok=False, error=f"{name}: its output is not one JSON object: {stdout[-300:]!r}")
+                break
+            if (problem := _verdict(step, record["results"][name])) is not None:
+                record.update(ok=False, error=f"{name}: {problem}")
     return record
 
 

@@ -148,6 +148,26 @@ def test_exact_equals_numpy_for_every_storage(dtype, backend):
     assert exact.filter(query, 50, 50).places[0] == 17
 
 
+def test_the_default_block_follows_the_similarity_budget(monkeypatch):
+    """Without torch_block_rows a block holds SIMILARITY_BYTES of a query's similarities: a small
+    budget scans in many blocks, with the same votes."""
+    from loopclosure import device_search
+
+    rng = np.random.default_rng(8)
+    db = _unit(rng.standard_normal((120, 16, 10)))
+    query = _unit(db[40] + 0.3 * rng.standard_normal((16, 10)))
+    blocks = []
+    similarities = device_search.TorchExactSearch._similarities
+    monkeypatch.setattr(device_search.TorchExactSearch, "_similarities",
+                        lambda self, q, lo, hi, ex: (blocks.append(hi - lo), similarities(self, q, lo, hi, ex))[1])  # fmt: skip
+    monkeypatch.setattr(device_search, "SIMILARITY_BYTES", 16 * 4 * 100)  # 100 vectors a block for 16 rows
+    database = _database(db, **BACKENDS["torch"])
+    for excluded, scanned in ((None, 120 * 16), (np.arange(100, 120), 100 * 16)):  # a recent suffix is not scanned
+        blocks.clear()
+        _same(database.filter(query, 30, 20, excluded), vote(query, db, 30, 20, excluded))
+        assert max(blocks) == 100 and sum(blocks) >= scanned  # 100 vectors at a time
+
+
 @pytest.mark.parametrize("backend", sorted(BACKENDS))
 def test_exact_widens_until_every_tie_is_in(backend):
     """200 copies of one vector: the k-th similarity is shared by all of them; the lowest ids win."""

@@ -247,28 +247,37 @@ def test_stream_calibration_resumes_with_the_same_model(monkeypatch, tmp_path, r
     config = _config("int8", int8_calibration_images=4)
     stream = np.stack([resize_square(read_image(f), SIZE) for f in list_images(gardens_dir / "ref")[:4]])
     run = Backbone(config, real_sd)
-    assert run.calibrates_on_stream and run.stream_calibration().shape == (0, SIZE, SIZE, 3)
+    empty, calibrated = run.stream_calibration()
+    assert run.calibrates_on_stream and empty.shape == (0, SIZE, SIZE, 3) and not calibrated
     run(stream[:2])
-    halfway = run.stream_calibration()
+    halfway, calibrated = run.stream_calibration()
     np.testing.assert_array_equal(halfway, stream[:2])
+    assert not calibrated
     run(stream[2:])  # the fourth image: calibrated now
-    np.testing.assert_array_equal(run.stream_calibration(), stream)
+    whole, calibrated = run.stream_calibration()
+    np.testing.assert_array_equal(whole, stream)
+    assert calibrated
     want = run(queries)
 
     after_calibration = Backbone(config, real_sd)
-    after_calibration.resume_stream_calibration(run.stream_calibration())
+    after_calibration.resume_stream_calibration(whole, True)
     np.testing.assert_array_equal(after_calibration(queries)[0], want[0])  # int8 at once, the same model
 
     during_calibration = Backbone(config, real_sd)
-    during_calibration.resume_stream_calibration(halfway)
+    during_calibration.resume_stream_calibration(halfway, False)
     during_calibration(stream[2:])  # the rest of the run's calibration images, after the resume
     np.testing.assert_array_equal(during_calibration(queries)[0], want[0])
     assert len(list(tmp_path.glob("int8/*.onnx"))) == 1
 
     with pytest.raises(LoopClosureInputError, match="fresh int8 backbone"):
-        run.resume_stream_calibration(halfway)  # one that has its own calibration already
+        run.resume_stream_calibration(halfway, False)  # one that has its own calibration already
     with pytest.raises(LoopClosureInputError, match="fresh int8 backbone"):
-        Backbone(_config("fp32"), real_sd).resume_stream_calibration(halfway)
+        Backbone(_config("fp32"), real_sd).resume_stream_calibration(halfway, False)
+    other_count = Backbone(_config("int8", int8_calibration_images=3), real_sd)
+    with pytest.raises(LoopClosureInputError, match="calibrated on 4 images, but int8_calibration_images is 3"):
+        other_count.resume_stream_calibration(whole, True)  # another setting would make another model
+    with pytest.raises(LoopClosureInputError, match="uint8 images"):
+        Backbone(config, real_sd).resume_stream_calibration(halfway.astype(np.float32), False)
     assert Backbone(_config("fp32"), real_sd).stream_calibration() is None
     folder = Backbone(_config("int8", int8_calibration=str(gardens_dir / "ref"), int8_calibration_images=4), real_sd)
     assert folder.stream_calibration() is None and not folder.calibrates_on_stream  # the folder is read again
@@ -276,9 +285,12 @@ def test_stream_calibration_resumes_with_the_same_model(monkeypatch, tmp_path, r
 
 def test_a_restored_detector_encodes_with_the_runs_int8_model(monkeypatch, tmp_path, real_sd, corridor_dir, caplog):
     """A SLAM run's int8 backbone calibrates on its first keyframes; the detector's state keeps
-    those images, so the places added after a resume are the codes an uninterrupted run adds
-    (without them the resumed detector answers fp32, then calibrates on other images)."""
+    those images (through a .npz file, as a checkpoint writes it), so the places added after a
+    resume are the codes an uninterrupted run adds. Without them the resumed detector answers
+    fp32, then calibrates on the images after the resume: another model."""
     pytest.importorskip("onnxruntime")
+    import io
+
     from loopclosure.config import DetectorConfig, VPRConfig
     from loopclosure.database import PlaceDatabase
     from loopclosure.detector import LoopDetector
@@ -291,7 +303,7 @@ def test_a_restored_detector_encodes_with_the_runs_int8_model(monkeypatch, tmp_p
         "filtering": {"pca": {"dim": 8}}, "spatial": {"pca": {"dim": 8}},
     })  # fmt: skip
     settings = DetectorConfig(pca_warmup_keyframes=9)
-    images = [read_image(f) for f in list_images(corridor_dir / "ref")[:14]]
+    images = [read_image(f) for f in list_images(corridor_dir / "ref")[:16]]
 
     def new_detector() -> LoopDetector:
         return LoopDetector(vpr, settings, Encoder(vpr, Backbone(vpr.backbone, real_sd)))
@@ -303,15 +315,19 @@ def test_a_restored_detector_encodes_with_the_runs_int8_model(monkeypatch, tmp_p
     first = new_detector()
     for k, image in enumerate(images[:cut]):
         first.process(image, k)
-    state = first.state_arrays()
-    assert state["int8_stream_calibration"].shape == (4, 112, 112, 3)
+    buffer = io.BytesIO()
+    np.savez(buffer, **first.state_arrays())
+    buffer.seek(0)
+    with np.load(buffer, allow_pickle=False) as data:
+        state = {name: data[name] for name in data.files}
+    assert state["int8_stream_calibration"].shape == (4, 112, 112, 3) and bool(state["int8_stream_calibrated"])
     first.database.save(tmp_path / "db")
 
     resumed = new_detector()
     resumed.load_state_arrays(state, PlaceDatabase.load(tmp_path / "db"))
     legacy = new_detector()  # a checkpoint from before the calibration images were kept
     with caplog.at_level("WARNING"):
-        legacy.load_state_arrays({k: v for k, v in state.items() if k != "int8_stream_calibration"},
+        legacy.load_state_arrays({k: v for k, v in state.items() if not k.startswith("int8_stream")},
                                  PlaceDatabase.load(tmp_path / "db"))  # fmt: skip
     assert "does not hold the images int8 was calibrated on" in caplog.text
     for k in range(cut, len(images)):
@@ -319,4 +335,13 @@ def test_a_restored_detector_encodes_with_the_runs_int8_model(monkeypatch, tmp_p
         legacy.process(images[k], k)
     want = np.asarray(whole.database.stage1)[cut:]
     np.testing.assert_array_equal(np.asarray(resumed.database.stage1)[cut:], want)
-    assert not np.array_equal(np.asarray(legacy.database.stage1)[cut:], want)  # what the state prevents
+    # the legacy detector: fp32 for 4 keyframes, then int8 calibrated on them, not the run's
+    got = np.asarray(legacy.database.stage1)[cut:]
+    assert legacy.encoder.backbone.stream_calibration()[1]
+    assert not np.array_equal(got[:4], want[:4]) and not np.array_equal(got[4:], want[4:])
+
+    refused = new_detector()  # a state the backbone refuses leaves the detector untouched
+    with pytest.raises(LoopClosureInputError, match="int8_calibration_images"):
+        refused.load_state_arrays({**state, "int8_stream_calibrated": np.array(False)},
+                                  PlaceDatabase.load(tmp_path / "db"))  # fmt: skip
+    assert refused.database is None and not refused.ready

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -27,28 +28,60 @@ def test_every_step_runs_and_leaves_its_measurements(tmp_path: Path, weights_pat
     summary = json.loads(proc.stdout)
     assert all(step["ok"] for step in summary["steps"].values())
 
-    stage1 = json.loads((out / "stage1.json").read_text())["result"]["stage1_index"]["sizes"]["2000"]
+    stage1 = json.loads((out / "stage1.json").read_text())["results"]["stage1_2000"]["stage1_index"]["sizes"]["2000"]
     assert stage1["exact_search"] == {"backend": "torch", "device": "cpu"}
     assert stage1["exact_equals_numpy"] == {"queries": 3, "equal": 3}
     assert stage1["exact_query_ms"]["median"] > 0
 
-    backbone = json.loads((out / "backbone.json").read_text())["result"]
+    backbone = json.loads((out / "backbone.json").read_text())["results"]["backbone"]
     assert backbone["machine"]["device"] == "cpu" and backbone["weights"]["random_weights"] is False
     for precision in ("fp32", "auto"):
         assert backbone["precisions"][precision]["batch_1"]["ms_per_image"] > 0
     assert backbone["precisions"]["auto"]["agreement_with_fp32"]["stage1"]["cosine_min"] > 0.999
 
     slam = json.loads((out / "slam.json").read_text())
-    assert [c["returncode"] for c in slam["commands"]] == [0, 0]  # simulated the log, then ran on it
-    assert slam["result"]["frames"] == 12 and slam["result"]["keyframes"] >= 2 and slam["result"]["error"] is None
-    assert slam["result"]["settings"]["overlap"] is True
+    assert [(c["name"], c["returncode"]) for c in slam["commands"]] == [("simulate", 0), ("bench_slam", 0)]
+    bench = slam["results"]["bench_slam"]  # the simulated log, run with the stages overlapped
+    assert bench["frames"] == 12 and bench["keyframes"] >= 2 and bench["error"] is None
+    assert bench["settings"]["overlap"] is True
 
 
 def test_a_kit_folder_the_call_did_not_carry_is_named(tmp_path: Path) -> None:
-    (tmp_path / "kit" / "weights").mkdir(parents=True)  # the first call's weights, but no wheels
-    proc = _run("--kit", str(tmp_path / "kit"), "run", "stage1", "slam", "--out", str(tmp_path / "out"), timeout=60)
-    assert proc.returncode == 1
-    steps = json.loads(proc.stdout)["steps"]
-    assert steps["stage1"]["error"] == "carry .device/core (made by `prepare`)"
-    assert steps["slam"]["error"] == "carry .device/core .device/slam (made by `prepare`)"
+    kit = tmp_path / "kit"
+    (kit / "weights").mkdir(parents=True)  # an empty folder is not the weights
+
+    def errors() -> dict[str, str]:
+        proc = _run("--kit", str(kit), "run", "stage1", "slam", "--out", str(tmp_path / "out"), timeout=60)
+        assert proc.returncode == 1
+        return {step: record["error"] for step, record in json.loads(proc.stdout)["steps"].items()}
+
+    assert errors() == {"stage1": "carry .device/core (made by `prepare`)",
+                        "slam": "carry .device/core .device/slam .device/weights (made by `prepare`)"}  # fmt: skip
+    (kit / "weights" / "vgg16_fp16.pth").write_bytes(b"the first call's weights")
+    assert errors()["slam"] == "carry .device/core .device/slam (made by `prepare`)"
     assert json.loads((tmp_path / "out" / "slam.json").read_text())["ok"] is False
+
+
+def test_a_command_past_its_limit_is_killed_and_named(tmp_path: Path, monkeypatch, capsys) -> None:
+    sys.path.insert(0, str(SCRIPT.parent))
+    import device_checks
+
+    monkeypatch.setitem(device_checks.TIMEOUT_S, "simulate", 1)  # the city alone takes longer
+    started = time.monotonic()
+    code = device_checks.main(["--kit", str(tmp_path / "kit"), "run", "slam", "--device", "cpu", "--quick",
+                               "--weights", "unused", "--out", str(tmp_path / "out")])  # fmt: skip
+    assert code == 1 and time.monotonic() - started < 30
+    record = json.loads((tmp_path / "out" / "slam.json").read_text())
+    assert record["error"] == "simulate: timed out after 1 s"
+    assert [c["returncode"] for c in record["commands"]] == [None]  # bench_slam did not start
+    assert json.loads(capsys.readouterr().out)["steps"]["slam"]["ok"] is False
+
+
+def test_votes_that_differ_from_numpy_fail_the_step() -> None:
+    sys.path.insert(0, str(SCRIPT.parent))
+    import device_checks
+
+    sizes = {"1000000": {"exact_equals_numpy": {"queries": 3, "equal": 2}}}
+    assert "differ from numpy" in device_checks._verdict("stage1", {"stage1_index": {"sizes": sizes}})
+    sizes["1000000"]["exact_equals_numpy"]["equal"] = 3
+    assert device_checks._verdict("stage1", {"stage1_index": {"sizes": sizes}}) is None

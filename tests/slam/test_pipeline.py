@@ -85,7 +85,9 @@ class MemoBackbone:
             self._memo[key] = self.backbone(images)
         return self._memo[key]
 
-    def __getattr__(self, name: str):  # noqa: ANN204  # the rest of the backbone's API
+    def __getattr__(self, name: str):  # noqa: ANN204  # the rest of the backbone's API (these runs are fp32)
+        if name == "backbone":  # not set yet (a copy being made): no endless lookup
+            raise AttributeError(name)
         return getattr(self.backbone, name)
 
 
