@@ -73,6 +73,19 @@ def auto_nlist(n_vectors: int) -> int:
     return int(min(16384, max(64, 2 ** round(math.log2(max(1.0, 4.0 * math.sqrt(n_vectors)))))))
 
 
+# The settings that shape a built index; the others (probes, search breadth, threads, blocks,
+# candidates fetched) are read at each query, so changing them keeps the index (`retune`).
+BUILD_SETTINGS = frozenset({
+    "index", "exact_backend", "torch_device", "ann_threshold_places", "ivf_nlist", "ivf_codes",
+    "ivf_train_vectors", "ivf_retrain_growth", "hnsw_m", "hnsw_ef_construction",
+})  # fmt: skip
+
+
+def same_build(a: FilteringConfig, b: FilteringConfig) -> bool:
+    """Whether an index built under `a` is the one `b` would build."""
+    return all(getattr(a, name) == getattr(b, name) for name in BUILD_SETTINGS)
+
+
 class StageOneIndex:
     """Nearest stage-I vectors of a database of `per_place` vectors per place."""
 
@@ -89,6 +102,15 @@ class StageOneIndex:
         self._index: Any = None  # faiss index (ivf, hnsw); faiss's stubs cover little of its API
         self._trained_at = 0  # places when the IVF lists were trained
         self.build_seconds: list[tuple[str, int, float]] = []  # (what, places, seconds), newest last
+
+    def retune(self, config: FilteringConfig) -> None:
+        """Take `config`'s search-time settings (IVF probes, HNSW breadth, threads, torch blocks)
+        without rebuilding: an IVF over 1M places takes minutes to train."""
+        if not same_build(self.config, config):
+            raise ValueError("retune: the index's build settings differ; build a new index")
+        self.config = config
+        if self._device is not None:
+            self._device.block_rows = config.torch_block_rows
 
     @property
     def search_device(self) -> str | None:

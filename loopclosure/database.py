@@ -369,10 +369,19 @@ class PlaceDatabase:
 
     # ---- stage I -----------------------------------------------------------------------
     def configure_search(self, filtering: FilteringConfig) -> None:
-        """Search stage I as `filtering` says (index kind and its settings); a change drops the index."""
+        """Search stage I as `filtering` says. A change of what shapes the index (its kind, IVF
+        lists, HNSW links, ...) drops it; one of search-time settings only (probes, threads,
+        blocks, N) keeps it, retuned."""
+        from loopclosure.ann_index import same_build
+
         check_search_device(filtering)  # a missing GPU is refused now, not at the first query
-        if filtering != self.filtering:
-            self.filtering, self._index = filtering, None
+        if filtering == self.filtering:
+            return
+        if self._index is not None and same_build(self._index.config, filtering):
+            self._index.retune(filtering)
+        else:
+            self._index = None
+        self.filtering = filtering
 
     def filter(
         self, query_stage1: np.ndarray, k_neighbours: int, num_candidates: int, excluded: np.ndarray | None = None

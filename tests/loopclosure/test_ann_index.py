@@ -257,6 +257,33 @@ def test_approximate_indexes_find_the_exact_candidates_and_honour_exclusions(kin
     assert np.mean(recalls) >= 0.9, np.mean(recalls)
 
 
+def test_search_time_settings_keep_the_index_and_build_settings_replace_it():
+    """Changing IVF probes (or threads, blocks, N) answers as a fresh index with those settings
+    does, without training the lists again; changing the lists builds a new index."""
+    db = _streets(1500, 8, 16, seed=9)
+    query = _unit(db[700] + 0.1 * np.random.default_rng(10).standard_normal((8, 16)))
+    database = _database(db, index="ivf", ivf_nlist=64, ivf_nprobe=1)
+    built = database.search_index()
+    narrow = database.filter(query, 30, 30)
+    wide_config = database.filtering.model_copy(update={"ivf_nprobe": 64, "faiss_threads": 2, "num_candidates": 20})
+    database.configure_search(wide_config)
+    assert database.search_index() is built and built.config == wide_config  # not trained again
+    wide = database.filter(query, 30, 30)
+    _same(wide, _database(db, index="ivf", ivf_nlist=64, ivf_nprobe=64).filter(query, 30, 30))
+    _same(wide, vote(query, db, 30, 30))  # all 64 lists probed: exact
+    assert not np.array_equal(narrow.votes, wide.votes)  # the probes did change
+    database.configure_search(wide_config.model_copy(update={"ivf_nlist": 32}))
+    assert database.search_index() is not built and database.search_index()._index.nlist == 32
+
+    torch_db = _database(db[:50], **BACKENDS["torch"])
+    device_index = torch_db.search_index()
+    torch_db.configure_search(torch_db.filtering.model_copy(update={"torch_block_rows": 5}))
+    assert torch_db.search_index() is device_index and device_index._device.block_rows == 5
+    _same(torch_db.filter(query, 30, 30), vote(query, db[:50], 30, 30))
+    with pytest.raises(ValueError, match="build settings differ"):
+        device_index.retune(torch_db.filtering.model_copy(update={"exact_backend": "faiss"}))
+
+
 def test_ivf_appends_then_retrains_at_the_growth_milestone():
     db = _streets(2000, 8, 16, seed=7)
     config = FilteringConfig(index="ivf", ivf_retrain_growth=2.0)
