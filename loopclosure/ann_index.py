@@ -98,7 +98,11 @@ class StageOneIndex:
         self.kind = "exact" if config.index in ("auto", "exact") else config.index
         self._mirror: np.ndarray | None = None  # float32 vectors for exact search (compact storage)
         torch_exact = self.kind == "exact" and config.exact_backend == "torch"
-        self._device = TorchExactSearch(dim, config.torch_device, config.torch_block_rows) if torch_exact else None
+        self._device = (
+            TorchExactSearch(dim, config.torch_device, config.torch_block_rows, config.faiss_threads)
+            if torch_exact
+            else None
+        )
         self._index: Any = None  # faiss index (ivf, hnsw); faiss's stubs cover little of its API
         self._trained_at = 0  # places when the IVF lists were trained
         self.build_seconds: list[tuple[str, int, float]] = []  # (what, places, seconds), newest last
@@ -110,7 +114,7 @@ class StageOneIndex:
             raise ValueError("retune: the index's build settings differ; build a new index")
         self.config = config
         if self._device is not None:
-            self._device.block_rows = config.torch_block_rows
+            self._device.block_rows, self._device.cpu_threads = config.torch_block_rows, config.faiss_threads
 
     @property
     def search_device(self) -> str | None:

@@ -135,7 +135,12 @@ class FilteringConfig(_Strict):
         ge=1.0,
         description="ivf/hnsw: neighbours fetched per query vector, times k, then re-scored exactly.",
     )
-    faiss_threads: int = Field(default=1, ge=1, description="OpenMP threads of faiss searches (2 cores shared: 1).")
+    faiss_threads: int = Field(
+        default=1,
+        ge=1,
+        description="Threads of a stage-I search on the CPU: faiss's OpenMP threads, or torch's for exact_backend "
+        "torch on the CPU (2 cores shared: 1).",
+    )
 
     @property
     def k_neighbours(self) -> int:

@@ -80,13 +80,31 @@ def full_float32() -> Iterator[None]:
                 torch.set_float32_matmul_precision(legacy)
 
 
+@contextlib.contextmanager
+def torch_threads(n: int | None) -> Iterator[None]:
+    """torch's intra-op threads for the duration (a search on the CPU, as faiss gets its own):
+    with 2 shared cores, threads the backbone just used still spin and two only fight."""
+    import torch
+
+    before = torch.get_num_threads()
+    if n is None or n == before:
+        yield
+        return
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
 class TorchExactSearch:
     """Every stage-I vector on one torch device; vector i is row i, written at its own offset."""
 
-    def __init__(self, dim: int, device: str, block_rows: int | None = None) -> None:
+    def __init__(self, dim: int, device: str, block_rows: int | None = None, cpu_threads: int | None = None) -> None:
         self.dim = dim
         self.device = resolve_device(device)
         self.block_rows = block_rows
+        self.cpu_threads = cpu_threads  # torch's threads for a search on the CPU (None: as they are)
         self._rows: Any = None  # torch (capacity, dim) float32 on the device
         self._count = 0
 
@@ -146,7 +164,8 @@ class TorchExactSearch:
         superset of the exact top k."""
         import torch
 
-        with full_float32(), torch.inference_mode():
+        threads = self.cpu_threads if not self.on_gpu else None
+        with full_float32(), torch_threads(threads), torch.inference_mode():
             q = torch.from_numpy(np.ascontiguousarray(query, np.float32)).to(self.device)
             excluded = np.sort(np.asarray(excluded_ids, np.int64))
             block = self.block_rows or max(1, SIMILARITY_BYTES // (4 * max(1, len(query))))

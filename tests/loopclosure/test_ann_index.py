@@ -416,6 +416,33 @@ def test_auto_nlist():
     assert auto_nlist(1_600_000) == 4096
 
 
+def test_torch_on_the_cpu_searches_with_faiss_threads_and_restores_torchs(monkeypatch):
+    """As faiss gets its own threads for a search, so does torch on the CPU; the backbone's
+    setting comes back after."""
+    import torch
+
+    seen = []
+    topk = torch.topk
+    monkeypatch.setattr(torch, "topk", lambda *a, **kw: (seen.append(torch.get_num_threads()), topk(*a, **kw))[1])
+    rng = np.random.default_rng(12)
+    db = _unit(rng.standard_normal((60, 4, 8)))
+    query = _unit(rng.standard_normal((4, 8)))
+    before = torch.get_num_threads()
+    torch.set_num_threads(3)
+    try:
+        for threads in (1, 2):
+            seen.clear()
+            database = _database(db, **BACKENDS["torch"], faiss_threads=threads)
+            _same(database.filter(query, 8, 10), vote(query, db, 8, 10))
+            assert seen and set(seen) == {threads} and torch.get_num_threads() == 3
+        database.configure_search(database.filtering.model_copy(update={"faiss_threads": 1}))  # retuned
+        seen.clear()
+        database.filter(query, 8, 10)
+        assert set(seen) == {1}
+    finally:
+        torch.set_num_threads(before)
+
+
 def test_a_map_too_large_for_the_device_is_an_error_naming_its_size(monkeypatch):
     import torch
 
