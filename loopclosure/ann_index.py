@@ -45,7 +45,7 @@ import numpy as np
 
 from loopclosure.config import FilteringConfig
 from loopclosure.device_search import TorchExactSearch
-from loopclosure.filtering import similarity_margin, widen_until_complete
+from loopclosure.filtering import max_row_norm, similarity_margin, widen_until_complete
 
 Rows = Callable[[int, int], np.ndarray]  # (start, stop) vector ids -> float32 (stop - start, d)
 
@@ -142,11 +142,7 @@ class StageOneIndex:
         for lo in range(start_vec, stop_vec, 1 << 18):  # each chunk read once (int8 storage dequantises)
             hi = min(stop_vec, lo + (1 << 18))
             part = rows(lo, hi)
-            if len(part):
-                self.max_norm = max(
-                    self.max_norm,
-                    float(np.sqrt(np.einsum("ij,ij->i", part, part, dtype=np.float64).max())) * (1 + 1e-6),
-                )
+            self.max_norm = max(self.max_norm, max_row_norm(part))
             if exact and self._device is not None:
                 self._device.write(lo, part)
             elif exact and view is None:

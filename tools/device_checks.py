@@ -157,11 +157,9 @@ def _install(groups: list[str]) -> None:
     """pip-install the carried wheels of `groups` into .device/site (once per machine)."""
     for group in groups:
         marker = SITE / f".installed-{group}"
-        wheels = sorted((KIT / group).glob("*.whl"))
         if marker.exists():
             continue
-        if not wheels:
-            raise SystemExit(f"error: .device/{group} holds no wheels: carry .device/{group} (made by `prepare`)")
+        wheels = sorted((KIT / group).glob("*.whl"))  # there: `_missing` checked before
         log(f"installing {len(wheels)} {group} wheels into {SITE}")
         subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-index", "--no-deps", "--no-compile",
                         "--no-cache-dir", "--upgrade", "--target", str(SITE), *map(str, wheels)], check=True)  # fmt: skip
@@ -196,7 +194,7 @@ def _step_commands(step: str, args: argparse.Namespace) -> list[tuple[str, list[
             simulate += ["--frames", "12"]
         return [("simulate", simulate, False), ("bench_slam", [py, str(tools / "bench_slam.py"), "--log", str(log_path), "--device", device,
                                      "--precision", "auto", "--overlap", "--weights", weights], True)]  # fmt: skip
-    raise SystemExit(f"error: unknown step {step!r} (stage1, backbone, slam)")
+    raise AssertionError(step)  # argparse allows only the steps of NEEDS
 
 
 def _missing(step: str, args: argparse.Namespace, local: bool) -> list[str]:
