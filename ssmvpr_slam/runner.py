@@ -22,7 +22,15 @@ from frontend.frame import Frame
 from frontend.odometry import Odometry, choose_odometry, make_odometry
 from frontend.sources import Source, open_source
 from loopclosure.backbone import load_backbone
-from ssmvpr_slam.checkpoint import Checkpoint, Checkpointer, CheckpointMeta, check_log, log_fingerprint
+from loopclosure.errors import LoopClosureInputError
+from ssmvpr_slam.checkpoint import (
+    Checkpoint,
+    Checkpointer,
+    CheckpointError,
+    CheckpointMeta,
+    check_log,
+    log_fingerprint,
+)
 from ssmvpr_slam.config import SlamConfig
 from ssmvpr_slam.pipeline import SlamPipeline
 from ssmvpr_slam.prior_map import PriorMap
@@ -107,7 +115,11 @@ def restore_from_checkpoint(pipeline: SlamPipeline, checkpoint: Checkpoint, log:
     """Put the system back where the checkpoint left it: its state from the files, the odometry
     by replaying the frames it had seen (see `ssmvpr_slam.checkpoint` for why)."""
     system = pipeline.system
-    system.restore(checkpoint.result, checkpoint.detector_state)
+    try:
+        system.restore(checkpoint.result, checkpoint.detector_state)
+    except (LoopClosureInputError, KeyError) as exc:  # a state this build or these settings cannot take
+        what = f"lacks {exc}" if isinstance(exc, KeyError) else str(exc)
+        raise CheckpointError(f"{checkpoint.folder / 'detector.npz'}: {what}") from None
     seen = checkpoint.result.frames_seen
     with Progress(TextColumn("[bold]replaying odometry"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                   console=console) as progress:  # fmt: skip
