@@ -22,11 +22,21 @@ class SpatialResult:
     shifts: np.ndarray  # (C, 2) dominant (row, column) displacement in grid cells
 
 
+def as_float32(a: np.ndarray) -> np.ndarray:
+    """float32 values of stored grids. numpy widens float16 one value at a time (1.4 ms for 50
+    candidates' grids on a Zen 4); torch's vectorised conversion gives the same values in 0.06."""
+    if a.dtype != np.float16:
+        return a.astype(np.float32, copy=False)
+    import torch
+
+    return torch.from_numpy(np.ascontiguousarray(a)).float().numpy()
+
+
 def best_query_cells(query: np.ndarray, candidates: np.ndarray) -> np.ndarray:
     """query (gh, gw, d), candidates (C, gh, gw, d) -> (C, gh, gw) flat index of the best query cell."""
     gh, gw, d = query.shape
-    q = query.reshape(gh * gw, d).astype(np.float32, copy=False)
-    c = candidates.reshape(-1, d).astype(np.float32, copy=False)
+    q = as_float32(query.reshape(gh * gw, d))
+    c = as_float32(candidates.reshape(-1, d))
     # nearest in L2: argmin |c - q|^2 = argmax 2 c.q - |q|^2 (cosine when codes are unit length)
     affinity = c @ (2.0 * q.T)
     affinity -= np.einsum("nd,nd->n", q, q)[None, :]

@@ -76,7 +76,7 @@ from loopclosure.database import PlaceDatabase  # noqa: E402
 from loopclosure.encoder import PlaceCodes  # noqa: E402
 from loopclosure.filtering import max_row_norm, rank_neighbours, vote  # noqa: E402
 from loopclosure.pca import Codebooks, PCAProjection  # noqa: E402
-from loopclosure.spatial import best_query_cells, consistency_counts, spatial_scores  # noqa: E402
+from loopclosure.spatial import as_float32, best_query_cells, consistency_counts, spatial_scores  # noqa: E402
 from ssmvpr_common.atomic import atomic_write_text  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -720,13 +720,15 @@ def bench_spatial(args, config: VPRConfig, counts: list[int], repeats: int) -> d
         # Where the time goes (same functions spatial_scores calls, one chunk).
         c = cands[0][:chunk]
         q = queries[0]
-        conv = time_ms(lambda i: c.reshape(-1, d).astype(np.float32, copy=False), repeats)
+        conv = time_ms(lambda i: as_float32(c.reshape(-1, d)), repeats)
+        conv_numpy = time_ms(lambda i: c.reshape(-1, d).astype(np.float32, copy=False), repeats)
         c32 = c.astype(np.float32)
         best_t = time_ms(lambda i: best_query_cells(q, c32), repeats)
         best = best_query_cells(q, c32)
         counts_t = time_ms(lambda i: consistency_counts(best), repeats)
         entry["breakdown_ms_median"] = {
             "to_float32": round(float(np.median(conv)), 3),
+            "to_float32_numpy": round(float(np.median(conv_numpy)), 3),
             "best_query_cells_f32_input": round(float(np.median(best_t)), 3),
             "consistency_counts": round(float(np.median(counts_t)), 3),
         }

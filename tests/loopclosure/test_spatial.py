@@ -9,6 +9,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from loopclosure.spatial import (
+    as_float32,
     best_query_cells,
     consistency_counts,
     max_raw_score,
@@ -145,3 +146,26 @@ def test_max_raw_score_is_the_literal_identity_score(gh, gw):
     if gh * gw <= 30:
         assert spatial_score_literal(q, q) == max_raw_score(gh, gw)
     assert spatial_scores(q, q[None]).raw[0] == max_raw_score(gh, gw)
+
+
+def test_float16_widening_is_numpys_for_every_bit_pattern():
+    """The torch conversion must give numpy's float32 for all 65,536 float16 values, compared as
+    bits: subnormals, signed zeros and infinities included. NaNs stay NaN (torch quiets a
+    signalling NaN's payload; stored codes are finite, the database refuses others)."""
+    every = np.arange(1 << 16, dtype=np.uint32).astype(np.uint16).view(np.float16).reshape(256, 16, 16)
+    widened = as_float32(every)
+    assert widened.dtype == np.float32 and widened.shape == every.shape
+    nan = np.isnan(every)
+    assert np.isnan(widened[nan]).all() and nan.sum() == 2 * 1023
+    np.testing.assert_array_equal(widened[~nan].view(np.uint32), every[~nan].astype(np.float32).view(np.uint32))
+    strided = every[:, ::3]  # a gathered, non-contiguous view converts too
+    np.testing.assert_array_equal(as_float32(strided), strided.astype(np.float32))
+
+
+def test_float16_storage_scores_as_its_float32_values():
+    rng = np.random.default_rng(7)
+    query = rng.standard_normal((13, 13, 24), dtype=np.float32)
+    stored = rng.standard_normal((9, 13, 13, 24), dtype=np.float32).astype(np.float16)
+    half, full = spatial_scores(query, stored, chunk=4), spatial_scores(query, stored.astype(np.float32), chunk=4)
+    np.testing.assert_array_equal(half.raw, full.raw)
+    np.testing.assert_array_equal(half.shifts, full.shifts)
