@@ -9,9 +9,12 @@ and the detector's decision over both cameras (forward first, then rear).
 Usage:
   python tools/bench_sequence_sim.py [--weights PATH] [--lengths 1,2,3,5] [--direction both]
                                      [--save-codes FILE | --codes FILE]
+                                     [--sim-config SIM_YAML] [--route POSES_FILE] [--frames N]
 
 The demo traverse (`ssmvpr-slam demo --odometry logged`: drifting wheel odometry picks the
-keyframes, camera only) runs once through `SlamPipeline`; the detector's place database then
+keyframes, camera only), or the one --sim-config / --route / --frames describe as in the other
+simulator benches (e.g. another city: a YAML with `seed: 1` and the demo's
+`appearance_schedule: [day, day, dusk]`), runs once through `SlamPipeline`; the detector's place database then
 holds every keyframe's codes. From them, each keyframe after the PCA warm-up is queried again
 offline exactly as the detector queries it (stage I over the places before it minus the
 exclusion window, stage II, sequence matching with `match_sequences`, which equals the
@@ -38,18 +41,20 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from _sim_options import add_simulation_options, simulation_config  # noqa: E402
+
 
 def log(msg: str) -> None:
     print(f"[bench_sequence_sim] {msg}", file=sys.stderr, flush=True)
 
 
-def run_traverse(weights: str | None) -> dict[str, np.ndarray]:
-    """The demo traverse through the pipeline; the keyframes' codes and bookkeeping."""
+def run_traverse(weights: str | None, simulation) -> dict[str, np.ndarray]:
+    """The traverse (`simulation`, camera only) through the pipeline; the keyframes' codes and bookkeeping."""
     import sklearn.decomposition  # noqa: F401  (its BLAS must be loaded to be limited)
     from threadpoolctl import threadpool_limits
 
     from frontend.odometry import make_odometry
-    from frontend.simulation.simulator import TraverseSimulator, default_demo_config
+    from frontend.simulation.simulator import TraverseSimulator
     from loopclosure.backbone import load_backbone
     from ssmvpr_slam.config import load_config
     from ssmvpr_slam.pipeline import SlamPipeline
@@ -57,7 +62,7 @@ def run_traverse(weights: str | None) -> dict[str, np.ndarray]:
     cfg = load_config()
     if weights:
         cfg.vpr.backbone.weights = weights
-    cfg.simulation = default_demo_config(lidar={"enabled": False})
+    cfg.simulation = simulation
     cfg.frontend.odometry.kind = "logged"
     cfg.pipeline.use_lidar_for_loops = False
     t0 = time.perf_counter()
@@ -128,6 +133,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--direction", default="both", choices=("forward", "reverse", "both"))
     ap.add_argument("--save-codes", default=None, help="keep the traverse's codes in this .npz")
     ap.add_argument("--codes", default=None, help="use codes saved by --save-codes instead of simulating")
+    add_simulation_options(ap)
     args = ap.parse_args(argv)
 
     from loopclosure.metrics import pr_auc, precision_recall_curve
@@ -136,12 +142,21 @@ def main(argv: list[str] | None = None) -> dict:
 
     cfg = load_config()
     det, loops = cfg.detector, cfg.evaluation.loops
-    codes = dict(np.load(args.codes)) if args.codes else run_traverse(args.weights)
+    codes = (
+        dict(np.load(args.codes))
+        if args.codes
+        else run_traverse(args.weights, simulation_config(ap, args, lidar={"enabled": False}))
+    )
     if args.save_codes:
         np.savez(args.save_codes, **codes)
     first = int(codes["warmup"])
     pos = codes["gt"][:, :3, 3]
     kinds = revisit_kinds(pos, loops.revisit_radius, loops.min_frame_gap)
+    if not any(q >= first for q in kinds):  # recall and PR-AUC would be undefined
+        ap.error(
+            f"the traverse ({len(pos)} keyframes) has no ground-truth revisit after the {first}-keyframe "
+            "warm-up: nothing to evaluate (a longer traverse, or one with loops, has)"
+        )
     scores, limits, cands = queries(
         codes, det.exclusion_keyframes, det.exclusion_distance, cfg.vpr.filtering.num_candidates
     )

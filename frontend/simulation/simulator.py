@@ -281,7 +281,7 @@ def ground_truth_revisits(
 def default_demo_config(**overrides) -> SimulationConfig:
     """The demo traverse: loop A around two blocks twice by day, then loop B at dusk.
 
-    456 frames at 5 Hz over ~706 m (91 s) with same-direction revisits (lap 2) and
+    676 frames at 5 Hz over about 1.19 km (135 s) with same-direction revisits (lap 2) and
     opposite-direction revisits (loop B drives three of A's streets the other way).
     Keyword arguments override top-level config fields.
     """
