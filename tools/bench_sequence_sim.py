@@ -23,7 +23,7 @@ keyframe, correct within `evaluation.loops.correct_radius` of a ground-truth rev
 reported: the same with the reverse revisits left out (a forward camera sees the other side of
 the street there), the recall at precision 1 of forward and reverse revisits apart, and the
 loops the detector's decision accepts at the configured thresholds (`accept_score`,
-`min_single_score`), beside the decision before sequence matching (single frame >= 0.5 and
+`min_single_score`) and at others (`accept_score_sweep`), beside the decision before sequence matching (single frame >= 0.5 and
 the top-1 gate, L = 3, ±2).
 """
 
@@ -211,6 +211,16 @@ def main(argv: list[str] | None = None) -> dict:
         front = {int(q): m.place for q, m in zip(qs, matches)
                  if m.place is not None and m.score >= det.accept_threshold and m.single_score >= det.min_single_score}  # fmt: skip
         result["detector_decision"] = decided(sorted(front.items()))
+        result["accept_score_sweep"] = {
+            f"{threshold:.2f}": decided(
+                [
+                    (int(q), m.place)
+                    for q, m in zip(qs, matches)
+                    if m.place is not None and m.score >= threshold and m.single_score >= det.min_single_score
+                ]
+            )  # fmt: skip
+            for threshold in sorted({0.40, 0.45, 0.50, 0.55, 0.60, det.accept_threshold})
+        }
         if rear is not None:  # the rear images' own sequences, and the detector's choice of the two
             rear_matches = match_sequences(rear[0], seq_cfg, rear[2], rear[1])
             r_places = np.array([-1 if m.place is None else m.place for m in rear_matches])

@@ -61,6 +61,9 @@ def test_second_lap_is_recalled_and_the_rear_camera_adds_nothing(tmp_path: Path)
         decision = result["detector_decision"]
         assert decision["precision"] == 1.0 and decision["recall_forward"] > 0.9
         assert result["stream_pr_auc"] > 0.9
+        sweep = result["accept_score_sweep"]
+        assert sweep[f"{out['thresholds']['accept_score']:.2f}"] == decision  # the configured one is swept too
+        assert [v["accepted"] for v in sweep.values()] == sorted((v["accepted"] for v in sweep.values()), reverse=True)
         # the rear codes are noise: its accepted loops, if any, only lower the precision
         both = result["detector_decision_front_and_rear"]
         assert both["recall"] == decision["recall"]
