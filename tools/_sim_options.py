@@ -22,7 +22,7 @@ def add_simulation_options(parser: argparse.ArgumentParser, config_flags: tuple[
     """--frames, --route, --poses-frame and the simulation YAML option(s) named `config_flags`."""
     parser.add_argument("--frames", type=int, default=None, help="stop after N frames (default: the whole traverse)")
     parser.add_argument(*config_flags, dest="sim_config", type=Path, default=None, metavar="FILE",
-                        help="simulation YAML (SimulationConfig); default: the demo traverse")  # fmt: skip
+                        help="simulation YAML, a whole SimulationConfig (not merged over the demo's); default: the demo traverse")  # fmt: skip
     parser.add_argument("--route", type=Path, default=None, metavar="FILE",
                         help="TUM / KITTI poses file to drive (sets route.preset)")  # fmt: skip
     parser.add_argument("--poses-frame", choices=POSES_FRAMES, default=None,

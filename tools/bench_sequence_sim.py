@@ -1,4 +1,4 @@
-"""Single frames vs sequence matching on the simulator's camera stream (the demo traverse).
+"""Single frames vs sequence matching on the simulator's camera stream (the demo traverse or another).
 
 Prints ONE JSON object to stdout (progress goes to stderr).
 
@@ -9,7 +9,7 @@ and the detector's decision over both cameras (forward first, then rear).
 Usage:
   python tools/bench_sequence_sim.py [--weights PATH] [--lengths 1,2,3,5] [--direction both]
                                      [--save-codes FILE | --codes FILE]
-                                     [--sim-config SIM_YAML] [--route POSES_FILE] [--frames N]
+                                     [--sim-config SIM_YAML] [--route POSES_FILE [--poses-frame F]] [--frames N]
 
 The demo traverse (`ssmvpr-slam demo --odometry logged`: drifting wheel odometry picks the
 keyframes, camera only), or the one --sim-config / --route / --frames describe as in the other
@@ -35,6 +35,7 @@ import json
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -43,12 +44,15 @@ sys.path.insert(0, str(ROOT))
 
 from _sim_options import add_simulation_options, simulation_config  # noqa: E402
 
+if TYPE_CHECKING:
+    from frontend.simulation import SimulationConfig
+
 
 def log(msg: str) -> None:
     print(f"[bench_sequence_sim] {msg}", file=sys.stderr, flush=True)
 
 
-def run_traverse(weights: str | None, simulation) -> dict[str, np.ndarray]:
+def run_traverse(weights: str | None, simulation: SimulationConfig) -> dict[str, np.ndarray]:
     """The traverse (`simulation`, camera only) through the pipeline; the keyframes' codes and bookkeeping."""
     import sklearn.decomposition  # noqa: F401  (its BLAS must be loaded to be limited)
     from threadpoolctl import threadpool_limits
@@ -135,6 +139,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--codes", default=None, help="use codes saved by --save-codes instead of simulating")
     add_simulation_options(ap)
     args = ap.parse_args(argv)
+    if args.codes and (args.sim_config or args.route or args.frames is not None):
+        ap.error("--codes replays saved codes: --sim-config, --route and --frames would be ignored")
 
     from loopclosure.metrics import pr_auc, precision_recall_curve
     from loopclosure.sequence_matcher import match_sequences
@@ -212,13 +218,13 @@ def main(argv: list[str] | None = None) -> dict:
                  if m.place is not None and m.score >= det.accept_threshold and m.single_score >= det.min_single_score}  # fmt: skip
         result["detector_decision"] = decided(sorted(front.items()))
         result["accept_score_sweep"] = {
-            f"{threshold:.2f}": decided(
+            f"{threshold:g}": decided(
                 [
                     (int(q), m.place)
                     for q, m in zip(qs, matches)
                     if m.place is not None and m.score >= threshold and m.single_score >= det.min_single_score
                 ]
-            )  # fmt: skip
+            )
             for threshold in sorted({0.40, 0.45, 0.50, 0.55, 0.60, det.accept_threshold})
         }
         if rear is not None:  # the rear images' own sequences, and the detector's choice of the two
@@ -228,7 +234,7 @@ def main(argv: list[str] | None = None) -> dict:
             result["rear"] = evaluate(r_places, r_values)
             sweep = {}
             for threshold in (0.24, 0.25, 0.26, 0.27, 0.28, 0.30, 0.32):
-                sweep[f"{threshold:.2f}"] = decided([
+                sweep[f"{threshold:g}"] = decided([
                     (int(q), m.place) for q, m in zip(qs, rear_matches)
                     if m.place is not None and m.score >= threshold and m.single_score >= det.rear.min_single_score
                 ])  # fmt: skip

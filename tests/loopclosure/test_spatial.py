@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
+from loopclosure import spatial
 from loopclosure.spatial import (
     as_float32,
     best_query_cells,
@@ -160,6 +163,24 @@ def test_float16_widening_is_numpys_for_every_bit_pattern():
     np.testing.assert_array_equal(widened[~nan].view(np.uint32), every[~nan].astype(np.float32).view(np.uint32))
     strided = every[:, ::3]  # a gathered, non-contiguous view converts too
     np.testing.assert_array_equal(as_float32(strided), strided.astype(np.float32))
+
+
+def test_float16_widening_takes_read_only_arrays_without_warning():
+    """A memory-mapped map's grids are read-only; torch.from_numpy would warn on them."""
+    stored = np.linspace(-3, 3, 13 * 13 * 8, dtype=np.float32).astype(np.float16).reshape(1, 13, 13, 8)
+    stored.flags.writeable = False
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        widened = as_float32(stored)
+    np.testing.assert_array_equal(widened, stored.astype(np.float32))
+    assert not stored.flags.writeable
+
+
+def test_float16_widening_stays_below_atens_parallel_grain():
+    """Each torch copy must stay at or below ATen's grain (32,768 elements), so it runs in the
+    calling thread: a parallel copy woke torch's OpenMP pool, whose spinning threads slowed the
+    BLAS product after it about threefold (and would take the backbone's cores in a SLAM run)."""
+    assert 0 < spatial._SERIAL_COPY <= 32768
 
 
 def test_float16_storage_scores_as_its_float32_values():
