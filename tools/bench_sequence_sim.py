@@ -1,4 +1,4 @@
-"""Single frames vs sequence matching on the simulator's camera stream (the demo traverse or another).
+"""Single frames vs sequence matching on a simulated camera stream (the demo's, or another).
 
 Prints ONE JSON object to stdout (progress goes to stderr).
 
@@ -9,21 +9,22 @@ and the detector's decision over both cameras (forward first, then rear).
 Usage:
   python tools/bench_sequence_sim.py [--weights PATH] [--lengths 1,2,3,5] [--direction both]
                                      [--save-codes FILE | --codes FILE]
-                                     [--sim-config SIM_YAML] [--route POSES_FILE [--poses-frame F]] [--frames N]
+                                     [--sim-config SIM_YAML] [--frames N]
+                                     [--route POSES_FILE [--poses-frame F]]
 
 The demo traverse (`ssmvpr-slam demo --odometry logged`: drifting wheel odometry picks the
 keyframes, camera only), or the one --sim-config / --route / --frames describe as in the other
-simulator benches (e.g. another city: a YAML with `seed: 1` and the demo's
-`appearance_schedule: [day, day, dusk]`), runs once through `SlamPipeline`; the detector's place database then
-holds every keyframe's codes. From them, each keyframe after the PCA warm-up is queried again
-offline exactly as the detector queries it (stage I over the places before it minus the
-exclusion window, stage II, sequence matching with `match_sequences`, which equals the
-streaming matcher), for each L. Scored like `metrics.json`'s stream PR-AUC: one best match per
-keyframe, correct within `evaluation.loops.correct_radius` of a ground-truth revisit. Also
-reported: the same with the reverse revisits left out (a forward camera sees the other side of
-the street there), the recall at precision 1 of forward and reverse revisits apart, and the
-loops the detector's decision accepts at the configured thresholds (`accept_score`,
-`min_single_score`) and at others (`accept_score_sweep`), beside the decision before sequence matching (single frame >= 0.5 and
+simulator benches (e.g. another city: a YAML with `seed: 1` and the demo's `appearance_schedule:
+[day, day, dusk]`), runs once through `SlamPipeline`; the detector's place database then holds
+every keyframe's codes. From them, each keyframe after the PCA warm-up is queried again offline
+exactly as the detector queries it (stage I over the places before it minus the exclusion
+window, stage II, sequence matching with `match_sequences`, which equals the streaming matcher),
+for each L. Scored like `metrics.json`'s stream PR-AUC: one best match per keyframe, correct
+within `evaluation.loops.correct_radius` of a ground-truth revisit. Also reported: the same with
+the reverse revisits left out (a forward camera sees the other side of the street there), the
+recall at precision 1 of forward and reverse revisits apart, and the loops the detector's
+decision accepts at the configured thresholds (`accept_score`, `min_single_score`) and at others
+(`accept_score_sweep`), beside the decision before sequence matching (single frame >= 0.5 and
 the top-1 gate, L = 3, ±2).
 """
 
@@ -168,11 +169,16 @@ def main(argv: list[str] | None = None) -> dict:
     )
     qs = np.arange(first, len(pos))
 
-    def decided(accepted: list[tuple[int, int]]) -> dict:
-        """Precision and recall (all / forward / reverse revisits) of accepted (query, place) loops."""
-        ok = [float(np.linalg.norm(pos[q] - pos[p])) <= loops.correct_radius for q, p in accepted]
-        hit = {q for (q, _), o in zip(accepted, ok) if o and q in kinds}
-        out = {"accepted": len(accepted), "precision": float(np.mean(ok)) if ok else None,
+    def accepted(matches: list, threshold: float, min_single: float) -> dict[int, int]:
+        """{query: place} of the sequence matches the detector's decision accepts at these thresholds."""
+        return {int(q): m.place for q, m in zip(qs, matches)
+                if m.place is not None and m.score >= threshold and m.single_score >= min_single}  # fmt: skip
+
+    def decided(loops_by_query: dict[int, int]) -> dict:
+        """Precision and recall (all / forward / reverse revisits) of accepted {query: place} loops."""
+        ok = {q: float(np.linalg.norm(pos[q] - pos[p])) <= loops.correct_radius for q, p in loops_by_query.items()}
+        hit = {q for q, o in ok.items() if o and q in kinds}
+        out = {"accepted": len(ok), "precision": float(np.mean(list(ok.values()))) if ok else None,
                "recall": len(hit) / len(kinds) if kinds else None}  # fmt: skip
         for k in ("forward", "reverse"):
             n = sum(v == k for v in kinds.values())
@@ -214,17 +220,10 @@ def main(argv: list[str] | None = None) -> dict:
         places = np.array([-1 if m.place is None else m.place for m in matches])
         values = np.array([-np.inf if m.place is None else m.score for m in matches])
         result = out["results"][str(length)] = evaluate(places, values)
-        front = {int(q): m.place for q, m in zip(qs, matches)
-                 if m.place is not None and m.score >= det.accept_threshold and m.single_score >= det.min_single_score}  # fmt: skip
-        result["detector_decision"] = decided(sorted(front.items()))
+        front = accepted(matches, det.accept_threshold, det.min_single_score)
+        result["detector_decision"] = decided(front)
         result["accept_score_sweep"] = {
-            f"{threshold:g}": decided(
-                [
-                    (int(q), m.place)
-                    for q, m in zip(qs, matches)
-                    if m.place is not None and m.score >= threshold and m.single_score >= det.min_single_score
-                ]
-            )
+            f"{threshold:g}": decided(accepted(matches, threshold, det.min_single_score))
             for threshold in sorted({0.40, 0.45, 0.50, 0.55, 0.60, det.accept_threshold})
         }
         if rear is not None:  # the rear images' own sequences, and the detector's choice of the two
@@ -232,19 +231,13 @@ def main(argv: list[str] | None = None) -> dict:
             r_places = np.array([-1 if m.place is None else m.place for m in rear_matches])
             r_values = np.array([-np.inf if m.place is None else m.score for m in rear_matches])
             result["rear"] = evaluate(r_places, r_values)
-            sweep = {}
-            for threshold in (0.24, 0.25, 0.26, 0.27, 0.28, 0.30, 0.32):
-                sweep[f"{threshold:g}"] = decided([
-                    (int(q), m.place) for q, m in zip(qs, rear_matches)
-                    if m.place is not None and m.score >= threshold and m.single_score >= det.rear.min_single_score
-                ])  # fmt: skip
-            result["rear"]["accept_score_sweep"] = sweep
-            both = dict(front)
-            for q, m in zip(qs, rear_matches):
-                if int(q) not in both and m.place is not None and m.score >= det.rear.accept_score \
-                        and m.single_score >= det.rear.min_single_score:  # fmt: skip
-                    both[int(q)] = m.place
-            result["detector_decision_front_and_rear"] = decided(sorted(both.items()))
+            result["rear"]["accept_score_sweep"] = {
+                f"{threshold:g}": decided(accepted(rear_matches, threshold, det.rear.min_single_score))
+                for threshold in (0.24, 0.25, 0.26, 0.27, 0.28, 0.30, 0.32)
+            }
+            # forward first: the rear camera's loop only where the forward camera accepted none
+            both = {**accepted(rear_matches, det.rear.accept_score, det.rear.min_single_score), **front}
+            result["detector_decision_front_and_rear"] = decided(both)
         log(f"L={length}: {result}")
     # single frames as the recogniser alone ranks them (stage II over the stage-I candidates)
     single = np.array([c[np.argmax(scores[i, c])] if len(c) else -1 for i, c in enumerate(cands)])
@@ -261,7 +254,7 @@ def main(argv: list[str] | None = None) -> dict:
         if gate.decide(q, p).accepted:
             before.append((q, p))
         gate.observe(q, p)
-    out["single_frame"]["detector_decision_before"] = decided(before)
+    out["single_frame"]["detector_decision_before"] = decided(dict(before))
     out["thresholds"] = {"accept_score": det.accept_threshold, "min_single_score": det.min_single_score}
     print(json.dumps(out, indent=2))
     return out
