@@ -537,3 +537,15 @@ def test_code_weights_follow_the_pca_variances():
     assert code_weights(projection([4.0, 1.0, 0.0, np.nan])).tolist() == [1.0] * 4  # a NaN variance: no weighting
     np.testing.assert_allclose(code_weights(projection([4.0, 1.0, 0.0, 0.25])), [1.0, 0.5, 1e-3, 0.25])
     assert code_weights(projection([4.0, 1.0, 0.0, 0.25], whiten=True)).tolist() == [1.0] * 4  # already even
+
+
+def test_float16_stage_one_widens_exactly_for_the_search(codebooks):
+    """A float16 map's stage-I rows reach the search (and the index's float32 mirror) as their
+    exact float32 values, in any slice."""
+    codes = _codes(300, seed=11)
+    db = PlaceDatabase(codebooks, DatabaseConfig(stage1_dtype="float16"))
+    db.add(codes)
+    rows = db._codes["stage1"].flat_rows(0, None)
+    assert rows.dtype == np.float32
+    np.testing.assert_array_equal(rows, codes.stage1.astype(np.float16).astype(np.float32).reshape(-1, D1))
+    np.testing.assert_array_equal(db._codes["stage1"].flat_rows(17, 301), rows[17:301])
