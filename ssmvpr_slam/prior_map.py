@@ -94,6 +94,11 @@ class PriorMap:
                     pose = _pose_of(value, folder / "places.json", index, key)
                     if np.all(np.isfinite(pose)):  # NaN marks a place without one
                         target[index] = pose
+        if len(database) and not poses:  # nothing to anchor to; its codebooks would replace the run's
+            raise LoopClosureInputError(
+                f"prior map {folder}: none of its {len(database)} places has a map pose, so no loop to it "
+                "can correct anything (a vpr-eval database?); pass a SLAM run's results/run_<stamp>/database"
+            )
         return cls(database, poses, _load_scans(folder / SCANS_FILE, len(database)), gt, folder)
 
 
