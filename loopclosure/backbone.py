@@ -160,7 +160,7 @@ class Backbone:
         self.net = VGG16Features(last)
         if state_dict is None:
             if config.weights != "random":
-                raise LoopClosureInputError("no VGG16 weights given; random weights need backbone.weights='random'")
+                raise LoopClosureInputError("no VGG16 weights given; random weights need vpr.backbone.weights: random")
             log.warning("VGG16 has RANDOM weights: recognition results are meaningless")
         else:
             wanted = self.net.state_dict().keys()

@@ -4,7 +4,10 @@ A benchmark's truth is, per query, the set of reference indices that show the sa
 Sets (not a single index) because benchmarks disagree: VPR-Bench lists several references per
 query, Berlin-style CSVs may too, and a frame-aligned pair of folders has exactly one. The
 evaluation tolerance (the paper's ±2 frames) is applied on top of these sets by
-:func:`correct_mask`, never baked in here.
+:func:`correct_mask`, never baked in here. A file whose queries already list a window of
+consecutive references (VPR-Bench's Corridor: query q -> q-2..q+2) carries its own tolerance, so
+a tolerance on top widens it (±2 on ±2 counts ±4): :func:`truth_windows` finds such files, and
+``vpr-eval`` warns and records it.
 """
 
 from __future__ import annotations
@@ -23,12 +26,14 @@ from loopclosure.errors import LoopClosureInputError
 
 __all__ = [
     "GroundTruth",
+    "TruthWindows",
     "correct_mask",
     "frame_aligned",
     "from_csv",
     "from_vprbench_npy",
     "is_correct",
     "load_ground_truth",
+    "truth_windows",
 ]
 
 _OTHER_FORMS = (
@@ -343,3 +348,35 @@ def correct_mask(gt: GroundTruth, matches: np.ndarray, tolerance: int) -> np.nda
     lo = np.searchsorted(keys, base + m2, side="left")
     hi = np.searchsorted(keys, base + m2 + 2 * tol, side="right")
     return ((hi > lo) & (m2 >= 0)).reshape(m.shape)
+
+
+# --------------------------------------------------------------------------- windows
+
+
+@dataclass(frozen=True)
+class TruthWindows:
+    """How many queries list a run of consecutive references: a window that already holds a
+    frame tolerance, so the evaluation tolerance widens it instead of being the whole margin."""
+
+    queries: int
+    """Queries whose reference set holds at least two consecutive indices."""
+    with_truth: int
+    """Queries with at least one true reference."""
+    median_refs: float
+    """Median number of references of those window queries (0 when there are none)."""
+
+    @property
+    def windowed(self) -> bool:
+        """At least half the queries with truth list a window: the file's own tolerance."""
+        return self.queries > 0 and 2 * self.queries >= self.with_truth
+
+
+def _has_run(refs: np.ndarray) -> bool:
+    return bool(refs.size > 1 and np.any(np.diff(refs) == 1))
+
+
+def truth_windows(gt: GroundTruth) -> TruthWindows:
+    """Count the queries listing consecutive references (VPR-Bench's ±2-frame windows)."""
+    sizes = [r.size for r in gt.refs if _has_run(r)]
+    median = float(np.median(sizes)) if sizes else 0.0
+    return TruthWindows(queries=len(sizes), with_truth=int(gt.has_truth.sum()), median_refs=median)

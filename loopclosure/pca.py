@@ -77,7 +77,11 @@ def fit_pca(samples: np.ndarray, config: PCAConfig, name: str = "PCA") -> PCAPro
     if min(n, config.max_fit_samples) < config.dim or dim_in < config.dim:
         raise LoopClosureInputError(
             f"{name}: {min(n, config.max_fit_samples)} samples of {dim_in} dims cannot give {config.dim} components; "
-            f"fit on more images, raise max_fit_samples or lower pca.dim"
+            + (
+                "fit on more images or lower the PCA's dim (vpr.filtering.pca.dim / vpr.spatial.pca.dim)"
+                if n < config.dim or dim_in < config.dim
+                else "raise the PCA's max_fit_samples"
+            )
         )
     if not np.isfinite(samples).all():
         raise LoopClosureInputError(f"{name}: samples contain NaN or inf")

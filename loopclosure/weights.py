@@ -6,7 +6,7 @@ layers of torchvision's ``vgg16().features``, keys ``features.{0,2,5,7,10,12,14,
 
 :func:`resolve_weights` finds a file in this order and returns its path:
 
-1. the explicit ``path`` argument (config ``backbone.weights`` / CLI ``--weights``);
+1. the explicit ``path`` argument (config ``vpr.backbone.weights`` / CLI ``--weights``);
 2. the environment variable ``SSMVPR_WEIGHTS``;
 3. the user cache file ``vgg16_imagenet_conv.pth`` in ``$SSMVPR_CACHE``, else
    ``$XDG_CACHE_HOME/ssmvpr-slam``, else ``~/.cache/ssmvpr-slam``;
@@ -276,7 +276,7 @@ def _describe(exc: BaseException) -> str:
 def _not_found_message(cached: Path, source: str, failures: list[str]) -> str:
     lines = [
         f"No VGG16 weights ({source}) found. Provide them in one of these ways:",
-        "  1. pass a file: `--weights PATH` on the command line, `backbone.weights: PATH` in the config,"
+        "  1. pass a file: `--weights PATH` on the command line, `vpr.backbone.weights: PATH` in the config,"
         " or the path argument of resolve_weights()/load_backbone();",
         f"  2. set the environment variable {ENV_WEIGHTS}=PATH;",
         f"  3. put the file in the cache: {cached} (move the cache with {ENV_CACHE} or XDG_CACHE_HOME);",
@@ -311,7 +311,7 @@ def load_state_dict(path: str | os.PathLike[str]) -> dict[str, torch.Tensor]:
     except Exception as exc:
         raise InvalidWeightsFileError(
             f"VGG16 weights file {path} cannot be read as a torch state dict (truncated, corrupt, or "
-            f"not a weights file; only tensors are loaded, never code): {_describe(exc)}"
+            f"not a weights file; only tensors are loaded, never code): {_load_failure(exc)}"
         ) from exc
     try:
         return validate_state_dict(obj, origin=str(path))
@@ -321,6 +321,17 @@ def load_state_dict(path: str | os.PathLike[str]) -> dict[str, torch.Tensor]:
                 f"{exc} If this is the cache file, `ssmvpr-slam weights fetch --force` re-creates it."
             ) from None
         raise
+
+
+def _load_failure(exc: Exception) -> str:
+    """torch.load's reason on one line. Its weights-only refusal spans paragraphs and advises
+    loading with weights_only=False, which would run whatever code the file holds: only the
+    unpickler's own reason is kept."""
+    text = reason = str(exc)
+    if text.startswith("Weights only load failed"):  # advice paragraph, reason, link to the docs
+        reason = text.partition("\n")[2].partition("Check the documentation")[0]
+        reason = reason.rpartition("WeightsUnpickler error:")[2] or reason
+    return f"{type(exc).__name__}: {' '.join(reason.split()) or repr(exc)}"
 
 
 def validate_state_dict(obj: Any, origin: str = "state dict") -> dict[str, torch.Tensor]:

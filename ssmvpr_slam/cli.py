@@ -33,8 +33,10 @@ app = typer.Typer(
 )
 weights_app = typer.Typer(help="VGG16 weights: fetch into the cache, show where they resolve.", no_args_is_help=True)
 app.add_typer(weights_app, name="weights")
-console = Console(stderr=False)
-err_console = Console(stderr=True)
+# soft_wrap: a line longer than the terminal (or than 80 columns when piped) is not broken, so that
+# `| grep` finds a path or a figure whole; tables still fit the width
+console = Console(stderr=False, soft_wrap=True)
+err_console = Console(stderr=True, soft_wrap=True)
 
 ConfigOpt = Annotated[str | None, typer.Option("--config", "-c", help="Preset name (configs/*.yaml) or a YAML file.")]
 WeightsOpt = Annotated[Path | None, typer.Option(help="VGG16 weights (torchvision layout state dict).")]
@@ -47,8 +49,10 @@ def _user_errors() -> tuple[type[BaseException], ...]:
     from ssmvpr_slam.backend.g2o_io import PoseGraphFileError
 
     # SsmvprError: each package's errors (FrontendInputError, LoopClosureInputError,
-    # WeightsNotFoundError, ConfigError, OutputError, CheckpointError, ...)
-    return (SsmvprError, FileNotFoundError, PoseGraphFileError)
+    # WeightsNotFoundError, ConfigError, OutputError, CheckpointError, ...); OSError: what the
+    # machine refused (a full disk, a permission), named by errno and file. Files are written
+    # atomically, so what was written before stays whole.
+    return (SsmvprError, OSError, PoseGraphFileError)
 
 
 def _print_error(message: str) -> None:
@@ -120,7 +124,13 @@ def vpr_eval(
             "Default: frame-aligned sorted filenames."
         ),
     ] = None,
-    tolerance: Annotated[int | None, typer.Option(help="± frames counted as correct (default 2).")] = None,
+    tolerance: Annotated[
+        int | None,
+        typer.Option(
+            help="± frames around each true reference counted as correct (default 2; 0 for a --gt file that already "
+            "lists windows, as VPR-Bench .npy files do)."
+        ),
+    ] = None,
     sequential: Annotated[
         bool | None,
         typer.Option(
@@ -202,6 +212,9 @@ def run(
     no_lidar_loops: Annotated[
         bool, typer.Option("--no-lidar-loops", help="Ignore scans for loop registration (place prior).")
     ] = False,
+    frames: Annotated[
+        int | None, typer.Option(help="Stop after this many frames of the log (pipeline.max_frames).")
+    ] = None,
     resume: Annotated[
         Path | None,
         typer.Option(
@@ -220,9 +233,12 @@ def run(
 
     if resume is not None:
         _resume(log, resume, weights, device, {"--config": config, "--odometry": odometry, "--map": map_dir,
-                                                "--no-lidar-loops": no_lidar_loops or None, "--out": out})  # fmt: skip
+                                                "--no-lidar-loops": no_lidar_loops or None, "--out": out,
+                                                "--frames": frames})  # fmt: skip
         return
     cfg = _config(config, weights, device, out)
+    if frames is not None:
+        cfg.pipeline = _validated_update(cfg.pipeline, {"max_frames": frames})
     if odometry is not None:
         cfg.frontend.odometry.kind = _odometry_kind(odometry)  # type: ignore[assignment]
     if no_lidar_loops:
@@ -420,7 +436,10 @@ def optimize(
             data = data.without_estimate()
         stamps = g2o_io.read_times(times, data) if times is not None else None
         gt_poses = g2o_io.read_ground_truth(gt, data, stamps) if gt is not None else None
-        true_pairs = g2o_io.read_edge_pairs(gt_edges) if gt_edges is not None else None
+        true_pairs: set[tuple[int, int]] | None = None
+        if gt_edges is not None:  # checked before the solve: an odometry-only list would call every loop false
+            true_pairs = g2o_io.read_edge_pairs(gt_edges)
+            g2o_io.check_loop_truth(gt_edges, true_pairs, data)
         solver = "auto" if batch is None else "batch" if batch else "isam2"
         settings = OptimizerSettings(kernel=kernel, gnc=gnc, solver=solver, verify=check)
         if not refine:

@@ -83,6 +83,9 @@ class PipelineConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
     use_lidar_for_loops: bool = Field(default=True, description="Register loops by ICP when scans exist.")
+    max_frames: int | None = Field(
+        default=None, ge=1, description="Stop after this many frames of the log (`run --frames`); None: all of it."
+    )
     keyframe_image_pixels: int | None = Field(
         default=76800, ge=1024,
         description="A keyframe without a scan keeps grey copies of its camera images for two-view loop "

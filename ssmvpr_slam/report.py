@@ -13,7 +13,7 @@ from __future__ import annotations
 import copy
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -104,11 +104,16 @@ class PriorMapReport:
     anchored: bool
     loops_correct: int | None = None  # judged: in graph, ground truth on both ends
     precision: float | None = None
+    ate_rmse: float | None = None
+    """ATE of the map's own poses against its ground truth: a session corrected onto the map
+    carries the map's error, so the run's optimised ATE is read beside this."""
 
     def to_dict(self) -> dict[str, Any]:
         out = dict(self.__dict__)
         if self.loops_correct is None:
             del out["loops_correct"], out["precision"]
+        if self.ate_rmse is None:
+            del out["ate_rmse"]
         return out
 
 
@@ -166,7 +171,11 @@ def evaluate(
     if len(gt_list) != len(kfs):
         raise ValueError(f"ground_truth: {len(gt_list)} poses for {len(kfs)} keyframes")
     covered = np.array([g is not None and bool(np.isfinite(g).all()) for g in gt_list], bool)
-    prior = _prior_map_report(result, gt_list, config.loops) if result.prior_map is not None else None
+    prior = (
+        _prior_map_report(result, gt_list, config.loops, config.trajectory.alignment)
+        if result.prior_map is not None
+        else None
+    )
     report = RunReport(len(kfs), int(covered.sum()), prior_map=prior)
     if not covered.any():
         return report
@@ -269,7 +278,9 @@ def _stream_pr_auc(
             pr_auc(precision_recall_curve(seq_scores, correct, has_truth)))  # fmt: skip
 
 
-def _prior_map_report(result: RunResult, gt: list[np.ndarray | None], cfg: LoopMetricsConfig) -> PriorMapReport:
+def _prior_map_report(
+    result: RunResult, gt: list[np.ndarray | None], cfg: LoopMetricsConfig, alignment: Literal["se3", "sim3", "none"]
+) -> PriorMapReport:
     prior = result.prior_map
     assert prior is not None
     loops = [r for r in result.loops if r.proposal.prior_map]
@@ -283,9 +294,14 @@ def _prior_map_report(result: RunResult, gt: list[np.ndarray | None], cfg: LoopM
         distances = [np.linalg.norm(gt[r.proposal.query_id][:3, 3] - prior.gt_poses[r.proposal.match_place][:3, 3])  # type: ignore[index]
                      for r in judged]  # fmt: skip
         correct = int(sum(d <= cfg.correct_radius for d in distances))
+    both = sorted(set(prior.poses) & set(prior.gt_poses))
+    map_ate = None
+    if len(both) >= 3:
+        gt_poses, map_poses = (np.array([d[p] for p in both]) for d in (prior.gt_poses, prior.poses))
+        map_ate = ate(gt_poses, map_poses, alignment).stats.rmse
     return PriorMapReport(
         places=len(prior), places_with_pose=len(prior.poses), places_with_scan=len(prior.scans),
         loops_proposed=len(loops), loops_gate_accepted=sum(r.proposal.accepted for r in loops),
         loops_in_graph=sum(r.in_graph for r in loops), anchored=result.anchored,
-        loops_correct=correct, precision=None if correct is None else correct / len(judged),
+        loops_correct=correct, precision=None if correct is None else correct / len(judged), ate_rmse=map_ate,
     )  # fmt: skip

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from itertools import islice
 from pathlib import Path
 from typing import Any
 
@@ -55,7 +56,7 @@ def run_log(
     source = open_camera_source(log, config, resume)
     prior = PriorMap.load(prior_map, config.vpr) if prior_map is not None else None  # before the slow part
     pipeline = SlamPipeline.around(build_system(config, prior))
-    frames = iter(source)
+    frames = islice(source, config.pipeline.max_frames)  # a resume's replay counts towards the limit
     if resume is not None:
         restore_from_checkpoint(pipeline, resume, log, frames, console)
     run_folder = RunFolder(config.results.out_dir, name, resume.run_folder if resume else None)
@@ -66,7 +67,7 @@ def run_log(
     report = evaluate(result, config.evaluation)
     extra = run_description(log, source, config, prior_map, resume)
     folder, metrics = publish_results(run_folder, result, report, config, extra, name)
-    print_summary(console, metrics, result, folder)
+    print_summary(console, metrics, result, folder, name)
     raise_if_failed(pipeline, folder)
     return folder, metrics
 
@@ -101,7 +102,7 @@ def build_odometry(config: SlamConfig) -> Odometry:
 def stream_frames(pipeline: SlamPipeline, frames: Iterator[Frame], source: Source, checkpoints: Checkpointer,
                   console: Console) -> None:  # fmt: skip
     """Every frame through the pipeline, with a progress bar and a checkpoint when one is due."""
-    with progress_bar(console, source) as show:
+    with progress_bar(console, source, pipeline.config.pipeline.max_frames) as show:
 
         def after_frame(state: RunState) -> None:
             show(state)
@@ -138,9 +139,11 @@ def restore_from_checkpoint(pipeline: SlamPipeline, checkpoint: Checkpoint, log:
 
 
 @contextmanager
-def progress_bar(console: Console, source: Source) -> Iterator[Callable[[RunState], None]]:
+def progress_bar(console: Console, source: Source, limit: int | None = None) -> Iterator[Callable[[RunState], None]]:
     """A rich progress bar; yields the per-frame update."""
     total = getattr(source, "length", None)
+    if limit is not None:
+        total = limit if total is None else min(total, limit)
     columns = [TextColumn("[bold]SLAM"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                TextColumn("{task.fields[status]}")]  # fmt: skip
     with Progress(*columns, console=console) as progress:
@@ -175,8 +178,10 @@ def publish_results(run_folder: RunFolder, result: RunResult, report: RunReport,
     return staged.final, metrics
 
 
-def print_summary(console: Console, metrics: dict[str, Any], result: RunResult, folder: Path) -> None:
-    console.print(summary_table(metrics))
+def print_summary(
+    console: Console, metrics: dict[str, Any], result: RunResult, folder: Path, name: str = "run"
+) -> None:
+    console.print(summary_table(metrics, f"ssmvpr-slam {name}"))
     if result.ending.interrupted:
         console.print("[yellow]stopped early on request: results cover the frames processed so far[/yellow]")
     console.print(f"results in [bold]{escape(str(folder))}[/bold]")
@@ -198,8 +203,8 @@ def _stats(source: object) -> dict[str, Any]:
     return {"frames_yielded": stats.frames_yielded, "skipped": dict(stats.skipped), "notes": dict(stats.notes)}
 
 
-def summary_table(metrics: dict[str, Any]) -> Table:
-    table = Table(title="ssmvpr-slam run")
+def summary_table(metrics: dict[str, Any], title: str = "ssmvpr-slam run") -> Table:
+    table = Table(title=title)
     table.add_column("metric")
     table.add_column("value", justify="right")
     table.add_row("frames / keyframes", f"{metrics['frames']} / {metrics['keyframes']}")
@@ -216,6 +221,14 @@ def summary_table(metrics: dict[str, Any]) -> Table:
         if loops.get("rear_camera_keyframes"):  # the rear camera is what recognises reverse revisits
             by_camera = loops["in_graph_by_camera"]
             table.add_row("loops in graph: front / rear camera", f"{by_camera['front']} / {by_camera['rear']}")
+    prior = metrics.get("prior_map_loops")
+    if prior:  # `--map`: loops to the earlier sessions' places are counted apart from the session's own
+        table.add_row("prior-map loops proposed / gate-accepted / in graph",
+                      f"{prior['loops_proposed']} / {prior['loops_gate_accepted']} / {prior['loops_in_graph']}")  # fmt: skip
+        if "precision" in prior:
+            table.add_row("prior-map loop precision", f"{prior['precision']:.3f}")
+        if "ate_rmse" in prior:  # a session corrected onto the map inherits the map's own error
+            table.add_row("prior map's own ATE RMSE", f"{prior['ate_rmse']:.2f} m")
     if "ground_truth_coverage" in metrics:  # evaluated on the keyframes with ground truth only
         covered, total = metrics["ground_truth_keyframes"], metrics["keyframes"]
         table.add_row(
@@ -224,7 +237,8 @@ def summary_table(metrics: dict[str, Any]) -> Table:
     if "ate_odometry" in metrics:
         table.add_row("ATE RMSE odometry", f"{metrics['ate_odometry']['rmse']:.2f} m")
         table.add_row("ATE RMSE optimised", f"{metrics['ate_optimised']['rmse']:.2f} m")
-        table.add_row("optimised / odometry", f"{metrics['ate_ratio']:.3f}")
+        ratio = metrics.get("ate_ratio")  # None when the odometry's ATE is 0 (it followed the ground truth)
+        table.add_row("optimised / odometry", "n/a" if ratio is None else f"{ratio:.3f}")
     if "stream_pr_auc" in metrics:
         table.add_row("stream PR-AUC", f"{metrics['stream_pr_auc']:.3f}")
     latency = metrics.get("latency_per_keyframe", {}).get("total")

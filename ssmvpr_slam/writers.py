@@ -45,7 +45,7 @@ def write_results(
     """Every output of a finished run into `folder`; returns what metrics.json holds."""
     write_trajectories(folder, result)
     write_pose_graph(folder, result)
-    write_loop_csv(folder / "loop_closures.csv", result.keyframes, result.loops)
+    write_loop_csv(folder / "loop_closures.csv", result.keyframes, result.loops, prior_gt(result))
     write_config(folder, config)
     if config.results.save_database:
         write_database(folder / "database", result, config)
@@ -88,16 +88,25 @@ def write_config(folder: Path, config: SlamConfig) -> None:
     atomic_write_text(folder / "config.yaml", dump_config(config))
 
 
+def prior_gt(result: RunResult) -> dict[int, np.ndarray]:
+    """Ground truth of the prior map's places (by place index), where its sessions had it."""
+    return {} if result.prior_map is None else result.prior_map.gt_poses
+
+
 def write_loop_csv(
-    path: Path, keyframes: tuple[Keyframe, ...] | list[Keyframe], loops: tuple[LoopRecord, ...] | list[LoopRecord]
+    path: Path,
+    keyframes: tuple[Keyframe, ...] | list[Keyframe],
+    loops: tuple[LoopRecord, ...] | list[LoopRecord],
+    prior_gt: dict[int, np.ndarray] | None = None,
 ) -> None:
-    """One row per proposal; `in_graph` is whether its factor is in the graph at the end (GNC may drop it)."""
+    """One row per proposal; `in_graph` is whether its factor is in the graph at the end (GNC may drop it).
+    prior_gt: the prior map's ground truth by place, for the distance of loops to it."""
     buffer = io.StringIO()
     writer = csv.writer(buffer)
     writer.writerow(LOOP_COLUMNS)
     for record in loops:
         p, reg = record.proposal, record.registration
-        distance = _gt_distance(keyframes, record)
+        distance = _gt_distance(keyframes, record, prior_gt or {})
         writer.writerow([
             p.query_id, p.match_id, f"{p.score:.4f}", f"{p.stage1_score:.4f}", p.column_shift, f"{p.yaw_guess:.4f}",
             int(p.accepted), p.reason, p.camera, p.direction or "",
@@ -110,11 +119,16 @@ def write_loop_csv(
     atomic_write_text(path, buffer.getvalue())
 
 
-def _gt_distance(keyframes: tuple[Keyframe, ...] | list[Keyframe], record: LoopRecord) -> float | None:
+def _gt_distance(
+    keyframes: tuple[Keyframe, ...] | list[Keyframe], record: LoopRecord, prior_gt: dict[int, np.ndarray]
+) -> float | None:
     p = record.proposal
-    if p.prior_map or p.match_id >= len(keyframes):
+    if p.prior_map:
+        q, m = keyframes[p.query_id].gt_pose, prior_gt.get(p.match_place)
+    elif p.match_id >= len(keyframes):
         return None
-    q, m = keyframes[p.query_id].gt_pose, keyframes[p.match_id].gt_pose
+    else:
+        q, m = keyframes[p.query_id].gt_pose, keyframes[p.match_id].gt_pose
     distance = None if q is None or m is None else float(np.linalg.norm(q[:3, 3] - m[:3, 3]))
     return distance if distance is not None and np.isfinite(distance) else None  # NaN: no ground truth there
 

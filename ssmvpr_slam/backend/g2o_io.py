@@ -424,6 +424,21 @@ def read_edge_pairs(path: str | os.PathLike[str]) -> set[tuple[int, int]]:
     return pairs
 
 
+def check_loop_truth(path: str | os.PathLike[str], pairs: set[tuple[int, int]], graph: PoseGraphData) -> None:
+    """Refuse an edge truth that lists none of the graph's loops: it is an odometry list (Vertigo's
+    ring ``edges.txt``) or another graph's, and would silently count every loop as false.
+    A truth listing some of the loops is the real use: the loops it leaves out are the false ones."""
+    loops = {(min(e.i, e.j), max(e.i, e.j)) for e in graph.loops}
+    if not loops or loops & pairs:
+        return
+    listed = sum(1 for i, j in pairs if j - i != 1)
+    what = "all odometry (i, i+1)" if listed == 0 else f"{listed} of them loops"
+    raise PoseGraphFileError(
+        f"--gt-edges {path}: {len(pairs)} edges, {what}: none of the graph's {len(loops)} loop edges; "
+        f"pass a file that lists the true loops (e.g. the ground-truth .g2o) or use --gt with --gt-radius"
+    )
+
+
 def read_ground_truth(
     path: str | os.PathLike[str], graph: PoseGraphData, times: np.ndarray | None = None
 ) -> np.ndarray:

@@ -23,7 +23,7 @@ from loopclosure.database import PlaceDatabase, PlaceInfo
 from loopclosure.device_search import check_search_device
 from loopclosure.encoder import Encoder, PlaceCodes, evenly_spaced
 from loopclosure.frame_correlation import FrameCorrelationPrior
-from loopclosure.ground_truth import GroundTruth, correct_mask, load_ground_truth
+from loopclosure.ground_truth import GroundTruth, correct_mask, load_ground_truth, truth_windows
 from loopclosure.images import list_images, read_image
 from loopclosure.metrics import precision_recall_curve, recall_at_n, summarize
 from loopclosure.pca import Codebooks
@@ -159,6 +159,31 @@ def recognise_all(
     return out
 
 
+def window_warning(gt: GroundTruth, tolerance: int) -> str | None:
+    """One line when the tolerance widens a file's own windows (Corridor's ±2 plus ±2 counts ±4)."""
+    windows = truth_windows(gt)
+    if not windows.windowed or tolerance == 0:
+        return None
+    return (
+        f"ground truth {gt.source} already lists a window of consecutive references per query "
+        f"({windows.queries} of {windows.with_truth} queries, median {windows.median_refs:g} references); "
+        f"tolerance {tolerance} widens each window by ±{tolerance} frames; --tolerance 0 uses the file as it is"
+    )
+
+
+def windows_record(gt: GroundTruth, tolerance: int) -> dict[str, Any] | None:
+    """metrics.json's account of a windowed truth, so a reader sees what the tolerance was added to."""
+    windows = truth_windows(gt)
+    if not windows.windowed:
+        return None
+    return {
+        "queries": windows.queries,
+        "of": windows.with_truth,
+        "median_refs": windows.median_refs,
+        "widened_by": tolerance,
+    }
+
+
 def compute_metrics(outcome: QueryOutcome, gt: GroundTruth, config: SlamConfig) -> dict[str, Any]:
     tol = config.vpr_eval.tolerance
     n_cand = outcome.candidates.shape[1]
@@ -167,6 +192,7 @@ def compute_metrics(outcome: QueryOutcome, gt: GroundTruth, config: SlamConfig) 
     stage1 = summarize(outcome.stage1_score, outcome.stage1_match, gt, tol, outcome.candidates, ns)
     metrics: dict[str, Any] = {
         "tolerance": tol,
+        "ground_truth_windows": windows_record(gt, tol),  # null: one reference (or scattered ones) per query
         "n_query": gt.n_query,
         "n_ref": gt.n_ref,
         "pr_auc": stage2["pr_auc"],
@@ -299,6 +325,9 @@ def run_vpr_eval(
     check_search_device(config.vpr.filtering)  # before minutes of encoding
     ref_files, query_files = list_images(ref_dir), list_images(query_dir)
     gt = load_ground_truth(ground_truth, ref_files, query_files)
+    warning = window_warning(gt, config.vpr_eval.tolerance)
+    if warning is not None:  # before minutes of encoding, so the user can stop and rerun
+        console.print(f"[bold yellow]warning:[/bold yellow] {escape(warning)}", highlight=False, soft_wrap=True)
     encoder = Encoder(config.vpr, load_backbone(config.vpr.backbone, progress=True))
     if codebooks_path is not None:
         encoder.codebooks = Codebooks.load(codebooks_path)

@@ -262,9 +262,13 @@ def test_load_never_runs_code_from_a_weights_file(tmp_path):
     marker = tmp_path / "pwned"
     path = tmp_path / "evil.pth"
     torch.save({"features.0.weight": _Evil(marker)}, path)
-    with pytest.raises(W.InvalidWeightsFileError, match="cannot be read"):
+    with pytest.raises(W.InvalidWeightsFileError, match="cannot be read") as err:
         W.load_state_dict(path)
     assert not marker.exists()
+    # one line, with the unpickler's reason and without torch's advice to load with weights_only=False
+    message = str(err.value)
+    assert "\n" not in message and "WeightsUnpickler" not in message and "weights_only` set to `False" not in message
+    assert "UnpicklingError: " in message and "posix" in message  # what it refused
 
 
 # ---------------------------------------------------------------------------------------------

@@ -255,3 +255,21 @@ def test_simulate_bad_sim_config(tmp_path: Path, text: str, fragment: str) -> No
     out = tmp_path / "sim.mcap"
     assert_user_error(invoke("simulate", "--sim-config", path, "--out", out), str(path), fragment)
     assert not out.exists()
+
+
+def test_a_full_disk_is_one_line_naming_the_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """What the machine refuses (ENOSPC here, as a full disk gave from every command) is an error
+    line with its errno and file, not a traceback; the earlier file stays as it was."""
+    import errno
+
+    from ssmvpr_slam import runner
+
+    out = tmp_path / "sim.mcap"
+    out.write_bytes(b"an earlier log")
+
+    def full_disk(config, path, console):  # noqa: ANN001, ANN202, ARG001
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(runner, "simulate_to_mcap", full_disk)
+    assert_user_error(invoke("simulate", "--frames", 2, "--out", out), "No space left on device", str(out))
+    assert out.read_bytes() == b"an earlier log"

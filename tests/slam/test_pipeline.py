@@ -43,6 +43,7 @@ from loopclosure.backbone import load_backbone
 from loopclosure.errors import LoopClosureInputError
 from ssmvpr_slam.backend.noise import sigmas6
 from ssmvpr_slam.config import SlamConfig, load_config
+from ssmvpr_slam.evaluation.metrics import ate
 from ssmvpr_slam.evaluation.trajectory_io import read_kitti, read_tum
 from ssmvpr_slam.pipeline import SlamPipeline
 from ssmvpr_slam.prior_map import PriorMap
@@ -500,8 +501,15 @@ def test_a_second_session_closes_loops_against_the_prior_map(second_logged: Run)
     assert len(second_logged.pipeline.detector.database) == 2 * n
     assert prior["anchored"] and prior["loops_in_graph"] >= 20
     assert prior["precision"] == 1.0
+    # the map's own poses came from a drifting session: their error is reported beside the run's
+    first_map = PriorMap.load(second_logged.pipeline.prior_map.folder, second_logged.config.vpr)
+    map_ate = ate(np.array(list(first_map.gt_poses.values())), np.array(list(first_map.poses.values())))
+    assert prior["ate_rmse"] == pytest.approx(map_ate.stats.rmse) and prior["ate_rmse"] > 0.0
     graph = [r for r in second_logged.pipeline.state.loops if r.proposal.prior_map and r.in_graph]
     assert all(r.registration.method == "yaw_prior" for r in graph)  # no scans in this map
+    rows = list(csv.DictReader((second_logged.folder / "loop_closures.csv").open()))
+    to_map = [r for r in rows if r["prior_map"] == "1" and r["in_graph"] == "1"]
+    assert to_map and all(float(r["gt_distance_m"]) <= 10.0 for r in to_map)  # the map's ground truth
     # map and session loops together correct the new (differently drifting) odometry
     assert second_logged.metrics["ate_optimised"]["rmse"] <= 0.5 * second_logged.metrics["ate_odometry"]["rmse"]
     # the grown map holds both sessions; the new places are posed in the first session's frame
