@@ -186,9 +186,9 @@ def simulate(
     """Render a loopy city traverse (camera, LiDAR, ground truth, drifting odometry) to MCAP."""
     from frontend.simulation.config import SimulationConfig
     from ssmvpr_slam.results import output_file
-    from ssmvpr_slam.runner import demo_frames_config, simulate_to_mcap
+    from ssmvpr_slam.runner import simulate_to_mcap
 
-    cfg = demo_frames_config(_config(config))
+    cfg = _config(config)
     if sim_config is not None:
         cfg.simulation = SimulationConfig.from_yaml(sim_config)
     updates = {k: v for k, v in {"max_frames": frames, "seed": seed}.items() if v is not None}
@@ -275,9 +275,9 @@ def demo(
 ) -> None:
     """Simulate the default loopy traverse, run it, evaluate, and print before/after."""
     from ssmvpr_slam.results import output_dir
-    from ssmvpr_slam.runner import demo_frames_config, run_log, simulate_to_mcap
+    from ssmvpr_slam.runner import run_log, simulate_to_mcap
 
-    cfg = demo_frames_config(_config(config, weights, device, out))
+    cfg = _config(config, weights, device, out)
     if frames is not None:
         cfg.simulation = _validated_update(cfg.simulation, {"max_frames": frames})
     cfg.frontend.odometry.kind = _odometry_kind(odometry)  # type: ignore[assignment]

@@ -265,13 +265,4 @@ def simulate_to_mcap(config: SlamConfig, out: Path, console: Console) -> Path:
     return out
 
 
-def demo_frames_config(config: SlamConfig) -> SlamConfig:
-    """The demo's traverse: the simulator's default loopy city drive."""
-    from frontend.simulation.simulator import default_demo_config
-
-    if config.simulation == type(config.simulation)():
-        config.simulation = default_demo_config()
-    return config
-
-
-__all__ = ["run_log", "simulate_to_mcap", "demo_frames_config"]
+__all__ = ["run_log", "simulate_to_mcap"]

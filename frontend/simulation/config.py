@@ -370,7 +370,7 @@ def _default_appearances() -> dict[str, AppearanceConfig]:
 class SimulationConfig(_Model):
     """A whole simulated traverse."""
 
-    seed: int = 0
+    seed: int = Field(0, ge=0, le=2**32 - 1, description="of every random stream (0 .. 2**32 - 1)")
     frame_rate_hz: float = Field(5.0, gt=0.0)
     start_time_s: float = Field(0.0, ge=0.0)
     max_frames: int | None = Field(None, ge=1, description="stop early")
@@ -382,7 +382,10 @@ class SimulationConfig(_Model):
     traffic: TrafficConfig = TrafficConfig()
     appearances: dict[str, AppearanceConfig] = Field(default_factory=_default_appearances)
     appearance_schedule: list[str] = Field(
-        default=["day"], min_length=1, description="appearance per pass (loop); the last one repeats"
+        default=["day", "day", "dusk"],
+        min_length=1,
+        description="appearance per pass (loop); the last one repeats. The default is the demo's: the demo city's "
+        "loop A twice by day, then loop B at dusk",
     )
 
     @model_validator(mode="after")

@@ -218,3 +218,21 @@ def test_pyproject_ships_every_package_and_the_presets() -> None:
     assert tool["package-dir"] == {"ssmvpr_slam.presets": "configs"}
     assert tool["package-data"]["ssmvpr_slam.presets"] == ["*.yaml"]
     assert (root / "configs" / "default.yaml").is_file()
+
+
+def test_the_simulated_traverse_is_the_demos_whatever_else_changes(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """`simulate`, `demo` and `config` show one traverse: a seed changed by a file or an SSMVPR_
+    variable used to drop the demo's dusk lap (its schedule lived outside SimulationConfig)."""
+    from frontend.simulation import SimulationConfig, default_demo_config
+
+    demo = ["day", "day", "dusk"]
+    assert load_config().simulation == default_demo_config() == SimulationConfig()
+    assert load_config().simulation.appearance_schedule == demo
+    assert load_config(overrides={"simulation": {"seed": 2}}).simulation.appearance_schedule == demo
+    own = tmp_path / "seed2.yaml"
+    own.write_text("simulation: {seed: 2}\n")
+    assert load_config(own).simulation.appearance_schedule == demo
+    monkeypatch.setenv("SSMVPR_SIMULATION__SEED", "2")
+    assert load_config().simulation.seed == 2 and load_config().simulation.appearance_schedule == demo
