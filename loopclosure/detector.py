@@ -192,7 +192,11 @@ class LoopDetector:
     def _advance(self, position: np.ndarray | None) -> None:
         if position is None:
             return
-        position = np.asarray(position, dtype=np.float64).reshape(-1)[:3]
+        position = np.asarray(position, dtype=np.float64)
+        if position.shape not in ((2,), (3,)):  # a 4x4 pose would have been read row by row
+            raise LoopClosureInputError(
+                f"keyframe position must be a 2- or 3-vector in metres, got shape {position.shape}"
+            )
         if not np.isfinite(position).all():
             raise LoopClosureInputError(f"keyframe position is not finite: {position}")
         if self._last_position is not None:

@@ -39,6 +39,7 @@ from typing import Any, Literal
 import numpy as np
 
 from loopclosure.config import SequenceMatchConfig
+from loopclosure.errors import LoopClosureInputError
 
 Direction = Literal["forward", "reverse"]
 Scorer = Callable[[Any, np.ndarray], np.ndarray]
@@ -206,8 +207,14 @@ def match_sequences(
     candidates[q]: the stage-II candidates of query q (default: every place it may match);
     the same selection as the streaming matcher (best K, then the continued sequences)."""
     s = np.asarray(scores)
+    if s.ndim != 2:
+        raise LoopClosureInputError(f"scores must be a (queries, places) matrix, got shape {s.shape}")
     n_query, n_places = s.shape
     limits = np.full(n_query, n_places, np.int64) if limits is None else np.asarray(limits, np.int64)
+    if limits.shape != (n_query,) or (limits < 0).any() or (limits > n_places).any():
+        raise LoopClosureInputError(
+            f"limits must be {n_query} place counts in 0..{n_places} (one per query), got {limits.tolist()}"
+        )
     lines = sequence_score_matrix(s, config, limits)
     out: list[SequenceMatch] = []
     previous: dict[str, np.ndarray] | None = None

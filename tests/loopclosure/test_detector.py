@@ -238,6 +238,16 @@ def test_position_none_does_not_advance_the_distance(codebooks: str) -> None:
     assert det.process(scene(2), 10, None) is None  # no position: still 0 m travelled
 
 
+@pytest.mark.parametrize("bad", [np.eye(4), np.zeros(4), np.zeros((1, 3)), np.zeros(1)])
+def test_a_position_of_the_wrong_shape_is_an_input_error(bad: np.ndarray, codebooks: str) -> None:
+    """A 4x4 pose passed as the position was read row by row: its first row became the position."""
+    det = detector(distance=10.0, codebooks=codebooks)
+    with pytest.raises(LoopClosureInputError, match=rf"2- or 3-vector in metres, got shape \({bad.shape[0]},"):
+        det.process(scene(50), 0, bad)
+    assert det.database is None or len(det.database) == 0  # nothing half-added
+    det.process(scene(51), 0, np.array([1.0, 2.0]))  # a planar position is fine
+
+
 @pytest.mark.parametrize("bad", [np.nan, np.inf])
 def test_non_finite_position_is_an_input_error(bad: float, codebooks: str) -> None:
     det = detector(distance=10.0, codebooks=codebooks)

@@ -172,6 +172,10 @@ def test_query_one_place_at_a_time(real):
     config, db, _, query_codes, *_ = real
     with pytest.raises(LoopClosureInputError, match="one place at a time, got 2"):
         Recognizer(config, db).query(query_codes[0:2])
+    stage1 = query_codes.stage1[0:1].copy()
+    stage1[0, 3, 0] = np.nan  # reached stage I's neighbour ranking as an IndexError
+    with pytest.raises(LoopClosureInputError, match="query codes contain NaN or inf"):
+        Recognizer(config, db).query(PlaceCodes(stage1, query_codes.stage2[0:1]))
 
 
 def test_empty_database_and_everything_excluded(real):

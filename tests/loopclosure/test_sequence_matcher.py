@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from loopclosure.config import SequenceMatchConfig
+from loopclosure.errors import LoopClosureInputError
 from loopclosure.metrics import pr_auc, precision_recall_curve
 from loopclosure.sequence_matcher import SequenceMatch, SequenceMatcher, match_sequences, offsets
 
@@ -84,6 +85,15 @@ def auc(
 
 
 # --------------------------------------------------------------------------------- definition
+
+
+def test_scores_and_limits_of_the_wrong_shape_are_input_errors() -> None:
+    with pytest.raises(LoopClosureInputError, match=r"\(queries, places\) matrix, got shape \(5,\)"):
+        match_sequences(np.zeros(5), cfg(length=3))
+    with pytest.raises(LoopClosureInputError, match="limits must be 4 place counts in 0..6"):
+        match_sequences(np.zeros((4, 6)), cfg(length=3), limits=np.array([1, 2, 3, 7]))
+    with pytest.raises(LoopClosureInputError, match="limits must be 4 place counts"):
+        match_sequences(np.zeros((4, 6)), cfg(length=3), limits=np.array([1, 2]))
 
 
 def test_forward_revisit_scores_the_mean_of_its_diagonal() -> None:
