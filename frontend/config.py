@@ -150,7 +150,7 @@ class DriftConfig(_Model):
     """
 
     enabled: bool = False
-    seed: int = 0
+    seed: int = Field(0, ge=0, le=2**32 - 1, description="of numpy's generator (0 .. 2**32 - 1)")
     translation_scale_error: float = Field(0.0, gt=-1.0)
     yaw_bias_per_m: float = Field(0.0, description="rad per metre travelled")
     yaw_axis: Literal["x", "y", "z"] = Field(

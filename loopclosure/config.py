@@ -66,7 +66,7 @@ class PCAConfig(_Strict):
     )
     max_fit_samples: int = Field(default=40000, ge=1, description="Cube vectors kept (seeded subsample) for fitting.")
     max_fit_images: int = Field(default=300, ge=1, description="Images whose feature maps are held for fitting.")
-    seed: int = 0
+    seed: int = Field(default=0, ge=0, le=2**32 - 1, description="Of the subsample and of sklearn (0 .. 2**32 - 1).")
 
 
 class FilteringConfig(_Strict):

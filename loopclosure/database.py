@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import json
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
 from typing import Any, BinaryIO
@@ -58,6 +58,18 @@ class PlaceInfo:
     timestamp: float = float("nan")
     name: str = ""
     extra: dict[str, Any] = field(default_factory=dict)
+
+
+def _plain_info(info: PlaceInfo) -> PlaceInfo:
+    """`info` with a plain int id, float time and str name (numpy scalars made plain, JSON
+    writes them), or an error now: a saved map that `load` refuses would be found too late."""
+    if not isinstance(info.frame_id, (int, np.integer)) or isinstance(info.frame_id, bool):
+        raise LoopClosureInputError(f"place info frame_id must be an integer, got {info.frame_id!r}")
+    if not isinstance(info.timestamp, (int, float, np.integer, np.floating)) or isinstance(info.timestamp, bool):
+        raise LoopClosureInputError(f"place info timestamp must be a number, got {info.timestamp!r}")
+    if not isinstance(info.name, str):
+        raise LoopClosureInputError(f"place info name must be a string, got {info.name!r}")
+    return replace(info, frame_id=int(info.frame_id), timestamp=float(info.timestamp))
 
 
 # ---- row stores: RAM (capacity doubling) or a .npy file appended in place ---------------------
@@ -316,9 +328,10 @@ class PlaceDatabase:
         first = len(self)
         if infos is None:
             infos = [PlaceInfo(frame_id=first + i) for i in range(len(codes))]
+        self._check_codes(codes)
         if len(infos) != len(codes):
             raise LoopClosureInputError(f"{len(codes)} codes but {len(infos)} place infos")
-        self._check_codes(codes)
+        infos = [_plain_info(info) for info in infos]  # what save() writes and load() checks
         if not self._codes:
             self._codes = {
                 "stage1": _Codes.empty(
@@ -364,8 +377,19 @@ class PlaceDatabase:
             raise LoopClosureInputError(
                 f"stage-II codes must be (B, gh, gw, {self.codebooks.stage2.dim}), got {codes.stage2.shape}"
             )
+        if len(codes.stage1) != len(codes.stage2):  # one place is one row of each
+            raise LoopClosureInputError(
+                f"{len(codes.stage1)} stage-I but {len(codes.stage2)} stage-II codes: one of each per place"
+            )
         if not (np.isfinite(codes.stage1).all() and np.isfinite(codes.stage2).all()):
             raise LoopClosureInputError("place codes contain NaN or inf")
+        for stage, dtype in (("stage1", self.config.stage1_dtype), ("stage2", self.config.stage2_dtype)):
+            values = getattr(codes, stage)
+            if dtype == "float16" and values.size and np.abs(values).max() > np.finfo(np.float16).max:
+                raise LoopClosureInputError(
+                    f"{stage} codes reach {np.abs(values).max():.3g}, beyond float16's range: "
+                    f"store them as float32 (vpr.database.{stage}_dtype)"
+                )
 
     # ---- stage I -----------------------------------------------------------------------
     def configure_search(self, filtering: FilteringConfig) -> None:
@@ -628,6 +652,13 @@ def _read_places(path: Path) -> list[PlaceInfo]:
             info = None
         if info is None or type(info.frame_id) is not int or not isinstance(info.extra, dict):
             raise LoopClosureInputError(f"{path}: place {index} is not a place record ({str(place)[:80]})")
+        if type(info.timestamp) not in (int, float):  # NaN: a place without a time (vpr-eval's)
+            raise LoopClosureInputError(
+                f"{path}: place {index}: timestamp must be a number, got {info.timestamp!r:.60}"
+            )
+        if not isinstance(info.name, str):
+            raise LoopClosureInputError(f"{path}: place {index}: name must be a string, got {info.name!r:.60}")
+        info.timestamp = float(info.timestamp)
         out.append(info)
     return out
 

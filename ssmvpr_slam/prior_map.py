@@ -24,8 +24,13 @@ from loopclosure.config import VPRConfig
 from loopclosure.database import MANIFEST, PlaceDatabase
 from loopclosure.errors import LoopClosureInputError
 from ssmvpr_common.atomic import atomic_write_bytes
+from ssmvpr_common.poses import pose_problem
 
 SCANS_FILE = "scans.npz"
+POSE_TOLERANCE = {"map_pose": 1e-4, "gt_pose": 1e-3}
+"""max |R^T R - I| and |det R - 1| of a place's saved poses: a map pose must pass the pose graph's default
+`rotation_tolerance` to anchor a loop (a run saves it orthonormal to ~1e-12); ground truth is held to what the
+sources accept (`PoseFileConfig.rotation_tolerance`)."""
 
 log = logging.getLogger(__name__)
 
@@ -92,7 +97,7 @@ class PriorMap:
                 value = info.extra.get(key)
                 if value is not None:
                     pose = _pose_of(value, folder / "places.json", index, key)
-                    if np.all(np.isfinite(pose)):  # NaN marks a place without one
+                    if not np.isnan(pose).all():  # all NaN marks a place without one
                         target[index] = pose
         if len(database) and not poses:  # nothing to anchor to; its codebooks would replace the run's
             raise LoopClosureInputError(
@@ -142,7 +147,16 @@ def _pose_of(value: Any, path: Path, index: int, key: str) -> np.ndarray:
     if pose is None or pose.size != 16:
         shown = f"{pose.size} values" if pose is not None else repr(value)[:60]
         raise LoopClosureInputError(f"{path}: place {index}: {key} must be 16 numbers (a 4x4 pose), got {shown}")
-    return pose.reshape(4, 4)
+    pose = pose.reshape(4, 4)
+    if np.isnan(pose).all():  # a place without one
+        return pose
+    tolerance = POSE_TOLERANCE[key]
+    problem = pose_problem(pose, tolerance)
+    if problem is None and abs(np.linalg.det(pose[:3, :3]) - 1.0) > tolerance:
+        problem = f"rotation determinant is {np.linalg.det(pose[:3, :3]):.6g}, not 1"
+    if problem is not None:
+        raise LoopClosureInputError(f"{path}: place {index}: {key} is not a rigid pose ({problem})")
+    return pose
 
 
 def _load_scans(path: Path, num_places: int) -> dict[int, np.ndarray]:

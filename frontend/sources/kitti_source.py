@@ -29,12 +29,15 @@ from frontend.sources.base import Source
 from frontend.sources.clock import StreamClock
 from frontend.sources.images import read_rgb
 from ssmvpr_common.images import image_files
-from ssmvpr_common.poses import KITTI_COLUMNS, pose_from_kitti_row
+from ssmvpr_common.poses import KITTI_COLUMNS, pose_from_kitti_row, pose_problem
 
 log = logging.getLogger("frontend.sources.kitti")
 
 KITTI_POINT_COLUMNS = 4  # x, y, z, intensity
 CAMERA_FOLDERS = ("image_2", "image_0")
+CALIB_TOLERANCE = 1e-3
+"""max |R^T R - I| and |det R - 1| of calib.txt's Tr: KITTI prints it to 12 digits (its rotations are
+orthonormal to ~1e-7); a Tr typed in by hand with 4 decimals still passes."""
 
 
 def read_velodyne(path: Path) -> np.ndarray:
@@ -48,10 +51,19 @@ def read_velodyne(path: Path) -> np.ndarray:
 
 
 def read_calib_tr(path: Path) -> np.ndarray | None:
-    """4x4 LiDAR->camera-0 transform from the ``Tr:`` line of ``calib.txt`` (None if absent)."""
+    """4x4 LiDAR->camera-0 transform from the ``Tr:`` line of ``calib.txt`` (None if absent).
+
+    Tr must be rigid: its rotation orthonormal with determinant +1 within `CALIB_TOLERANCE`
+    (a scaled or singular Tr would scale or break the ground truth moved by it)."""
     if not path.is_file():
         return None
-    for lineno, line in enumerate(path.read_text().splitlines(), start=1):
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise FrontendInputError(f"{path}: not a text calib file (byte {exc.start} is not UTF-8)") from None
+    except OSError as exc:
+        raise FrontendInputError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    for lineno, line in enumerate(text.splitlines(), start=1):
         key, _, values = line.partition(":")
         if key.strip() == "Tr":
             try:
@@ -60,7 +72,13 @@ def read_calib_tr(path: Path) -> np.ndarray | None:
                 raise FrontendInputError(f"{path}:{lineno}: non-numeric value in Tr") from None
             if len(numbers) != KITTI_COLUMNS or not np.all(np.isfinite(numbers)):
                 raise FrontendInputError(f"{path}:{lineno}: Tr needs 12 finite values")
-            return pose_from_kitti_row(np.array(numbers))
+            tr = pose_from_kitti_row(np.array(numbers))
+            problem = pose_problem(tr, CALIB_TOLERANCE)
+            if problem is None and abs(np.linalg.det(tr[:3, :3]) - 1.0) > CALIB_TOLERANCE:
+                problem = f"rotation determinant is {np.linalg.det(tr[:3, :3]):.6g}, not 1"
+            if problem is not None:
+                raise FrontendInputError(f"{path}:{lineno}: Tr is not a rigid LiDAR->camera transform ({problem})")
+            return tr
     return None
 
 

@@ -549,3 +549,25 @@ def test_float16_stage_one_widens_exactly_for_the_search(codebooks):
     assert rows.dtype == np.float32
     np.testing.assert_array_equal(rows, codes.stage1.astype(np.float16).astype(np.float32).reshape(-1, D1))
     np.testing.assert_array_equal(db._codes["stage1"].flat_rows(17, 301), rows[17:301])
+
+
+def test_what_a_save_would_refuse_is_refused_when_added(codebooks, tmp_path):
+    """Codes or infos that made a database whose saved map `load` then refused (a tester found
+    each): stage counts that differ, float16 overflow to inf, a frame id that is not an integer."""
+    db = PlaceDatabase(codebooks)
+    codes = _codes(3)
+    with pytest.raises(LoopClosureInputError, match="3 stage-I but 2 stage-II codes"):
+        db.add(PlaceCodes(codes.stage1, codes.stage2[:2]))
+    with pytest.raises(LoopClosureInputError, match=r"stage2 codes reach 7e\+04, beyond float16's range"):
+        db.add(PlaceCodes(codes.stage1, codes.stage2 * 0 + 70000.0))
+    with pytest.raises(LoopClosureInputError, match="frame_id must be an integer, got 'abc'"):
+        db.add(codes[:1], PlaceInfo(frame_id="abc"))  # type: ignore[arg-type]
+    assert len(db) == 0
+    with pytest.raises(LoopClosureInputError, match="timestamp must be a number, got 'later'"):
+        db.add(codes[:1], PlaceInfo(frame_id=1, timestamp="later"))  # type: ignore[arg-type]
+    db.add(codes, [PlaceInfo(frame_id=np.int64(k), timestamp=np.float32(k)) for k in range(3)])  # numpy scalars
+    db.save(tmp_path / "map")
+    assert [p.frame_id for p in PlaceDatabase.load(tmp_path / "map").places] == [0, 1, 2]
+    wide = PlaceDatabase(codebooks, DatabaseConfig(stage2_dtype="float32"))
+    wide.add(PlaceCodes(codes.stage1, codes.stage2 * 0 + 70000.0))  # float32 storage holds them
+    assert len(db) == len(wide) == 3
