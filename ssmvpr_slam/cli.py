@@ -60,6 +60,21 @@ def _print_error(message: str) -> None:
     err_console.print(f"[bold red]error:[/bold red] {escape(message)}", highlight=False, soft_wrap=True)
 
 
+# The options whose values the config models check: an error names the option the user typed,
+# with the config key it sets, not the model's class.
+_OPTION_OF_FIELD = {
+    ("OdometryConfig", "kind"): "--odometry (frontend.odometry.kind)",
+    ("BackboneConfig", "device"): "--device (vpr.backbone.device)",
+    ("VPREvalConfig", "sequence_lengths"): "--sequence/-L (vpr_eval.sequence_lengths)",
+    ("VPREvalConfig", "tolerance"): "--tolerance (vpr_eval.tolerance)",
+    ("SequenceMatchConfig", "direction"): "--direction (vpr_eval.sequence.direction)",
+    ("FilteringConfig", "num_candidates"): "--num-candidates/-n (vpr.filtering.num_candidates)",
+    ("SimulationConfig", "max_frames"): "--frames (simulation.max_frames)",
+    ("SimulationConfig", "seed"): "--seed (simulation.seed)",
+    ("PipelineConfig", "max_frames"): "--frames (pipeline.max_frames)",
+}
+
+
 def friendly_errors(func: Callable[..., Any]) -> Callable[..., Any]:
     """Known input problems -> one line on stderr and exit status 2, never a traceback."""
 
@@ -78,7 +93,10 @@ def friendly_errors(func: Callable[..., Any]) -> Callable[..., Any]:
             # an option value a config model refuses (--device gpu, -n 0)
             first = exc.errors()[0]
             where = ".".join(str(p) for p in first["loc"])
-            _print_error(f"invalid value for {exc.title}.{where}: {first['msg']} (got {first.get('input')!r})")
+            field = where.split(".")[0]
+            name = _OPTION_OF_FIELD.get((exc.title, field), f"{exc.title}.{where}")
+            message = str(first["msg"]).replace("'kiss_icp'", "'kiss-icp'") if field == "kind" else first["msg"]
+            _print_error(f"invalid value for {name}: {message} (got {first.get('input')!r})")
             raise typer.Exit(2) from None
 
     return wrapper

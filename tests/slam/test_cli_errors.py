@@ -85,9 +85,15 @@ def test_vpr_eval_missing_ground_truth_and_weights(folders: dict[str, Path], wei
 )  # fmt: skip
 def test_vpr_eval_invalid_option_values(folders: dict[str, Path], option: str, value: str, field: str) -> None:
     result = invoke("vpr-eval", folders["ref"], folders["query"], option, value, "--out", folders["out"])
-    assert_user_error(
+    line = assert_user_error(
         result, field, repr(value) if option in ("--device", "--direction") else "greater than or equal to 1"
     )
+    assert f"invalid value for {option}" in line or f"/{option} (" in line  # the option typed, not the model
+
+
+def test_run_option_errors_name_the_option_in_its_cli_spelling(tmp_path: Path) -> None:
+    line = assert_user_error(invoke("run", tmp_path / "x.mcap", "--odometry", "foo"), "--odometry")
+    assert "'kiss-icp'" in line and "OdometryConfig" not in line
 
 
 def test_error_text_with_brackets_is_printed_verbatim(tmp_path: Path) -> None:
