@@ -462,7 +462,14 @@ def optimize(
         settings = OptimizerSettings(kernel=kernel, gnc=gnc, solver=solver, verify=check)
         if not refine:
             settings = replace(settings, refine_scales=())
-        result = optimize_graph(data, settings)
+        try:
+            result = optimize_graph(data, settings)
+        except RuntimeError as exc:  # GTSAM's: an indeterminate or ill-conditioned system
+            reason = " ".join(str(exc).split()).split(". ")[0][:200]  # GTSAM's first sentence names the variable
+            raise g2o_io.PoseGraphFileError(
+                f"{graph}: GTSAM could not optimise this graph ({reason}); look for edges with extreme information "
+                "or translations, and for vertices no edge connects to the first"
+            ) from None
         g2o_io.write_g2o(out / "optimised.g2o", data, result.poses)
         if stamps is not None:
             write_tum(out / "optimised.tum", stamps, result.poses)

@@ -139,3 +139,24 @@ def test_malformed_graph_is_one_error_line(tmp_path: Path, line: str, fragment: 
 def test_missing_graph_file(tmp_path: Path) -> None:
     result = invoke("optimize", tmp_path / "nope.g2o")
     assert result.exit_code == 2 and "nope.g2o" in result.stderr
+
+
+@pytest.mark.parametrize(
+    ("edges", "extra"),
+    [
+        # a loop with information 1e20 beside edges of 100: GTSAM's marginals found the system indeterminate
+        ("EDGE_SE2 0 1 1 0 0 100 0 0 100 0 100\nEDGE_SE2 1 2 1 0 0 100 0 0 100 0 100\n"
+         "EDGE_SE2 0 2 2 0 0 1e20 0 0 1e20 0 1e20\n", []),
+        # two pieces (0-1 and 2-3) that no edge joins, solved incrementally
+        ("VERTEX_SE2 3 3 0 0\nEDGE_SE2 0 1 1 0 0 100 0 0 100 0 100\nEDGE_SE2 2 3 1 0 0 100 0 0 100 0 100\n",
+         ["--isam2"]),
+    ],
+)  # fmt: skip
+def test_a_graph_gtsam_cannot_solve_is_one_error_line(tmp_path: Path, edges: str, extra: list[str]) -> None:
+    graph = tmp_path / "ill.g2o"
+    graph.write_text("VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\nVERTEX_SE2 2 2 0 0\n" + edges)
+    result = invoke("optimize", graph, "--out", tmp_path / "o", *extra)
+    assert result.exit_code == 2, (result.output, result.exception)
+    errors = [x for x in result.stderr.splitlines() if x.startswith("error:")]
+    assert len(errors) == 1 and f"{graph}: GTSAM could not optimise this graph (Indeterminate" in errors[0]
+    assert "Traceback" not in result.output and not (tmp_path / "o" / "optimised.g2o").exists()
