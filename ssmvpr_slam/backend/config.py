@@ -217,7 +217,12 @@ class TwoViewConfig(_Strict):
     homography_threshold_px: float = Field(
         2.0, gt=0, description="homography transfer error; 2-D, so looser than the epipolar one"
     )
-    min_inliers: int = Field(30, ge=5, description="below this the yaw guess is used")
+    min_inliers: int = Field(30, ge=5, description="below this the geometry has failed (see on_geometry_failure)")
+    on_geometry_failure: Literal["yaw_prior", "reject"] = Field(
+        "yaw_prior",
+        description="when two images give no rotation: keep the loop on the yaw guess with loose sigmas, "
+        "or reject it (no factor), as ICP rejects a poor alignment",
+    )
     homography_share: float = Field(0.8, gt=0, description="H inliers / E inliers above which pure rotation is tested")
     rotation_singular_tol: float = Field(
         0.05, gt=0, description="K^-1 H K counts as a rotation if s_min/s_max >= 1 - tol"

@@ -19,8 +19,11 @@ Which path is used when:
   `two_view.translation_sigma` (the place radius). Rotation comes from two-view geometry
   (ORB + essential matrix / pure-rotation homography) when enough inliers support it,
   with `two_view.rot_sigma`; otherwise from the yaw guess with the looser yaw-prior sigmas.
-  A place prior is always accepted: the recogniser and sequence gate already vouched for the
-  place, and the wide sigmas plus the graph's robust kernel bound the damage if it is wrong.
+  By default a place prior is always accepted: the recogniser and sequence gate already vouched
+  for the place, and the wide sigmas plus the graph's robust kernel bound the damage if it is
+  wrong. With `two_view.on_geometry_failure: reject` a pair of images that gives no rotation
+  is rejected instead, as ICP rejects a poor alignment (a keyframe without a kept image still
+  gets the yaw prior: there is nothing to check it against).
 """
 
 from __future__ import annotations
@@ -53,7 +56,7 @@ class LoopRegistration:
     sigmas: np.ndarray = field(default_factory=lambda: np.full(6, np.nan))
     """Loop factor sigmas (rx, ry, rz, tx, ty, tz) for `PoseGraph.add_loop`."""
     method: str = "icp"
-    """'icp', 'two_view_essential', 'two_view_homography' or 'yaw_prior'."""
+    """'icp', 'two_view_essential', 'two_view_homography', 'two_view_failed' (rejected) or 'yaw_prior'."""
     yaw_seed: float = float("nan")
     """ICP: the yaw seed (rad) that won."""
 
@@ -203,6 +206,15 @@ class LoopRegistrar:
         est = estimate_rotation(match_image, query_image, cfg)
         if est.rotation_mq is None:
             ratio = est.n_inliers / est.n_matches if est.n_matches else 0.0
+            if cfg.on_geometry_failure == "reject":
+                return LoopRegistration(
+                    T_mq=make_pose(rot_z(yaw_guess), np.zeros(3)),
+                    accepted=False,
+                    reason=f"two-view geometry failed: {est.reason}",
+                    inlier_ratio=ratio,
+                    rmse=float("nan"),
+                    method="two_view_failed",
+                )
             return self.yaw_prior(yaw_guess, est.reason, ratio)
         body_from_cam = project_to_so3(np.asarray(cfg.body_from_camera, dtype=np.float64))
         rot = project_to_so3(body_from_cam @ est.rotation_mq @ body_from_cam.T @ rot_z(-_finite_yaw(query_yaw_offset)))

@@ -351,6 +351,21 @@ def test_featureless_images_fall_back_to_the_yaw_guess(camera):
     assert reg.to_dict()["rmse"] is None
 
 
+def test_featureless_images_are_rejected_when_configured(camera):
+    """on_geometry_failure: reject turns the fallback into a rejection (no factor), and only
+    when the images gave no rotation: a pair that does give one is accepted as before."""
+    cfg, body_from_cam, k, img_m = camera
+    strict = cfg.model_copy(update={"two_view": cfg.two_view.model_copy(update={"on_geometry_failure": "reject"})})
+    registrar = LoopRegistrar(strict)
+    reg = registrar.register_images(np.zeros((H_PX, W_PX, 3), np.uint8), img_m, yaw_guess=0.3)
+    assert not reg.accepted and reg.method == "two_view_failed"
+    assert reg.reason.startswith("two-view geometry failed: ")
+    assert yaw_of(reg.T_mq[:3, :3]) == pytest.approx(0.3)  # the guess, for the record
+    h = k @ cam_rotation_qm(body_from_cam, 8.0) @ np.linalg.inv(k)
+    reg = registrar.register_images(cv2.warpPerspective(img_m, h, (W_PX, H_PX)), img_m)
+    assert reg.accepted and reg.method == "two_view_homography", reg.reason
+
+
 def test_bad_images_are_value_errors(camera):
     cfg, _, _, img_m = camera
     registrar = LoopRegistrar(cfg)
