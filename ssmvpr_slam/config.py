@@ -189,7 +189,12 @@ def load_config(config: str | Path | None = None, overrides: dict[str, Any] | No
         first = exc.errors()[0]
         where = ".".join(str(p) for p in first["loc"])
         variable = _env_variable(first["loc"])
-        origin = f"environment variable {variable}" if variable else f"config {source}"
+        if variable is None:
+            origin = f"config {source}"
+        elif variable[1]:
+            origin = f"environment variable {variable[0]}"
+        else:
+            origin = f"environment variable {variable[0]} (with config {source})"
         raise ConfigError(f"{origin}: {where}: {first['msg']} ({exc.error_count()} error(s))") from None
 
 
@@ -238,10 +243,22 @@ def _env_json_error(exc: SettingsError) -> str:
     return f"environment variable {key}={mine[key]!r}: not valid JSON, which {where} needs (e.g. [1, 2])"
 
 
-def _env_variable(loc: tuple[Any, ...]) -> str | None:
-    """The SSMVPR_ variable that set the field at `loc`, if one did (names are case-insensitive)."""
-    name = ("SSMVPR_" + "__".join(str(p) for p in loc)).upper()
-    return next((key for key in os.environ if key.upper() == name), None)
+def _env_variable(loc: tuple[Any, ...]) -> tuple[str, bool] | None:
+    """The SSMVPR_ variable behind the error at `loc` (names are case-insensitive), and whether it
+    alone set that value: the variable of the field, or of a list whose item failed. A variable
+    that set a field within `loc` (a check across a section's fields failed) is returned as a
+    suspect only: the config file may have set the other field."""
+    path = [str(p).upper() for p in loc]
+    suspect = None
+    for key in os.environ:
+        if not key.upper().startswith("SSMVPR_"):
+            continue
+        parts = key.upper().removeprefix("SSMVPR_").split("__")
+        if parts == path[: len(parts)]:
+            return key, True
+        if path and parts[: len(path)] == path:
+            suspect = key
+    return None if suspect is None else (suspect, False)
 
 
 def _read_with_base(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:

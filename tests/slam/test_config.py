@@ -236,3 +236,21 @@ def test_the_simulated_traverse_is_the_demos_whatever_else_changes(
     assert load_config(own).simulation.appearance_schedule == demo
     monkeypatch.setenv("SSMVPR_SIMULATION__SEED", "2")
     assert load_config().simulation.seed == 2 and load_config().simulation.appearance_schedule == demo
+
+
+@pytest.mark.parametrize(
+    ("variable", "value", "where"),
+    [
+        ("SSMVPR_FRONTEND__ODOMETRY__KISS_ICP__MIN_RANGE", "200", "frontend.odometry.kiss_icp"),  # min < max check
+        ("SSMVPR_VPR__BACKBONE__INPUT_SIZE", "100", "vpr"),  # cube size against the feature map
+        ("SSMVPR_DETECTOR__SEQUENCE__SPEEDS", "[0]", "detector.sequence"),  # a list item
+    ],
+)
+def test_a_section_check_names_the_variable_that_set_a_field_in_it(
+    monkeypatch: pytest.MonkeyPatch, variable: str, value: str, where: str
+) -> None:
+    """Checks across a section's fields report the section: they had blamed configs/default.yaml,
+    which the variable overrode."""
+    monkeypatch.setenv(variable, value)
+    with pytest.raises(ConfigError, match=rf"^environment variable {variable}\b.*: {where}: "):
+        load_config()
