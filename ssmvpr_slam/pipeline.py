@@ -32,6 +32,7 @@ from frontend.errors import FrontendInputError
 from frontend.frame import Frame
 from frontend.odometry.base import Odometry
 from loopclosure.backbone import Backbone
+from ssmvpr_common.errors import SsmvprError
 from ssmvpr_slam.backend.pose_graph import PoseGraph
 from ssmvpr_slam.config import SlamConfig
 from ssmvpr_slam.heap import HeapTrimmer
@@ -164,7 +165,7 @@ class SlamPipeline:
                 self.system.process(frame)
             except Exception as exc:  # keep everything processed so far; the caller re-raises
                 self.step_error = exc
-                log.exception("frame %s failed", frame.index)
+                _log_failure(f"frame {frame.index}", exc)
                 break
             self._after_step(on_frame)
         return None
@@ -193,7 +194,7 @@ class SlamPipeline:
                         item = self.system.front(frame)
                     except Exception as exc:  # the consumer re-raises it once the rest is processed
                         end.error = exc
-                        log.exception("frame %s failed", frame.index)
+                        _log_failure(f"frame {frame.index}", exc)
                         break
                     if item is not None:
                         put(item)
@@ -221,7 +222,7 @@ class SlamPipeline:
                     self.system.back(message)
                 except Exception as exc:  # keep everything processed so far; the caller re-raises
                     self.step_error = exc
-                    log.exception("keyframe %s (frame %s) failed", message.keyframe.id, message.keyframe.frame_index)
+                    _log_failure(f"keyframe {message.keyframe.id} (frame {message.keyframe.frame_index})", exc)
                     break
                 self._after_step(on_frame)
         finally:
@@ -245,3 +246,13 @@ class SlamPipeline:
     def finish(self) -> RunResult:
         """The system's result, with how the stream ended (optimises once; see SlamSystem.finish)."""
         return self.system.finish(self.ending)
+
+
+def _log_failure(what: str, error: Exception) -> None:
+    """A step that ended the run: one line for an error the package raised on purpose (its
+    message names the input; the caller re-raises it as the run's one `error:` line), the
+    traceback for anything else (a bug to report)."""
+    if isinstance(error, SsmvprError):
+        log.error("%s failed: %s", what, error)
+    else:
+        log.exception("%s failed", what)

@@ -15,6 +15,7 @@ pose graph). The pipeline may run the front half in a thread of its own, ahead o
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from collections import Counter
@@ -33,7 +34,7 @@ from loopclosure.encoder import Encoder
 from ssmvpr_slam.backend.g2o_io import from_pose_graph
 from ssmvpr_slam.backend.kept_scan import KeptScan, keep_scan
 from ssmvpr_slam.backend.loop_registration import LoopRegistrar, LoopRegistration, build_local_map, carry_loop
-from ssmvpr_slam.backend.pose_graph import PoseGraph
+from ssmvpr_slam.backend.pose_graph import PoseGraph, PoseGraphError
 from ssmvpr_slam.backend.two_view import reduce_image
 from ssmvpr_slam.config import SlamConfig
 from ssmvpr_slam.mcap_output import thumbnail_jpeg
@@ -47,6 +48,8 @@ from ssmvpr_slam.result import (
     frozen_array,
     keyframe_poses,
 )
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -119,6 +122,7 @@ class SlamSystem:
         self.state = RunState()
         self._front = FrontCounts()
         self._result: RunResult | None = None
+        self._recoveries_told = 0  # the graph's recoveries already warned about
 
     # ---- per frame ------------------------------------------------------------------------
     def process(self, frame: Frame) -> None:
@@ -150,6 +154,11 @@ class SlamSystem:
             if frame.image is None:
                 counts.frames_skipped["no camera image"] += 1
                 return None
+            if not _has_pixels(frame.image):  # a source that let one through: nothing downstream copes
+                counts.frames_skipped["empty camera image"] += 1
+                return None
+            if frame.rear_image is not None and not _has_pixels(frame.rear_image):
+                frame = replace(frame, rear_image=None)  # the forward image still recognises the place
             if not self.selector.select(pose, frame.timestamp):
                 return None
             keyframe = self._keep(frame, pose, counts.keyframes)
@@ -177,7 +186,8 @@ class SlamSystem:
                 rear = reduce_image(frame.rear_image, pixels, f"keyframe {keyframe_id} rear image")
         thumbnail = None
         if self.config.results.mcap:
-            thumbnail = thumbnail_jpeg(frame.image, self.config.results.mcap_thumbnail_width)
+            name = f"keyframe {keyframe_id} (frame {frame.index})"
+            thumbnail = thumbnail_jpeg(frame.image, self.config.results.mcap_thumbnail_width, name)
         return Keyframe(
             id=keyframe_id,
             frame_index=frame.index,
@@ -219,7 +229,7 @@ class SlamSystem:
                 t_reg = time.perf_counter() - t1
                 self.state.loops[-1] = self._add_loop(LoopRecord(proposal, registration))
         t2 = time.perf_counter()
-        self.graph.update()
+        self._update_graph(kf)
         t_graph = time.perf_counter() - t2
         timings = self.detector.timings
         self.state.times.rows.append({
@@ -229,6 +239,29 @@ class SlamSystem:
             "registration": t_reg, "isam2_update": t_graph, "total": time.perf_counter() - t0,
             "front_end": item.front_seconds,
         })  # fmt: skip
+
+    def _update_graph(self, kf: Keyframe) -> None:
+        """One iSAM2 step; a step the graph had to work around is warned about naming its frames,
+        one it could not is a PoseGraphError naming this keyframe's frame."""
+        try:
+            self.graph.update()
+        except PoseGraphError as error:
+            raise PoseGraphError(f"frame {kf.frame_index} (keyframe {kf.id}): {error}") from None
+        finally:
+            self._tell_recoveries()
+
+    def _tell_recoveries(self) -> None:
+        """Warn once about each recovery of the pose graph (see `PoseGraph.update`)."""
+        recoveries = self.graph.recoveries
+        for recovery in recoveries[self._recoveries_told :]:
+            log.warning("%s: %s", self._frames_of(recovery.keyframes), recovery.what)
+        self._recoveries_told = len(recoveries)
+
+    def _frames_of(self, keyframe_ids: Sequence[int]) -> str:
+        """'frame 5 (keyframe 1)' for the warnings (the user knows frames, the graph keyframes)."""
+        kfs = self.state.keyframes
+        named = [f"frame {kfs[k].frame_index} (keyframe {k})" for k in keyframe_ids if k < len(kfs)]
+        return ", ".join(named) or "pose graph"
 
     def _add_loop(self, record: LoopRecord) -> LoopRecord:
         """The record with its factor handle, once an accepted registration became a factor."""
@@ -330,6 +363,7 @@ class SlamSystem:
 
     def _final_result(self, ending: StreamEnd) -> RunResult:
         optimised = self.graph.finalize() if self.state.keyframes else {}
+        self._tell_recoveries()  # a final GNC pass that failed
         return self._result_with(optimised, set(self.graph.loop_handles), ending)
 
     def partial_result(self, ending: StreamEnd) -> RunResult:
@@ -427,6 +461,7 @@ class SlamSystem:
                                      f"{restored.factor_handle}, the checkpoint says {record.factor_handle}")  # fmt: skip
                 self.state.loops.append(record)
             self.graph.update()
+        self._recoveries_told = len(self.graph.recoveries)  # warned about when the run first met them
 
     def replay_odometry(self, frame: Frame) -> None:
         """Feed a frame processed before the checkpoint to the odometry only (its state is not
@@ -441,6 +476,12 @@ class SlamSystem:
             self.selector.select(last.odom_pose, last.timestamp)
             self.selector.count = len(self.state.keyframes)
         self._front.keyframes = len(self.state.keyframes)
+
+
+def _has_pixels(image: np.ndarray) -> bool:
+    """An image with at least one row and one column (a 0xN array makes every stage fail)."""
+    shape = np.shape(image)
+    return len(shape) >= 2 and shape[0] > 0 and shape[1] > 0
 
 
 def _session_icp_loop(record: LoopRecord) -> bool:

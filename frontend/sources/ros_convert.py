@@ -194,7 +194,13 @@ def line_list_marker(
 
 
 def decode_image(msg: Any, topic: str) -> np.ndarray:
-    """HxWx3 RGB uint8 from a sensor_msgs/Image in rgb8, bgr8 or mono8."""
+    """HxWx3 RGB uint8 from a sensor_msgs/Image in rgb8, bgr8 or mono8.
+
+    Refused (FrontendInputError, which the reader counts as a skipped image): an image with no
+    pixels, which every later stage (thumbnail, backbone, registration) would fail on, and one
+    whose data is not exactly ``step * height`` bytes, as sensor_msgs/Image requires: such a
+    message was cut or mis-described, and reading it anyway would give wrong pixels.
+    """
     encoding = str(msg.encoding).lower()
     channels = IMAGE_CHANNELS.get(encoding)
     if channels is None:
@@ -203,18 +209,33 @@ def decode_image(msg: Any, topic: str) -> np.ndarray:
         )
     height, width, step = int(msg.height), int(msg.width), int(msg.step)
     data = np.frombuffer(bytes(msg.data), dtype=np.uint8)
+    _check_image_layout(topic, encoding, width, height, step, channels, data.size)
     row_bytes = width * channels
-    if step < row_bytes or data.size < step * height:
-        raise FrontendInputError(
-            f"{topic}: {encoding} image {width}x{height} with step {step} has only {data.size} data bytes"
-        )
-    rows = data[: step * height].reshape(height, step)[:, :row_bytes]
+    rows = data.reshape(height, step)[:, :row_bytes]
     pixels = rows.reshape(height, width, channels)
     if encoding == "mono8":
         return np.repeat(pixels, 3, axis=2)
     if encoding == "bgr8":
         return np.ascontiguousarray(pixels[:, :, ::-1])
     return pixels.copy()
+
+
+def _check_image_layout(
+    topic: str, encoding: str, width: int, height: int, step: int, channels: int, size: int
+) -> None:
+    """Raise FrontendInputError unless the header describes pixels that the data holds exactly."""
+    if width <= 0 or height <= 0:
+        raise FrontendInputError(f"{topic}: {encoding} image is empty ({width}x{height} pixels)")
+    if step < width * channels:
+        raise FrontendInputError(
+            f"{topic}: {encoding} image {width}x{height} has step {step}, "
+            f"fewer than the {width * channels} bytes a row needs"
+        )
+    if size != step * height:
+        raise FrontendInputError(
+            f"{topic}: {encoding} image {width}x{height} with step {step} has {size} data bytes, "
+            f"expected {step * height}"
+        )
 
 
 def decode_compressed_image(msg: Any, topic: str) -> np.ndarray | None:

@@ -15,12 +15,22 @@ Conventions
 Changes (keyframes, loops, loop removals) are queued and applied by `update()`; the read
 methods (`optimized_poses`, `loop_residuals`) flush the queue first so they always describe
 the current graph.
+
+An iSAM2 step that fails (GTSAM's indeterminate-system error: with Cholesky, an odometry step of
+some 3e4 m already loses the rotation's precision to the lever arm) leaves iSAM2 half-updated, so
+`update()` never retries on it. It rebuilds iSAM2 from the graph's own records: first with QR
+factorisation (the condition number is not squared; used from then on), then, should that fail
+too, with the new keyframes' odometry edges cut (each starts a segment held by a prior at its
+odometry guess) and the new loops dropped. Each fallback is a `GraphRecovery` the caller warns
+about; only when the last one fails too is a `PoseGraphError` raised, with the estimate so far kept.
 """
 
 from __future__ import annotations
 
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import NoReturn
 
 import gtsam
 import numpy as np
@@ -28,6 +38,7 @@ import numpy as np
 from ssmvpr_slam.backend import noise
 from ssmvpr_slam.backend.config import PoseGraphConfig
 from ssmvpr_slam.backend.se3 import as_pose, relative
+from ssmvpr_slam.errors import SlamError
 
 _KEY_CHAR = "x"
 _ANCHOR_KEY = gtsam.symbol("a", 0)
@@ -48,6 +59,40 @@ def _map_key(place: int) -> int:
 def _loop_key(i: int, on_map: bool) -> int:
     """Variable of a loop's first end: a prior-map place node or a keyframe."""
     return _map_key(i) if on_map else _key(i)
+
+
+class PoseGraphError(SlamError, RuntimeError):
+    """iSAM2 could not take the graph's latest keyframes or loops, even after every fallback
+    (a RuntimeError too, as GTSAM's own errors were before: callers catching that still do)."""
+
+
+@dataclass(frozen=True)
+class GraphRecovery:
+    """An iSAM2 step that failed and how the graph went on (the caller warns, naming frames)."""
+
+    keyframes: tuple[int, ...]
+    """Keyframes added in the failed step."""
+    what: str
+    """One line: what failed and what the graph did instead."""
+
+
+def _gtsam_reason(error: Exception) -> str:
+    """GTSAM's multi-line message in a few words (its indeterminate-system text runs to ten lines)."""
+    text = " ".join(str(error).split())
+    symbol = re.search(r"Symbol: (\w+)", text)
+    if "Indeterminate linear system" in text:
+        return "indeterminate linear system" + (f" near {symbol.group(1)}" if symbol else "")
+    return text[:160] or type(error).__name__
+
+
+def _isolation_text(cut: list[int], dropped: list[int]) -> str:
+    """What `PoseGraph._isolate` did, for the recovery's warning."""
+    parts = []
+    if cut:
+        parts.append(f"keyframe(s) {', '.join(map(str, cut))} start a new graph segment (odometry edge cut)")
+    if dropped:
+        parts.append(f"{len(dropped)} new loop(s) dropped")
+    return " and ".join(parts) or "re-solved with QR factorisation"
 
 
 def _check_kf_id(name: str, kf_id: object) -> int:
@@ -107,10 +152,8 @@ class PoseGraph:
 
     def __init__(self, config: PoseGraphConfig | None = None) -> None:
         self.config = config or PoseGraphConfig()
-        params = gtsam.ISAM2Params()
-        params.setRelinearizeThreshold(self.config.isam2.relinearize_threshold)
-        params.relinearizeSkip = self.config.isam2.relinearize_skip
-        self._isam = gtsam.ISAM2(params)
+        self._factorization = "CHOLESKY"  # GTSAM's default; QR after a failed step (see the module docstring)
+        self._isam = self._new_isam()
         self._kernel = noise.make_kernel(self.config.robust)
         self._odom: dict[int, np.ndarray] = {}
         self._order: list[int] = []
@@ -125,6 +168,11 @@ class PoseGraph:
         self._map_places: dict[int, tuple[np.ndarray, gtsam.noiseModel.Base]] = {}
         self._anchor_initial: np.ndarray | None = None
         self._anchor_link: tuple[int, np.ndarray] | None = None
+        # keyframes whose odometry edge iSAM2 could not take: a prior at their guess holds them
+        # instead (the edge stays in `_odom_edges`, the record of what the odometry measured)
+        self._segment_priors: dict[int, tuple[np.ndarray, gtsam.noiseModel.Base]] = {}
+        self._failed: str | None = None
+        self.recoveries: list[GraphRecovery] = []
 
     # ------------------------------------------------------------------ building
     @property
@@ -257,9 +305,22 @@ class PoseGraph:
 
     # ------------------------------------------------------------------ solving
     def update(self) -> None:
-        """One incremental iSAM2 step with everything queued; extra steps after loop changes."""
+        """One incremental iSAM2 step with everything queued; extra steps after loop changes.
+
+        A failing step is recovered from (see the module docstring); PoseGraphError when it
+        cannot be, and on every later call: the graph then keeps the estimate it had."""
         if not self._order:
             return
+        if self._failed is not None:
+            self._keep_guesses()
+            raise PoseGraphError(self._failed)
+        try:
+            self._step()
+        except RuntimeError as error:  # GTSAM's exceptions reach Python as RuntimeError
+            self._recover(error)
+
+    def _step(self) -> None:
+        """The queue into iSAM2; the queue is cleared only once every iSAM2 call succeeded."""
         graph = gtsam.NonlinearFactorGraph()
         loop_slots: list[tuple[int, int]] = []
         for factor, handle in self._pending_factors:
@@ -276,13 +337,114 @@ class PoseGraph:
         new_indices = list(result.getNewFactorsIndices())
         for slot, handle in loop_slots:
             self._loops[handle].index = int(new_indices[slot])
-        self._pending_factors = []
-        self._pending_values = gtsam.Values()
-        self._pending_removals = []
         if loops_changed:
             for _ in range(self.config.isam2.extra_updates_after_loop):
                 self._isam.update()
         self._estimate = self._isam.calculateEstimate()
+        self._clear_queue()
+
+    def _clear_queue(self) -> None:
+        self._pending_factors = []
+        self._pending_values = gtsam.Values()
+        self._pending_removals = []
+
+    def _recover(self, error: RuntimeError) -> None:
+        """After a failed step: rebuild with QR, then with the new keyframes cut loose and the
+        new loops dropped; PoseGraphError (estimate kept) when even that fails."""
+        new = tuple(kf for kf in self._order if not self._estimate.exists(_key(kf)))
+        reason = _gtsam_reason(error)
+        if self._factorization != "QR":
+            try:
+                self._rebuild("QR")
+            except RuntimeError as again:
+                reason = _gtsam_reason(again)
+            else:
+                self._note(new, f"iSAM2 failed ({reason}){self._steps_text(new)}; re-solved with QR "
+                                "factorisation, used from now on")  # fmt: skip
+                return
+        cut, dropped = self._isolate(new)
+        try:
+            self._rebuild("QR")
+        except RuntimeError as last:
+            self._give_up(new, _gtsam_reason(last))
+        self._note(new, f"iSAM2 failed ({reason}){self._steps_text(new)}; " + _isolation_text(cut, dropped))
+
+    def _note(self, keyframes: tuple[int, ...], what: str) -> None:
+        self.recoveries.append(GraphRecovery(keyframes, what))
+
+    def _steps_text(self, keyframes: tuple[int, ...]) -> str:
+        """', odometry step of 1.0e+05 m': the usual cause, when one of the new edges is long."""
+        steps = [float(np.linalg.norm(e.measured[:3, 3])) for e in self._odom_edges if e.j in keyframes]
+        return f", odometry step of {max(steps):.1e} m" if steps and max(steps) >= 1e3 else ""
+
+    def _isolate(self, keyframes: tuple[int, ...]) -> tuple[list[int], list[int]]:
+        """Cut the odometry edges into `keyframes` (a prior at the guess holds each) and drop the
+        loops not yet in iSAM2; returns (keyframes cut, loop handles dropped)."""
+        pcfg = self.config.prior
+        prior_noise = noise.gaussian(noise.sigmas6(pcfg.rot_sigma, pcfg.trans_sigma))
+        cut = [kf for kf in keyframes if self._prior is None or kf != self._prior[0]]
+        for kf in cut:
+            self._segment_priors[kf] = (self._pending_values.atPose3(_key(kf)).matrix(), prior_noise)
+        dropped = [h for h, loop in self._loops.items() if loop.index is None]
+        for handle in dropped:
+            del self._loops[handle]
+        return cut, dropped
+
+    def _rebuild(self, factorization: str) -> None:
+        """A fresh iSAM2 holding the whole recorded graph (queue included), started from the
+        last estimate and the queued guesses; the failed iSAM2 is never used again."""
+        self._factorization = factorization
+        isam = self._new_isam()
+        graph = gtsam.NonlinearFactorGraph()
+        for factor in self._known_factors():
+            graph.add(factor)
+        slots = []
+        for handle, loop in self._loops.items():
+            slots.append((graph.size(), handle))
+            graph.add(loop.factor)
+        values = gtsam.Values()
+        for key in list(self._estimate.keys()) + list(self._pending_values.keys()):
+            if not values.exists(key):
+                values.insert(key, self._initial(key))
+        indices = list(isam.update(graph, values).getNewFactorsIndices())
+        for _ in range(self.config.isam2.extra_updates_after_loop):
+            isam.update()
+        estimate = isam.calculateEstimate()
+        for slot, handle in slots:
+            self._loops[handle].index = int(indices[slot])
+        self._isam, self._estimate = isam, estimate
+        self._clear_queue()
+
+    def _initial(self, key: int) -> gtsam.Pose3:
+        """Where a variable starts in a rebuild: the last estimate, else its queued guess."""
+        if self._estimate.exists(key):
+            return self._estimate.atPose3(key)
+        return self._pending_values.atPose3(key)
+
+    def _give_up(self, keyframes: tuple[int, ...], reason: str) -> NoReturn:
+        """Keep the estimate so far (new keyframes at their odometry guesses) and refuse from now on."""
+        self._keep_guesses()
+        ids = ", ".join(map(str, keyframes)) or "none"
+        self._failed = (f"iSAM2 cannot solve the pose graph with keyframe(s) {ids} ({reason}), even with "
+                        "their odometry edges cut and the new loops dropped; the estimate up to there is kept")  # fmt: skip
+        raise PoseGraphError(self._failed)
+
+    def _keep_guesses(self) -> None:
+        """The queue out of the way without iSAM2: new variables join the estimate at their
+        guesses (the odometry's word), queued loops and removals are forgotten."""
+        for key in self._pending_values.keys():
+            if not self._estimate.exists(key):
+                self._estimate.insert(key, self._pending_values.atPose3(key))
+        for handle in [h for h, loop in self._loops.items() if loop.index is None]:
+            del self._loops[handle]
+        self._clear_queue()
+
+    def _new_isam(self) -> gtsam.ISAM2:
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(self.config.isam2.relinearize_threshold)
+        params.relinearizeSkip = self.config.isam2.relinearize_skip
+        params.setFactorization(self._factorization)
+        return gtsam.ISAM2(params)
 
     def optimized_poses(self) -> dict[int, np.ndarray]:
         """Current estimate of every keyframe pose (world frame of the first odometry pose)."""
@@ -314,14 +476,7 @@ class PoseGraph:
         self._flush()
         if self._prior is None:
             return GncResult({}, [], [], {})
-        kf0, pose0, prior_noise = self._prior
-        known: list[gtsam.NonlinearFactor] = [gtsam.PriorFactorPose3(_key(kf0), gtsam.Pose3(pose0), prior_noise)]
-        known += [gtsam.BetweenFactorPose3(_key(e.i), _key(e.j), gtsam.Pose3(e.measured), e.gaussian)
-                  for e in self._odom_edges]  # fmt: skip
-        if self._anchor_initial is not None:
-            known.append(self._anchor_link_factor())
-            known += [gtsam.BetweenFactorPose3(_ANCHOR_KEY, _map_key(p), gtsam.Pose3(pose), rigid)
-                      for p, (pose, rigid) in self._map_places.items()]  # fmt: skip
+        known = self._known_factors()
         loops: dict[int, gtsam.NonlinearFactor] = {
             h: gtsam.BetweenFactorPose3(lp.key_i, _key(lp.j), gtsam.Pose3(lp.measured), lp.gaussian)
             for h, lp in self._loops.items()
@@ -330,16 +485,38 @@ class PoseGraph:
 
     def finalize(self) -> dict[int, np.ndarray]:
         """Final poses: iSAM2's estimate, or, with `gnc.enabled`, the GNC solution after the
-        loops GNC rejects are removed from the iSAM2 graph too."""
-        if not self.config.gnc.enabled:
+        loops GNC rejects are removed from the iSAM2 graph too (iSAM2's estimate, noted in
+        `recoveries`, when the batch solver fails: the run's result must not be lost to it)."""
+        if not self.config.gnc.enabled or self._failed is not None:
             return self.optimized_poses()
-        result = self.batch_gnc()
+        try:
+            result = self.batch_gnc()
+        except RuntimeError as error:  # the batch solve hit what iSAM2 had to work around
+            self._note((), f"the final GNC pass failed ({_gtsam_reason(error)}); iSAM2's estimate is kept")
+            return self.optimized_poses()
         for handle in result.outliers:
             self.remove_loop(handle)
         self._flush()
         return result.poses
 
     # ------------------------------------------------------------------ internals
+    def _known_factors(self) -> list[gtsam.NonlinearFactor]:
+        """Every factor but the loops: the first keyframe's prior, segment priors, the odometry
+        edges iSAM2 took, and the prior map's anchor link and place ties."""
+        known: list[gtsam.NonlinearFactor] = []
+        if self._prior is not None:
+            kf0, pose0, prior_noise = self._prior
+            known.append(gtsam.PriorFactorPose3(_key(kf0), gtsam.Pose3(pose0), prior_noise))
+        known += [gtsam.PriorFactorPose3(_key(kf), gtsam.Pose3(pose), model)
+                  for kf, (pose, model) in self._segment_priors.items()]  # fmt: skip
+        known += [gtsam.BetweenFactorPose3(_key(e.i), _key(e.j), gtsam.Pose3(e.measured), e.gaussian)
+                  for e in self._odom_edges if e.j not in self._segment_priors]  # fmt: skip
+        if self._anchor_initial is not None:
+            known.append(self._anchor_link_factor())
+            known += [gtsam.BetweenFactorPose3(_ANCHOR_KEY, _map_key(p), gtsam.Pose3(pose), rigid)
+                      for p, (pose, rigid) in self._map_places.items()]  # fmt: skip
+        return known
+
     def _odometry_sigmas(self, distance: float) -> np.ndarray:
         ocfg = self.config.odometry
         return noise.sigmas6(
@@ -348,7 +525,10 @@ class PoseGraph:
         )
 
     def _flush(self) -> None:
-        if self._pending_factors or self._pending_removals or self._pending_values.size():
+        """Apply the queue before a read; after a PoseGraphError, only place what it holds."""
+        if self._failed is not None:
+            self._keep_guesses()
+        elif self._pending_factors or self._pending_removals or self._pending_values.size():
             self.update()
 
     def _current_pose(self, kf_id: int) -> np.ndarray:
