@@ -152,8 +152,6 @@ def _pose_of(value: Any, path: Path, index: int, key: str) -> np.ndarray:
         return pose
     tolerance = POSE_TOLERANCE[key]
     problem = pose_problem(pose, tolerance)
-    if problem is None and abs(np.linalg.det(pose[:3, :3]) - 1.0) > tolerance:
-        problem = f"rotation determinant is {np.linalg.det(pose[:3, :3]):.6g}, not 1"
     if problem is not None:
         raise LoopClosureInputError(f"{path}: place {index}: {key} is not a rigid pose ({problem})")
     return pose

@@ -74,8 +74,6 @@ def read_calib_tr(path: Path) -> np.ndarray | None:
                 raise FrontendInputError(f"{path}:{lineno}: Tr needs 12 finite values")
             tr = pose_from_kitti_row(np.array(numbers))
             problem = pose_problem(tr, CALIB_TOLERANCE)
-            if problem is None and abs(np.linalg.det(tr[:3, :3]) - 1.0) > CALIB_TOLERANCE:
-                problem = f"rotation determinant is {np.linalg.det(tr[:3, :3]):.6g}, not 1"
             if problem is not None:
                 raise FrontendInputError(f"{path}:{lineno}: Tr is not a rigid LiDAR->camera transform ({problem})")
             return tr
