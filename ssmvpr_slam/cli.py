@@ -6,6 +6,7 @@ Errors a user can fix print as one red line and exit with status 2.
 
 from __future__ import annotations
 
+import errno
 import functools
 import os
 import sys
@@ -49,10 +50,16 @@ def _user_errors() -> tuple[type[BaseException], ...]:
     from ssmvpr_slam.backend.g2o_io import PoseGraphFileError
 
     # SsmvprError: each package's errors (FrontendInputError, LoopClosureInputError,
-    # WeightsNotFoundError, ConfigError, OutputError, CheckpointError, ...); OSError: what the
-    # machine refused (a full disk, a permission), named by errno and file. Files are written
-    # atomically, so what was written before stays whole.
-    return (SsmvprError, OSError, PoseGraphFileError)
+    # WeightsNotFoundError, ConfigError, OutputError, CheckpointError, ...)
+    return (SsmvprError, FileNotFoundError, PoseGraphFileError)
+
+
+# What the file system refuses (a full disk, a permission, a read-only or missing path) is input
+# to name in one line; other OSErrors (a broken pipe, a child process, a timeout) are faults.
+_FILE_SYSTEM_ERRNOS = frozenset(
+    {errno.ENOSPC, errno.EDQUOT, errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOENT, errno.ENOTDIR,
+     errno.EISDIR, errno.EEXIST, errno.ENOTEMPTY, errno.ENAMETOOLONG, errno.EFBIG, errno.EMFILE, errno.EXDEV}
+)  # fmt: skip
 
 
 def _print_error(message: str) -> None:
@@ -84,6 +91,11 @@ def friendly_errors(func: Callable[..., Any]) -> Callable[..., Any]:
             return func(*args, **kwargs)
         except _user_errors() as exc:
             _print_error(str(exc))
+            raise typer.Exit(2) from None
+        except OSError as exc:
+            if exc.errno not in _FILE_SYSTEM_ERRNOS or isinstance(exc, (ConnectionError, TimeoutError)):
+                raise
+            _print_error(str(exc))  # "[Errno 28] No space left on device: 'PATH'"
             raise typer.Exit(2) from None
         except Exception as exc:
             from pydantic import ValidationError

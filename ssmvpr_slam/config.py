@@ -254,11 +254,35 @@ def _env_variable(loc: tuple[Any, ...]) -> tuple[str, bool] | None:
         if not key.upper().startswith("SSMVPR_"):
             continue
         parts = key.upper().removeprefix("SSMVPR_").split("__")
-        if parts == path[: len(parts)]:
+        if parts == path[: len(parts)] and _holds(os.environ[key], loc[len(parts) :]):
             return key, True
         if path and parts[: len(path)] == path:
             suspect = key
     return None if suspect is None else (suspect, False)
+
+
+def _holds(value: str, rest: tuple[Any, ...]) -> bool:
+    """Whether a variable's value reaches the part `rest` below it: an item of its list, or a key
+    of its JSON object (SSMVPR_VPR='{...}' set only what its JSON names)."""
+    if not rest:
+        return True
+    try:
+        node: Any = json.loads(value)
+    except ValueError:
+        return False
+    for part in rest:
+        if isinstance(node, list) and isinstance(part, int):  # an item, or one the list lacks
+            if not 0 <= part < len(node):
+                return True
+            node = node[part]
+        elif isinstance(node, dict):
+            match = [k for k in node if str(k).lower() == str(part).lower()]
+            if not match:
+                return False
+            node = node[match[0]]
+        else:
+            return False
+    return True
 
 
 def _read_with_base(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:

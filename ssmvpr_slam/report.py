@@ -298,7 +298,10 @@ def _prior_map_report(
     map_ate = None
     if len(both) >= 3:
         gt_poses, map_poses = (np.array([d[p] for p in both]) for d in (prior.gt_poses, prior.poses))
-        map_ate = ate(gt_poses, map_poses, alignment).stats.rmse
+        try:
+            map_ate = ate(gt_poses, map_poses, alignment).stats.rmse
+        except (ValueError, np.linalg.LinAlgError):  # places that cannot be aligned (all at one spot): no figure
+            map_ate = None
     return PriorMapReport(
         places=len(prior), places_with_pose=len(prior.poses), places_with_scan=len(prior.scans),
         loops_proposed=len(loops), loops_gate_accepted=sum(r.proposal.accepted for r in loops),

@@ -126,6 +126,7 @@ class RunResult:
     database: PlaceDatabase | None = None  # the session's place database (prior places first)
     session_places: Mapping[int, int] = field(default_factory=dict)  # keyframe id -> database place
     prior_map: PriorMap | None = None  # as loaded; never changed by the run
+    graph_recoveries: tuple[str, ...] = ()  # iSAM2 steps the pose graph had to work around (PoseGraph.recoveries)
 
     @property
     def session_loops(self) -> tuple[LoopRecord, ...]:

@@ -408,6 +408,9 @@ class SlamSystem:
             database=self.detector.database,
             session_places=self.session_places(),
             prior_map=self.prior_map,
+            graph_recoveries=tuple(
+                f"{self._frames_of(r.keyframes)}: {r.what}" if r.keyframes else r.what for r in self.graph.recoveries
+            ),
         )
 
     def _in_map_frame(self, optimised: np.ndarray) -> np.ndarray | None:

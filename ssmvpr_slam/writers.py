@@ -165,6 +165,7 @@ def run_metrics(result: RunResult) -> dict[str, Any]:
         "frames_per_second": result.frames_seen / end.seconds if end.seconds else None,
         "latency_per_keyframe": result.latency(),
         "odometry": dict(result.odometry_stats),
+        "pose_graph_recoveries": list(result.graph_recoveries),
     }
 
 

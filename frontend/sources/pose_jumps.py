@@ -5,8 +5,8 @@ back, is finite and a valid rigid transform, so nothing else stops it: its keyfr
 spike into the trajectory, and at some 3e4 m the pose graph's solver loses precision (see
 `ssmvpr_slam.backend.pose_graph`). Each pose is compared with the last one accepted on its
 stream; a move faster than `MAX_SPEED_M_S` (plus `SLACK_M` for stamp jitter) is refused. The
-check never locks a stream out: when `RELOCATION_MESSAGES` refused poses in a row agree with
-each other, the stream was moved on purpose (an odometry reset, a relocalisation) and is
+check never locks a stream out: when `RELOCATION_MESSAGES` refused poses in a row, spanning
+`RELOCATION_SECONDS` at least, agree with each other, the stream was moved on purpose (an odometry reset, a relocalisation) and is
 followed from there.
 """
 
@@ -19,7 +19,8 @@ import numpy as np
 
 MAX_SPEED_M_S = 1000.0  # ten times a fast car: only a glitch moves a pose this fast
 SLACK_M = 10.0  # two messages with (nearly) the same stamp may still differ a little
-RELOCATION_MESSAGES = 5  # a glitch lasts a message or two; five agreeing poses are a new track
+RELOCATION_MESSAGES = 5  # a glitch lasts a message or two; five agreeing poses are a new track ...
+RELOCATION_SECONDS = 1.0  # ... when they span a second too (at 100 Hz five messages are a 50 ms glitch)
 
 
 @dataclass(frozen=True)
@@ -53,10 +54,12 @@ class PoseJumpCheck:
         if self._refused and _jump(self._refused[-1], fix) is not None:
             self._refused = []  # scattered glitches, not a track that moved
         self._refused.append(fix)
-        if len(self._refused) < RELOCATION_MESSAGES:
+        span = self._refused[-1].time - self._refused[0].time
+        if len(self._refused) < RELOCATION_MESSAGES or span < RELOCATION_SECONDS:
             return JumpVerdict(refused=jump)
+        n = len(self._refused)
         self._accept(fix)
-        return JumpVerdict(relocated=f"{jump}, but the last {RELOCATION_MESSAGES} poses agree: followed from here")
+        return JumpVerdict(relocated=f"{jump}, but the last {n} poses agree: followed from here")
 
     def _accept(self, fix: _Fix) -> None:
         self._accepted = fix

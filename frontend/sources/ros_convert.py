@@ -198,8 +198,9 @@ def decode_image(msg: Any, topic: str) -> np.ndarray:
 
     Refused (FrontendInputError, which the reader counts as a skipped image): an image with no
     pixels, which every later stage (thumbnail, backbone, registration) would fail on, and one
-    whose data is not exactly ``step * height`` bytes, as sensor_msgs/Image requires: such a
-    message was cut or mis-described, and reading it anyway would give wrong pixels.
+    whose data is shorter than ``step * height`` bytes: such a message was cut or mis-described,
+    and reading it anyway would give wrong pixels. Bytes beyond ``step * height`` (a driver's
+    padding) are ignored, as before.
     """
     encoding = str(msg.encoding).lower()
     channels = IMAGE_CHANNELS.get(encoding)
@@ -211,7 +212,7 @@ def decode_image(msg: Any, topic: str) -> np.ndarray:
     data = np.frombuffer(bytes(msg.data), dtype=np.uint8)
     _check_image_layout(topic, encoding, width, height, step, channels, data.size)
     row_bytes = width * channels
-    rows = data.reshape(height, step)[:, :row_bytes]
+    rows = data[: height * step].reshape(height, step)[:, :row_bytes]
     pixels = rows.reshape(height, width, channels)
     if encoding == "mono8":
         return np.repeat(pixels, 3, axis=2)
@@ -223,7 +224,7 @@ def decode_image(msg: Any, topic: str) -> np.ndarray:
 def _check_image_layout(
     topic: str, encoding: str, width: int, height: int, step: int, channels: int, size: int
 ) -> None:
-    """Raise FrontendInputError unless the header describes pixels that the data holds exactly."""
+    """Raise FrontendInputError unless the header describes pixels that the data holds."""
     if width <= 0 or height <= 0:
         raise FrontendInputError(f"{topic}: {encoding} image is empty ({width}x{height} pixels)")
     if step < width * channels:
@@ -231,10 +232,10 @@ def _check_image_layout(
             f"{topic}: {encoding} image {width}x{height} has step {step}, "
             f"fewer than the {width * channels} bytes a row needs"
         )
-    if size != step * height:
+    if size < step * height:
         raise FrontendInputError(
             f"{topic}: {encoding} image {width}x{height} with step {step} has {size} data bytes, "
-            f"expected {step * height}"
+            f"fewer than the {step * height} it needs"
         )
 
 

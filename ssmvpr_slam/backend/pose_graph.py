@@ -20,8 +20,8 @@ An iSAM2 step that fails (GTSAM's indeterminate-system error: with Cholesky, an 
 some 3e4 m already loses the rotation's precision to the lever arm) leaves iSAM2 half-updated, so
 `update()` never retries on it. It rebuilds iSAM2 from the graph's own records: first with QR
 factorisation (the condition number is not squared; used from then on), then, should that fail
-too, with the new keyframes' odometry edges cut (each starts a segment held by a prior at its
-odometry guess) and the new loops dropped. Each fallback is a `GraphRecovery` the caller warns
+too, without the new loops, then also with the new keyframes' odometry edges cut (each starts a
+segment held by a prior at its odometry guess). Each fallback is a `GraphRecovery` the caller warns
 about; only when the last one fails too is a `PoseGraphError` raised, with the estimate so far kept.
 """
 
@@ -86,7 +86,7 @@ def _gtsam_reason(error: Exception) -> str:
 
 
 def _isolation_text(cut: list[int], dropped: list[int]) -> str:
-    """What `PoseGraph._isolate` did, for the recovery's warning."""
+    """What the recovery cut and dropped, for its warning."""
     parts = []
     if cut:
         parts.append(f"keyframe(s) {', '.join(map(str, cut))} start a new graph segment (odometry edge cut)")
@@ -335,12 +335,14 @@ class PoseGraph:
         for index in rest:
             self._isam.update(gtsam.NonlinearFactorGraph(), gtsam.Values(), [index])
         new_indices = list(result.getNewFactorsIndices())
-        for slot, handle in loop_slots:
-            self._loops[handle].index = int(new_indices[slot])
         if loops_changed:
             for _ in range(self.config.isam2.extra_updates_after_loop):
                 self._isam.update()
         self._estimate = self._isam.calculateEstimate()
+        # only now are the new loops in the graph: a failure above leaves them new, so a
+        # recovery drops them rather than rebuilding with them
+        for slot, handle in loop_slots:
+            self._loops[handle].index = int(new_indices[slot])
         self._clear_queue()
 
     def _clear_queue(self) -> None:
@@ -362,7 +364,16 @@ class PoseGraph:
                 self._note(new, f"iSAM2 failed ({reason}){self._steps_text(new)}; re-solved with QR "
                                 "factorisation, used from now on")  # fmt: skip
                 return
-        cut, dropped = self._isolate(new)
+        dropped = self._drop_new_loops()
+        if dropped:  # a new loop is the likelier culprit: keep the odometry if it solves without them
+            try:
+                self._rebuild("QR")
+            except RuntimeError as again:
+                reason = _gtsam_reason(again)
+            else:
+                self._note(new, f"iSAM2 failed ({reason}){self._steps_text(new)}; " + _isolation_text([], dropped))
+                return
+        cut = self._cut_odometry(new)
         try:
             self._rebuild("QR")
         except RuntimeError as last:
@@ -377,18 +388,21 @@ class PoseGraph:
         steps = [float(np.linalg.norm(e.measured[:3, 3])) for e in self._odom_edges if e.j in keyframes]
         return f", odometry step of {max(steps):.1e} m" if steps and max(steps) >= 1e3 else ""
 
-    def _isolate(self, keyframes: tuple[int, ...]) -> tuple[list[int], list[int]]:
-        """Cut the odometry edges into `keyframes` (a prior at the guess holds each) and drop the
-        loops not yet in iSAM2; returns (keyframes cut, loop handles dropped)."""
+    def _drop_new_loops(self) -> list[int]:
+        """Forget the loops not yet in iSAM2; returns their handles."""
+        dropped = [h for h, loop in self._loops.items() if loop.index is None]
+        for handle in dropped:
+            del self._loops[handle]
+        return dropped
+
+    def _cut_odometry(self, keyframes: tuple[int, ...]) -> list[int]:
+        """Cut the odometry edges into `keyframes` (a prior at the guess holds each); returns them."""
         pcfg = self.config.prior
         prior_noise = noise.gaussian(noise.sigmas6(pcfg.rot_sigma, pcfg.trans_sigma))
         cut = [kf for kf in keyframes if self._prior is None or kf != self._prior[0]]
         for kf in cut:
             self._segment_priors[kf] = (self._pending_values.atPose3(_key(kf)).matrix(), prior_noise)
-        dropped = [h for h, loop in self._loops.items() if loop.index is None]
-        for handle in dropped:
-            del self._loops[handle]
-        return cut, dropped
+        return cut
 
     def _rebuild(self, factorization: str) -> None:
         """A fresh iSAM2 holding the whole recorded graph (queue included), started from the

@@ -5,6 +5,7 @@ vehicle can move. Each is a counted skip naming topic and time; the frame keeps 
 from __future__ import annotations
 
 import logging
+import math
 from pathlib import Path
 
 import numpy as np
@@ -14,7 +15,7 @@ from mcap_ros2.writer import Writer
 from frontend.config import McapSourceConfig
 from frontend.errors import FrontendInputError
 from frontend.sources import McapSource, ros_convert, ros_msgdefs
-from frontend.sources.pose_jumps import MAX_SPEED_M_S, RELOCATION_MESSAGES, PoseJumpCheck
+from frontend.sources.pose_jumps import MAX_SPEED_M_S, RELOCATION_MESSAGES, RELOCATION_SECONDS, PoseJumpCheck
 
 
 def _write(path: Path, messages: list[tuple[str, str, dict, float]]) -> Path:
@@ -44,8 +45,6 @@ def _image_damage(message: dict, damage: str) -> dict:
         return dict(message, width=0, step=0)  # the data is still there: the header says no pixels
     if damage == "zero_height":
         return dict(message, height=0)
-    if damage == "extra_bytes":
-        return dict(message, data=message["data"] + b"\0" * 7)
     assert damage == "short_data"
     return dict(message, data=message["data"][:-1])
 
@@ -54,9 +53,21 @@ DAMAGE = {
     "zero_size": "image is empty (0x0 pixels)",
     "zero_width": "image is empty (0x6 pixels)",
     "zero_height": "image is empty (8x0 pixels)",
-    "extra_bytes": "image 8x6 with step 24 has 151 data bytes, expected 144",
-    "short_data": "image 8x6 with step 24 has 143 data bytes, expected 144",
+    "short_data": "image 8x6 with step 24 has 143 data bytes, fewer than the 144 it needs",
 }
+
+
+def test_bytes_beyond_the_image_are_ignored(tmp_path: Path) -> None:
+    """A driver that pads each image's data: the pixels are read, the padding ignored (refusing
+    it would have dropped every camera frame of such a log)."""
+    image = np.arange(6 * 8 * 3, dtype=np.uint8).reshape(6, 8, 3)
+    message = ros_convert.image_message(image, 1.0, "cam")
+    padded = dict(message, data=message["data"] + b"\0" * 7)
+    path = _write(tmp_path / "padded.mcap", [("/cam", ros_msgdefs.IMAGE, padded, 1.0)])
+    source = McapSource(path)
+    frames = list(source)
+    assert len(frames) == 1 and not source.stats.skipped
+    np.testing.assert_array_equal(frames[0].image, image)
 
 
 @pytest.mark.parametrize("damage", sorted(DAMAGE))
@@ -116,25 +127,42 @@ def test_fast_but_possible_motion_and_long_gaps_pass(tmp_path: Path) -> None:
     assert all(f.logged_pose is not None for f in slow) and not slow.stats.skipped
 
 
+def _refused_before_relocation(dt: float) -> int:
+    """Messages refused before a moved stream is followed: RELOCATION_MESSAGES agreeing ones,
+    spanning RELOCATION_SECONDS (the last of them is taken)."""
+    return max(RELOCATION_MESSAGES, math.ceil(round(RELOCATION_SECONDS / dt, 9)) + 1) - 1
+
+
 def test_a_stream_that_moved_for_good_is_followed_after_a_few_messages(tmp_path: Path) -> None:
-    """An odometry reset is no glitch: once RELOCATION_MESSAGES poses agree, they are used."""
-    xs = [0.0, 1.0] + [1e5 + i for i in range(RELOCATION_MESSAGES + 2)]
-    source = McapSource(_odometry_log(tmp_path / "reset.mcap", xs))
+    """An odometry reset is no glitch: once enough poses over a second agree, they are used."""
+    refused = _refused_before_relocation(0.1)
+    xs = [0.0, 1.0] + [1e5 + i for i in range(refused + 3)]
+    source = McapSource(_odometry_log(tmp_path / "reset.mcap", xs, dt=0.1))
     kept = [f.logged_pose is not None for f in source]
-    assert kept == [True, True] + [False] * (RELOCATION_MESSAGES - 1) + [True, True, True]
-    assert source.stats.skipped["implausible_logged_pose"] == RELOCATION_MESSAGES - 1
+    assert kept == [True, True] + [False] * refused + [True, True, True]
+    assert source.stats.skipped["implausible_logged_pose"] == refused
     assert source.stats.notes["relocated_logged_pose"] == 1
 
 
 def test_jump_check_of_a_first_pose_that_was_the_glitch() -> None:
     """The first pose is the reference; when it was the glitch, the real track takes over after
-    RELOCATION_MESSAGES poses instead of being refused until the speed limit catches up."""
+    a second of agreeing poses instead of being refused until the speed limit catches up."""
     check = PoseJumpCheck()
     assert check.check(0.0, _pose(1e6)).refused is None
-    verdicts = [check.check(0.1 * k, _pose(float(k))) for k in range(1, RELOCATION_MESSAGES + 2)]
-    assert [v.refused is not None for v in verdicts] == [True] * (RELOCATION_MESSAGES - 1) + [False, False]
-    assert verdicts[RELOCATION_MESSAGES - 1].relocated is not None
-    assert verdicts[-1].relocated is None
+    refused = _refused_before_relocation(0.1)
+    verdicts = [check.check(0.1 * k, _pose(float(k))) for k in range(1, refused + 3)]
+    assert [v.refused is not None for v in verdicts] == [True] * refused + [False, False]
+    assert verdicts[refused].relocated is not None and verdicts[-1].relocated is None
+
+
+def test_a_fast_stream_glitch_is_not_taken_for_a_relocation() -> None:
+    """At 100 Hz five agreeing messages last 40 ms: a glitch, and the jump back is no relocation."""
+    check = PoseJumpCheck()
+    check.check(0.0, _pose(0.0))
+    glitch = [check.check(0.01 * k, _pose(1e5)) for k in range(1, 2 * RELOCATION_MESSAGES)]
+    assert all(v.refused is not None and v.relocated is None for v in glitch)
+    back = check.check(0.01 * 2 * RELOCATION_MESSAGES, _pose(0.5))
+    assert back.refused is None and back.relocated is None
 
 
 def test_jump_check_scattered_glitches_never_relocate() -> None:

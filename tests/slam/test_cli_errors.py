@@ -264,18 +264,21 @@ def test_simulate_bad_sim_config(tmp_path: Path, text: str, fragment: str) -> No
 
 
 def test_a_full_disk_is_one_line_naming_the_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """What the machine refuses (ENOSPC here, as a full disk gave from every command) is an error
-    line with its errno and file, not a traceback; the earlier file stays as it was."""
+    """What the file system refuses (ENOSPC here, as a full disk gave from every command) is an
+    error line with its errno and file, not a traceback; an OSError that is a fault (a broken
+    pipe to a child process) is not dressed up as bad input."""
     import errno
 
     from ssmvpr_slam import runner
 
     out = tmp_path / "sim.mcap"
-    out.write_bytes(b"an earlier log")
+    raised: list[OSError] = [OSError(errno.ENOSPC, "No space left on device", str(out))]
 
-    def full_disk(config, path, console):  # noqa: ANN001, ANN202, ARG001
-        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+    def failing(config, path, console):  # noqa: ANN001, ANN202, ARG001
+        raise raised[0]
 
-    monkeypatch.setattr(runner, "simulate_to_mcap", full_disk)
+    monkeypatch.setattr(runner, "simulate_to_mcap", failing)
     assert_user_error(invoke("simulate", "--frames", 2, "--out", out), "No space left on device", str(out))
-    assert out.read_bytes() == b"an earlier log"
+    raised[0] = BrokenPipeError(errno.EPIPE, "Broken pipe")
+    result = invoke("simulate", "--frames", 2, "--out", out)
+    assert result.exit_code == 1  # a fault, not the one-line exit 2 of bad input

@@ -254,3 +254,22 @@ def test_a_section_check_names_the_variable_that_set_a_field_in_it(
     monkeypatch.setenv(variable, value)
     with pytest.raises(ConfigError, match=rf"^environment variable {variable}\b.*: {where}: "):
         load_config()
+
+
+def test_a_section_variable_is_blamed_only_for_what_its_json_sets(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    """SSMVPR_VPR='{...}' sets only the fields its JSON names: a bad value from the config file in
+    the same section is the file's (a review found the variable blamed for it)."""
+    own = tmp_path / "device.yaml"
+    own.write_text("vpr:\n  backbone:\n    device: gpu\n")
+    monkeypatch.setenv("SSMVPR_VPR", '{"filtering": {"num_candidates": 30}}')
+    with pytest.raises(ConfigError, match=rf"^config {own}: vpr.backbone.device: "):
+        load_config(own)
+    monkeypatch.setenv("SSMVPR_VPR", '{"backbone": {"device": "gpu"}}')
+    with pytest.raises(ConfigError, match="^environment variable SSMVPR_VPR: vpr.backbone.device: "):
+        load_config()
+    monkeypatch.delenv("SSMVPR_VPR")
+    monkeypatch.setenv("SSMVPR_SIMULATION__CITY__HOUSE_WIDTH_RANGE_M", "[12]")  # a pair given one value
+    with pytest.raises(ConfigError, match="^environment variable SSMVPR_SIMULATION__CITY__HOUSE_WIDTH_RANGE_M: "):
+        load_config()

@@ -31,7 +31,7 @@ from ssmvpr_slam.system import SlamSystem
 
 FRAMES = 14
 GLITCH = (3, 4)  # two odometry messages 1e5 m away, then back: refused by the reader
-MOVED_FROM = 8  # the odometry is 1e5 m away for good: followed after 5 messages, iSAM2 needs QR
+MOVED_FROM = 8  # the odometry is 1e5 m away for good: followed after a second (6 messages), iSAM2 needs QR
 
 
 def _bad_image(frame: Frame) -> dict | None:
@@ -97,6 +97,7 @@ def test_zero_size_and_mismatched_images_are_skipped(
     assert metrics["source_stats"]["skipped"] == {"undecodable_image": 3}
     assert metrics["frames"] == FRAMES and metrics["frames_skipped"] == {"no camera image": 3}
     assert metrics["error"] is None and (tmp_path / "out" / "latest" / "trajectory.mcap").is_file()
+    assert metrics["pose_graph_recoveries"] == []
 
 
 def test_odometry_glitch_is_skipped_and_a_lasting_jump_is_solved(
@@ -107,12 +108,13 @@ def test_odometry_glitch_is_skipped_and_a_lasting_jump_is_solved(
     assert result.exit_code == 0, (result.output, result.exception)
     assert "Traceback" not in result.output
     assert "/odom at t=0.600000: pose jumped 1e+05 m in 0.2 s" in caplog.text
-    assert "but the last 5 poses agree: followed from here" in caplog.text
+    assert "poses agree: followed from here" in caplog.text
     recovery = [r.getMessage() for r in caplog.records if "re-solved with QR" in r.getMessage()]
-    assert len(recovery) == 1 and recovery[0].startswith("frame 12 (keyframe "), caplog.text
+    assert len(recovery) == 1 and recovery[0].startswith("frame 13 (keyframe "), caplog.text
     assert "odometry step of 1.0e+05 m" in recovery[0]
     metrics = _metrics(tmp_path / "out")
-    assert metrics["source_stats"]["skipped"] == {"implausible_logged_pose": len(GLITCH) + 4}
+    assert metrics["pose_graph_recoveries"] == recovery  # recorded beside the warning
+    assert metrics["source_stats"]["skipped"] == {"implausible_logged_pose": len(GLITCH) + 5}
     assert metrics["source_stats"]["notes"]["relocated_logged_pose"] == 1
     optimised = np.loadtxt(tmp_path / "out" / "latest" / "optimised.tum")
     assert len(optimised) == metrics["keyframes"] and optimised[:, 1].max() > 9e4  # the track it was told
