@@ -8,7 +8,10 @@ from collections import Counter
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from frontend.frame import Frame
+from frontend.sources.pose_jumps import PoseJumpCheck
 
 log = logging.getLogger("frontend.sources")
 
@@ -53,6 +56,7 @@ class Source(ABC):
 
     def __init__(self) -> None:
         self.stats = SourceStats()
+        self._jumps: dict[str, PoseJumpCheck] = {}  # per pose role, afresh for each reading
 
     @abstractmethod
     def __iter__(self) -> Iterator[Frame]: ...
@@ -60,6 +64,19 @@ class Source(ABC):
     def reset_stats(self) -> None:
         """Start counting afresh (each iteration re-reads the traverse from the start)."""
         self.stats = SourceStats()
+        self._jumps = {}
+
+    def plausible_pose(self, role: str, pose: np.ndarray, time: float, where: str) -> np.ndarray | None:
+        """The pose, or None (a counted skip) when it jumps further than a vehicle can move
+        since the stream's last accepted pose (`frontend.sources.pose_jumps`): a glitch of a
+        message or two must not pull a spike into the trajectory or break the pose graph."""
+        verdict = self._jumps.setdefault(role, PoseJumpCheck()).check(time, pose)
+        if verdict.refused is not None:
+            self.stats.skip(f"implausible_{role}", f"{where}: {verdict.refused}; pose skipped")
+            return None
+        if verdict.relocated is not None:
+            self.stats.warn(f"relocated_{role}", f"{where}: {verdict.relocated}")
+        return pose
 
     @property
     def length(self) -> int | None:

@@ -163,12 +163,18 @@ class FolderSource(Source):
             pose = self.poses[index] if self.poses is not None else None
             if self.poses is not None and pose is None:
                 self.stats.notes["unmatched_pose"] += 1
+            where = f"{self.poses_path} at t={float(time):.6f}"
+            kept = {
+                role: self.plausible_pose(role, pose.copy(), float(time), where) if pose is not None else None
+                for role in ("logged_pose", "gt_pose")
+                if role in roles
+            }
             frame = Frame(
                 index=self.stats.frames_yielded,
                 timestamp=float(time),
                 image=image,
-                logged_pose=pose.copy() if pose is not None and "logged_pose" in roles else None,
-                gt_pose=pose.copy() if pose is not None and "gt_pose" in roles else None,
+                logged_pose=kept.get("logged_pose"),
+                gt_pose=kept.get("gt_pose"),
             )
             self.stats.frames_yielded += 1
             yield frame

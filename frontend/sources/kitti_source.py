@@ -210,12 +210,16 @@ class KittiSource(Source):
             points = self._read(read_velodyne, self.scans, index, "bad_lidar")
             if (self.images or self.scans) and image is None and points is None:
                 continue  # nothing of this frame could be read
+            gt_pose = None
+            if self.gt_poses is not None:
+                where = f"{self.poses_path} line {index + 1}"
+                gt_pose = self.plausible_pose("gt_pose", self.gt_poses[index].copy(), float(timestamp), where)
             frame = Frame(
                 index=self.stats.frames_yielded,
                 timestamp=float(timestamp),
                 image=image,
                 points=points,
-                gt_pose=self.gt_poses[index].copy() if self.gt_poses is not None else None,
+                gt_pose=gt_pose,
             )
             self.stats.frames_yielded += 1
             yield frame

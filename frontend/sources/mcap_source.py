@@ -17,7 +17,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
-import numpy as np
 from mcap.data_stream import ReadDataStream
 from mcap.exceptions import McapError
 from mcap.reader import NonSeekingReader, SeekingReader
@@ -33,7 +32,6 @@ from frontend.sources import ros_convert
 from frontend.sources.association import Associated, StreamAssociator
 from frontend.sources.base import Source
 from frontend.sources.clock import StreamClock
-from frontend.sources.pose_jumps import PoseJumpCheck
 from frontend.sources.ros_msgdefs import (
     COMPRESSED_IMAGE,
     IMAGE,
@@ -103,7 +101,6 @@ class McapSource(Source):
         self._roles = self._select_topics(present)
         self.driver = self._pick_driver()
         self._length = counts.get(self._roles[self.driver].name) if counts else None
-        self._jumps: dict[str, PoseJumpCheck] = {}  # per pose role, afresh for each reading
 
     # ---------------------------------------------------------------- discovery
 
@@ -220,7 +217,6 @@ class McapSource(Source):
 
     def __iter__(self) -> Iterator[Frame]:
         self.reset_stats()
-        self._jumps = {}
         cfg = self.config
         aux = [r for r in self._roles if r != self.driver]
         associator = StreamAssociator(
@@ -340,19 +336,7 @@ class McapSource(Source):
         if problem is not None:
             self.stats.skip(f"invalid_{topic.role}", f"{where}: {problem}; message skipped")
             return None
-        return self._plausible(topic.role, pose, time, where)
-
-    def _plausible(self, role: str, pose: np.ndarray, time: float, where: str) -> np.ndarray | None:
-        """The pose, or None (a counted skip) when it jumps further than a vehicle can move
-        since the stream's last accepted pose (`frontend.sources.pose_jumps`): a glitch of a
-        message or two must not pull a spike into the trajectory or break the pose graph."""
-        verdict = self._jumps.setdefault(role, PoseJumpCheck()).check(time, pose)
-        if verdict.refused is not None:
-            self.stats.skip(f"implausible_{role}", f"{where}: {verdict.refused}; message skipped")
-            return None
-        if verdict.relocated is not None:
-            self.stats.warn(f"relocated_{role}", f"{where}: {verdict.relocated}")
-        return pose
+        return self.plausible_pose(topic.role, pose, time, where)
 
     def _frames(self, ready: list[Associated]) -> Iterator[Frame]:
         for item in ready:

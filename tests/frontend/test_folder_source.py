@@ -113,3 +113,21 @@ def test_folder_to_mcap_converter(tmp_path: Path) -> None:
     assert [f.timestamp for f in frames] == [1.0, 2.0, 3.0]
     assert all(np.array_equal(f.image, im) for f, im in zip(frames, images))
     assert frames[2].logged_pose[0, 3] == pytest.approx(2) and frames[2].gt_pose[0, 3] == pytest.approx(2)
+
+
+def test_a_pose_file_glitch_is_skipped_like_a_logged_one(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """The jump check of MCAP odometry covers pose files too: a TUM line 1e5 m off for one
+    frame is a counted skip of that pose (both roles), the frame keeps its image."""
+    stamps = [10.0, 10.1, 10.2, 10.3, 10.4]
+    _images(tmp_path / "rgb", [f"{t:.6f}.png" for t in stamps])
+    poses = _poses(5)
+    poses[2, 0, 3] = 1e5
+    write_tum(tmp_path / "poses.txt", np.array(stamps), poses)
+    source = FolderSource(tmp_path, FolderSourceConfig(pose_role="both"))
+    with caplog.at_level("WARNING"):
+        frames = list(source)
+    assert [f.logged_pose is None for f in frames] == [False, False, True, False, False]
+    assert [f.gt_pose is None for f in frames] == [False, False, True, False, False]
+    assert all(f.image is not None for f in frames)
+    assert source.stats.skipped == {"implausible_logged_pose": 1, "implausible_gt_pose": 1}
+    assert "poses.txt at t=10.200000: pose jumped 1e+05 m in 0.1 s" in caplog.text

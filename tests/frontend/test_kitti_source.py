@@ -147,3 +147,16 @@ def test_kitti_to_mcap_converter(tmp_path: Path, capsys: pytest.CaptureFixture) 
         np.testing.assert_allclose(got.gt_pose, want.gt_pose, atol=1e-6)
     assert tool.main([str(tmp_path / "missing"), str(tmp_path / "x.mcap")]) == 2
     assert "error:" in capsys.readouterr().err
+
+
+def test_a_ground_truth_line_far_off_is_skipped(tmp_path: Path) -> None:
+    """A poses file line 1e5 m from its neighbours (a glitch, or a corrupt line) is a counted skip
+    of that frame's ground truth, as in an MCAP log."""
+    seq, truth = _make_sequence(tmp_path)
+    poses = np.stack(truth["poses"])
+    poses[1, :3, 3] += 1e5
+    write_kitti(tmp_path / "dataset" / "poses" / "05.txt", poses)
+    source = KittiSource(seq)
+    frames = list(source)
+    assert [f.gt_pose is None for f in frames] == [False, True, False, False]
+    assert source.stats.skipped["implausible_gt_pose"] == 1 and all(f.image is not None for f in frames)

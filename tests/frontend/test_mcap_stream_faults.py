@@ -116,7 +116,7 @@ def test_an_odometry_glitch_is_a_counted_skip(tmp_path: Path, jump: float, caplo
     assert [f.logged_pose is None for f in frames] == [False, False, False, True, True, False, False]
     assert all(f.image is not None for f in frames)
     assert source.stats.skipped == {"implausible_logged_pose": 2}
-    assert "/odom at t=1.300000: pose jumped" in caplog.text and "message skipped" in caplog.text
+    assert "/odom at t=1.300000: pose jumped" in caplog.text and "pose skipped" in caplog.text
 
 
 def test_fast_but_possible_motion_and_long_gaps_pass(tmp_path: Path) -> None:
