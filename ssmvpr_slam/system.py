@@ -19,7 +19,8 @@ import logging
 import math
 import time
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -241,11 +242,19 @@ class SlamSystem:
         })  # fmt: skip
 
     def _update_graph(self, kf: Keyframe) -> None:
-        """One iSAM2 step; a step the graph had to work around is warned about naming its frames,
-        one it could not is a PoseGraphError naming this keyframe's frame."""
-        try:
+        """One iSAM2 step (see `_graph_step`)."""
+        with self._graph_step(kf.id):
             self.graph.update()
+
+    @contextmanager
+    def _graph_step(self, kf_id: int) -> Iterator[None]:
+        """Around anything that may solve the graph (an update; the first prior-map loop, which
+        solves to place the map): a recovery is warned about naming its frames, a failure is a
+        PoseGraphError naming this keyframe's frame."""
+        try:
+            yield
         except PoseGraphError as error:
+            kf = self.state.keyframes[kf_id]
             raise PoseGraphError(f"frame {kf.frame_index} (keyframe {kf.id}): {error}") from None
         finally:
             self._tell_recoveries()
@@ -272,7 +281,10 @@ class SlamSystem:
             assert self.prior_map is not None  # a prior-map proposal needs a prior map
             place_pose = self.prior_map.pose(proposal.match_place)
             assert place_pose is not None  # a place without a pose never registers (see _register_to_map)
-            handle = self.graph.add_map_loop(proposal.match_place, place_pose, proposal.query_id, reg.T_mq, reg.sigmas)
+            with self._graph_step(proposal.query_id):
+                handle = self.graph.add_map_loop(
+                    proposal.match_place, place_pose, proposal.query_id, reg.T_mq, reg.sigmas
+                )
         else:
             handle = self.graph.add_loop(proposal.match_id, proposal.query_id, reg.T_mq, sigmas=reg.sigmas)
         return replace(record, factor_handle=handle)
