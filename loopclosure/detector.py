@@ -161,6 +161,7 @@ class LoopDetector:
 
     def load_state_arrays(self, arrays: dict[str, np.ndarray], database: PlaceDatabase) -> None:
         """Continue from `state_arrays` with `database` (the places saved with it, in order)."""
+        _check_state(arrays, len(database))  # before anything changes: a refused state leaves the detector as it was
         prior = int(arrays["prior_places"])
         travelled = arrays["session_travelled"].tolist()
         if len(database) != prior + len(travelled):
@@ -350,3 +351,45 @@ def _preferred(front: LoopProposal | None, rear: LoopProposal | None) -> LoopPro
     if front is None:
         return rear
     return rear if rear.accepted and not front.accepted else front
+
+
+def _check_state(arrays: dict[str, np.ndarray], n_places: int) -> None:
+    """Refuse a saved detector state that would resume wrongly without an error: distances that
+    are not finite or run backwards, matcher places outside the map, scores or tokens with NaN."""
+
+    def ints(name: str, lo: int, hi: int) -> np.ndarray:
+        value = np.asarray(arrays[name])
+        if value.dtype.kind not in "iu" or (value.size and (value.min() < lo or value.max() >= hi)):
+            raise LoopClosureInputError(
+                f"detector state {name}: expected integers in {lo}..{hi - 1}, got {value!r:.80}"
+            )
+        return value
+
+    def finite(name: str) -> np.ndarray:
+        value = np.asarray(arrays[name])
+        if value.dtype.kind not in "fiu" or not np.isfinite(value).all():
+            raise LoopClosureInputError(f"detector state {name}: expected finite numbers, got {value!r:.80}")
+        return value
+
+    ints("prior_places", 0, n_places + 1)
+    travelled = finite("session_travelled")
+    if (
+        travelled.ndim != 1
+        or np.any(np.diff(travelled) < 0)
+        or float(finite("travelled")) < (travelled[-1] if travelled.size else 0.0)
+    ):
+        raise LoopClosureInputError("detector state: the distances travelled run backwards")
+    last = np.asarray(arrays["last_position"], np.float64)
+    if last.shape != (3,) or not (np.isfinite(last).all() or np.isnan(last).all()):
+        raise LoopClosureInputError(f"detector state last_position: expected 3 numbers (or NaN), got {last!r:.80}")
+    for prefix in ("sequence_", "rear_sequence_"):
+        recent = int(ints(f"{prefix}recent", 0, 1 << 20))
+        for i in range(recent):
+            finite(f"{prefix}q{i}_token")
+            ints(f"{prefix}q{i}_limit", 0, n_places + 1)
+            ints(f"{prefix}q{i}_places", 0, max(n_places, 1))
+            finite(f"{prefix}q{i}_scores")
+        for name in [n for n in arrays if n.startswith(f"{prefix}previous_")]:
+            ints(name, 0, n_places)
+    if "gate_matches" in arrays:
+        ints("gate_matches", -1, n_places)

@@ -455,6 +455,32 @@ def test_a_detector_restored_from_its_state_continues_exactly(tmp_path: Path, co
         assert drive(second, range(cut, len(fronts))) == whole[cut:]
 
 
+@pytest.mark.parametrize(
+    ("damage", "fragment"),
+    [
+        (lambda a: a["sequence_q0_token"].flat.__setitem__(0, np.nan), "sequence_q0_token: expected finite"),
+        (lambda a: a.__setitem__("sequence_q0_places", a["sequence_q0_places"] + 10_000), "sequence_q0_places"),
+        (lambda a: a["session_travelled"].__setitem__(3, -5.0), "distances travelled run backwards"),
+        (lambda a: a.__setitem__("travelled", np.array(np.nan)), "travelled: expected finite"),
+        (lambda a: a.__setitem__("last_position", np.zeros(2)), "last_position: expected 3 numbers"),
+        (lambda a: a.__setitem__("sequence_previous_forward", np.array([99_999])), "sequence_previous_forward"),
+    ],
+)
+def test_a_damaged_state_is_refused_and_leaves_the_detector_as_it_was(damage, fragment: str, codebooks: str) -> None:  # noqa: ANN001
+    """A checkpoint's detector.npz with NaN tokens or places outside the map resumed without an
+    error (a tester found it); each is refused before the detector changes."""
+    first = detector(codebooks=codebooks, keyframes=5, distance=2.0)
+    for k in range(12):
+        first.process(scene(k), k, at(float(k)), float(k))
+    state = {name: np.array(value, copy=True) for name, value in first.state_arrays().items()}
+    state.setdefault("sequence_previous_forward", np.array([0]))
+    damage(state)
+    second = detector(codebooks=codebooks, keyframes=5, distance=2.0)
+    with pytest.raises(LoopClosureInputError, match=fragment):
+        second.load_state_arrays(state, first.database)
+    assert second.database is None and second.prior_places == 0
+
+
 def test_no_state_during_the_warmup() -> None:
     det = detector()
     feed(det, [0, 1], 0)
