@@ -351,34 +351,32 @@ class PoseGraph:
         self._pending_removals = []
 
     def _recover(self, error: RuntimeError) -> None:
-        """After a failed step: rebuild with QR, then with the new keyframes cut loose and the
-        new loops dropped; PoseGraphError (estimate kept) when even that fails."""
+        """After a failed step, rebuild with QR: as the graph is, then without the step's new
+        loops, then also with the new keyframes cut loose; PoseGraphError (estimate kept) when
+        even that fails. Each stage that has nothing to change is passed over."""
         new = tuple(kf for kf in self._order if not self._estimate.exists(_key(kf)))
         reason = _gtsam_reason(error)
-        if self._factorization != "QR":
+        dropped: list[int] = []
+        for stage in ("qr", "loops", "odometry"):
+            if stage == "qr":
+                if self._factorization == "QR":
+                    continue
+                what = "re-solved with QR factorisation, used from now on"
+            elif stage == "loops":  # a new loop is the likelier culprit: keep the odometry if it solves without
+                dropped = self._drop_new_loops()
+                if not dropped:
+                    continue
+                what = _isolation_text([], dropped)
+            else:
+                what = _isolation_text(self._cut_odometry(new), dropped)
             try:
-                self._rebuild("QR")
+                self._rebuild_with_qr()
             except RuntimeError as again:
                 reason = _gtsam_reason(again)
-            else:
-                self._note(new, f"iSAM2 failed ({reason}){self._steps_text(new)}; re-solved with QR "
-                                "factorisation, used from now on")  # fmt: skip
-                return
-        dropped = self._drop_new_loops()
-        if dropped:  # a new loop is the likelier culprit: keep the odometry if it solves without them
-            try:
-                self._rebuild("QR")
-            except RuntimeError as again:
-                reason = _gtsam_reason(again)
-            else:
-                self._note(new, f"iSAM2 failed ({reason}){self._steps_text(new)}; " + _isolation_text([], dropped))
-                return
-        cut = self._cut_odometry(new)
-        try:
-            self._rebuild("QR")
-        except RuntimeError as last:
-            self._give_up(new, _gtsam_reason(last))
-        self._note(new, f"iSAM2 failed ({reason}){self._steps_text(new)}; " + _isolation_text(cut, dropped))
+                continue
+            self._note(new, f"iSAM2 failed ({reason}){self._steps_text(new)}; {what}")
+            return
+        self._give_up(new, reason)
 
     def _note(self, keyframes: tuple[int, ...], what: str) -> None:
         self.recoveries.append(GraphRecovery(keyframes, what))
@@ -404,10 +402,10 @@ class PoseGraph:
             self._segment_priors[kf] = (self._pending_values.atPose3(_key(kf)).matrix(), prior_noise)
         return cut
 
-    def _rebuild(self, factorization: str) -> None:
-        """A fresh iSAM2 holding the whole recorded graph (queue included), started from the
-        last estimate and the queued guesses; the failed iSAM2 is never used again."""
-        self._factorization = factorization
+    def _rebuild_with_qr(self) -> None:
+        """A fresh iSAM2 with QR factorisation holding the whole recorded graph (queue included),
+        started from the last estimate and the queued guesses; the failed iSAM2 is never used again."""
+        self._factorization = "QR"
         isam = self._new_isam()
         graph = gtsam.NonlinearFactorGraph()
         for factor in self._known_factors():
@@ -449,8 +447,7 @@ class PoseGraph:
         for key in self._pending_values.keys():
             if not self._estimate.exists(key):
                 self._estimate.insert(key, self._pending_values.atPose3(key))
-        for handle in [h for h, loop in self._loops.items() if loop.index is None]:
-            del self._loops[handle]
+        self._drop_new_loops()
         self._clear_queue()
 
     def _new_isam(self) -> gtsam.ISAM2:
