@@ -60,15 +60,16 @@ class PlaceInfo:
     extra: dict[str, Any] = field(default_factory=dict)
 
 
-def _plain_info(info: PlaceInfo) -> PlaceInfo:
+def _plain_info(info: PlaceInfo, where: str) -> PlaceInfo:
     """`info` with a plain int id, float time and str name (numpy scalars made plain, JSON
-    writes them), or an error now: a saved map that `load` refuses would be found too late."""
+    writes them), or an error naming `where`: `add` refuses now what `load` would refuse after a
+    save, and `load` refuses what a damaged places.json holds, by the same rules."""
     if not isinstance(info.frame_id, (int, np.integer)) or isinstance(info.frame_id, bool):
-        raise LoopClosureInputError(f"place info frame_id must be an integer, got {info.frame_id!r}")
+        raise LoopClosureInputError(f"{where} frame_id must be an integer, got {info.frame_id!r:.60}")
     if not isinstance(info.timestamp, (int, float, np.integer, np.floating)) or isinstance(info.timestamp, bool):
-        raise LoopClosureInputError(f"place info timestamp must be a number, got {info.timestamp!r}")
+        raise LoopClosureInputError(f"{where} timestamp must be a number, got {info.timestamp!r:.60}")
     if not isinstance(info.name, str):
-        raise LoopClosureInputError(f"place info name must be a string, got {info.name!r}")
+        raise LoopClosureInputError(f"{where} name must be a string, got {info.name!r:.60}")
     return replace(info, frame_id=int(info.frame_id), timestamp=float(info.timestamp))
 
 
@@ -331,7 +332,7 @@ class PlaceDatabase:
         self._check_codes(codes)
         if len(infos) != len(codes):
             raise LoopClosureInputError(f"{len(codes)} codes but {len(infos)} place infos")
-        infos = [_plain_info(info) for info in infos]  # what save() writes and load() checks
+        infos = [_plain_info(info, "place info") for info in infos]  # what save() writes and load() checks
         if not self._codes:
             self._codes = {
                 "stage1": _Codes.empty(
@@ -652,14 +653,7 @@ def _read_places(path: Path) -> list[PlaceInfo]:
             info = None
         if info is None or type(info.frame_id) is not int or not isinstance(info.extra, dict):
             raise LoopClosureInputError(f"{path}: place {index} is not a place record ({str(place)[:80]})")
-        if type(info.timestamp) not in (int, float):  # NaN: a place without a time (vpr-eval's)
-            raise LoopClosureInputError(
-                f"{path}: place {index}: timestamp must be a number, got {info.timestamp!r:.60}"
-            )
-        if not isinstance(info.name, str):
-            raise LoopClosureInputError(f"{path}: place {index}: name must be a string, got {info.name!r:.60}")
-        info.timestamp = float(info.timestamp)
-        out.append(info)
+        out.append(_plain_info(info, f"{path}: place {index}:"))  # a NaN time: a place without one (vpr-eval's)
     return out
 
 
