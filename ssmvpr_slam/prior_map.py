@@ -28,7 +28,7 @@ from ssmvpr_common.poses import pose_problem
 
 SCANS_FILE = "scans.npz"
 POSE_TOLERANCE = {"map_pose": 1e-4, "gt_pose": 1e-3}
-"""max |R^T R - I| and |det R - 1| of a place's saved poses: a map pose must pass the pose graph's default
+"""max |R^T R - I| of a place's saved poses (a reflection is refused whatever the tolerance): a map pose must pass the pose graph's default
 `rotation_tolerance` to anchor a loop (a run saves it orthonormal to ~1e-12); ground truth is held to what the
 sources accept (`PoseFileConfig.rotation_tolerance`)."""
 

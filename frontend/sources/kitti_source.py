@@ -36,7 +36,7 @@ log = logging.getLogger("frontend.sources.kitti")
 KITTI_POINT_COLUMNS = 4  # x, y, z, intensity
 CAMERA_FOLDERS = ("image_2", "image_0")
 CALIB_TOLERANCE = 1e-3
-"""max |R^T R - I| and |det R - 1| of calib.txt's Tr: KITTI prints it to 12 digits (its rotations are
+"""max |R^T R - I| of calib.txt's Tr (a reflection is refused whatever the tolerance): KITTI prints it to 12 digits (its rotations are
 orthonormal to ~1e-7); a Tr typed in by hand with 4 decimals still passes."""
 
 
@@ -53,7 +53,7 @@ def read_velodyne(path: Path) -> np.ndarray:
 def read_calib_tr(path: Path) -> np.ndarray | None:
     """4x4 LiDAR->camera-0 transform from the ``Tr:`` line of ``calib.txt`` (None if absent).
 
-    Tr must be rigid: its rotation orthonormal with determinant +1 within `CALIB_TOLERANCE`
+    Tr must be rigid: its rotation orthonormal within `CALIB_TOLERANCE`, with no reflection
     (a scaled or singular Tr would scale or break the ground truth moved by it)."""
     if not path.is_file():
         return None
