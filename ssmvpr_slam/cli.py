@@ -93,7 +93,7 @@ def friendly_errors(func: Callable[..., Any]) -> Callable[..., Any]:
             _print_error(str(exc))
             raise typer.Exit(2) from None
         except OSError as exc:
-            if exc.errno not in _FILE_SYSTEM_ERRNOS or isinstance(exc, (ConnectionError, TimeoutError)):
+            if exc.errno not in _FILE_SYSTEM_ERRNOS:  # a broken pipe, a child process, a timeout: a fault
                 raise
             _print_error(str(exc))  # "[Errno 28] No space left on device: 'PATH'"
             raise typer.Exit(2) from None
