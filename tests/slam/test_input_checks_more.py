@@ -20,6 +20,7 @@ import shutil
 from collections.abc import Callable
 from pathlib import Path
 from types import SimpleNamespace
+from typing import Any
 
 import cv2
 import numpy as np
@@ -152,14 +153,20 @@ def _cut(name: str) -> Callable[[Path], str]:
     return apply
 
 
-def _record(edit: Callable[[dict], None]) -> Callable[[Path], str]:  # type: ignore[type-arg]
+def _json_file(name: str, edit: Callable[[Any], None]) -> Callable[[Path], str]:
+    """Edit a folder's JSON file `name` in place (checkpoint.json, a map's places.json)."""
+
     def apply(folder: Path) -> str:
-        record = json.loads((folder / "checkpoint.json").read_text())
-        edit(record)
-        (folder / "checkpoint.json").write_text(json.dumps(record))
-        return "checkpoint.json"
+        data = json.loads((folder / name).read_text())
+        edit(data)
+        (folder / name).write_text(json.dumps(data))
+        return name
 
     return apply
+
+
+def _record(edit: Callable[[dict], None]) -> Callable[[Path], str]:  # type: ignore[type-arg]
+    return _json_file("checkpoint.json", edit)
 
 
 def _field(key: str, value: object) -> Callable[[Path], str]:
@@ -375,20 +382,15 @@ def _valid_map(folder: Path) -> Path:
     return folder
 
 
-def _places(edit: Callable[[list], None]) -> Callable[[Path], None]:  # type: ignore[type-arg]
-    def apply(folder: Path) -> None:
-        places = json.loads((folder / "places.json").read_text())
-        edit(places)
-        (folder / "places.json").write_text(json.dumps(places))
-
-    return apply
+def _places(edit: Callable[[list], None]) -> Callable[[Path], str]:  # type: ignore[type-arg]
+    return _json_file("places.json", edit)
 
 
-def _pose_entry(key: str, index: int, entry: int, value: float) -> Callable[[Path], None]:
+def _pose_entry(key: str, index: int, entry: int, value: float) -> Callable[[Path], str]:
     return _places(lambda p: p[index]["extra"][key].__setitem__(entry, value))
 
 
-MAP_CASES: dict[str, tuple[Callable[[Path], None], str]] = {
+MAP_CASES: dict[str, tuple[Callable[[Path], str], str]] = {
     "map_pose_rotation_entry_2": (_pose_entry("map_pose", 3, 0, 2.0), "place 3: map_pose is not a rigid pose"),
     "map_pose_reflection": (_pose_entry("map_pose", 1, 10, -1.0), "place 1: map_pose is not a rigid pose"),
     "map_pose_last_row": (_pose_entry("map_pose", 2, 12, 0.5), "place 2: map_pose is not a rigid pose (last row"),

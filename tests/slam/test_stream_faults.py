@@ -81,6 +81,14 @@ def _run(log: Path, out: Path, weights_path: Path):  # noqa: ANN202
     return invoke("run", log, "--odometry", "logged", "--weights", weights_path, "--device", "cpu", "--out", out)
 
 
+def _run_through(log: Path, out: Path, weights_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """`run` on a faulty log, its warnings captured: it must end as a clean run does."""
+    with caplog.at_level("WARNING"):
+        result = _run(log, out, weights_path)
+    assert result.exit_code == 0, (result.output, result.exception)
+    assert "Traceback" not in result.output
+
+
 def _metrics(out: Path) -> dict:
     return json.loads((out / "latest" / "metrics.json").read_text())
 
@@ -88,10 +96,7 @@ def _metrics(out: Path) -> dict:
 def test_zero_size_and_mismatched_images_are_skipped(
     logs: SimpleNamespace, weights_path: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
-    with caplog.at_level("WARNING"):
-        result = _run(logs.images, tmp_path / "out", weights_path)
-    assert result.exit_code == 0, (result.output, result.exception)
-    assert "Traceback" not in result.output
+    _run_through(logs.images, tmp_path / "out", weights_path, caplog)
     assert "/camera/image_raw at t=1.000000: rgb8 image is empty (0x0 pixels); message skipped" in caplog.text
     metrics = _metrics(tmp_path / "out")
     assert metrics["source_stats"]["skipped"] == {"undecodable_image": 3}
@@ -103,10 +108,7 @@ def test_zero_size_and_mismatched_images_are_skipped(
 def test_odometry_glitch_is_skipped_and_a_lasting_jump_is_solved(
     logs: SimpleNamespace, weights_path: Path, tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
-    with caplog.at_level("WARNING"):
-        result = _run(logs.odometry, tmp_path / "out", weights_path)
-    assert result.exit_code == 0, (result.output, result.exception)
-    assert "Traceback" not in result.output
+    _run_through(logs.odometry, tmp_path / "out", weights_path, caplog)
     assert "/odom at t=0.600000: pose jumped 1e+05 m in 0.2 s" in caplog.text
     assert "poses agree: followed from here" in caplog.text
     recovery = [r.getMessage() for r in caplog.records if "re-solved with QR" in r.getMessage()]
