@@ -76,7 +76,7 @@ def auto_nlist(n_vectors: int) -> int:
 # The settings that shape a built index; the others (probes, search breadth, threads, blocks,
 # candidates fetched) are read at each query, so changing them keeps the index (`retune`).
 BUILD_SETTINGS = frozenset({
-    "index", "exact_backend", "torch_device", "ann_threshold_places", "ivf_nlist", "ivf_codes",
+    "index", "exact_backend", "torch_device", "torch_storage", "ann_threshold_places", "ivf_nlist", "ivf_codes",
     "ivf_train_vectors", "ivf_retrain_growth", "hnsw_m", "hnsw_ef_construction",
 })  # fmt: skip
 
@@ -99,7 +99,9 @@ class StageOneIndex:
         self._mirror: np.ndarray | None = None  # float32 vectors for exact search (compact storage)
         torch_exact = self.kind == "exact" and config.exact_backend == "torch"
         self._device = (
-            TorchExactSearch(dim, config.torch_device, config.torch_block_rows, config.faiss_threads)
+            TorchExactSearch(
+                dim, config.torch_device, config.torch_block_rows, config.faiss_threads, config.torch_storage
+            )  # fmt: skip
             if torch_exact
             else None
         )
@@ -120,6 +122,11 @@ class StageOneIndex:
     def search_device(self) -> str | None:
         """The torch device exact search runs on ('cuda', 'cpu'), or None (faiss, or approximate)."""
         return None if self._device is None else self._device.device
+
+    @property
+    def search_storage(self) -> str | None:
+        """The torch device copy's precision ('float16', 'float32'), or None (faiss, or approximate)."""
+        return None if self._device is None else self._device.storage
 
     # ---- keeping up with the database ---------------------------------------------------
     def sync(self, n_places: int, rows: Rows, view: np.ndarray | None = None) -> None:
@@ -240,7 +247,8 @@ class StageOneIndex:
         if self._device is not None:
             stop = self.n_places * self.per_place if limit is None else limit * self.per_place
             excluded_ids = np.empty(0, np.int64) if limit is not None else excluded_ids_of(excluded, self.per_place)
-            return self._device.propose(query, k, stop, excluded_ids, similarity_margin(query, self.max_norm))
+            margin = similarity_margin(query, self.max_norm)
+            return self._device.propose(query, k, stop, excluded_ids, margin, self.max_norm)
         import faiss
 
         mirror = view if view is not None else self._mirror

@@ -96,12 +96,19 @@ class FilteringConfig(_Strict):
     torch_device: Literal["auto", "cpu", "cuda"] = Field(
         default="auto", description="exact_backend torch: where it runs; auto is cuda when torch sees a GPU, else cpu."
     )
+    torch_storage: Literal["auto", "float32", "float16"] = Field(
+        default="auto",
+        description="exact_backend torch: the device copy's precision; auto is float16 on a GPU (a scan reads "
+        "half the bytes; the proposal margin widens by float16's rounding, so the votes stay exact) and "
+        "float32 on the CPU.",
+    )
     torch_block_rows: int | None = Field(
         default=None,
         ge=1,
         description="exact_backend torch: stage-I vectors multiplied per block, so a query holds one block of "
         "similarities on the device, not the whole map's (1M places are 16M vectors: 1 GB per query); "
-        "None: as many as 256 MB of similarities hold.",
+        "None: as many as 256 MB of similarities hold on the CPU, 1 GB on a GPU of 64 GB or more "
+        "(1/64 of a smaller one's memory).",
     )
     ann_threshold_places: int = Field(
         default=50_000, ge=1, description="auto: places from which IVF replaces exact search on the CPU."

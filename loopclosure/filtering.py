@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 # unit roundoff of float32: a d-term float32 dot product is within d*u*|q||x| of the exact value
-_F32_UNIT_ROUNDOFF = float(np.finfo(np.float32).eps) / 2.0
+F32_UNIT_ROUNDOFF = float(np.finfo(np.float32).eps) / 2.0
 
 
 @dataclass(frozen=True)
@@ -44,7 +44,7 @@ def similarity_margin(query: np.ndarray, max_norm: float) -> np.ndarray:
     """(n,) how far under the k-th float32 similarity an exact top-k vector can lie: twice the
     rounding bound of a float32 dot product, gamma_d |q| max|x|, doubled again for safety."""
     d = query.shape[1]
-    gamma = d * _F32_UNIT_ROUNDOFF / (1.0 - d * _F32_UNIT_ROUNDOFF)
+    gamma = d * F32_UNIT_ROUNDOFF / (1.0 - d * F32_UNIT_ROUNDOFF)
     norms = np.linalg.norm(query.astype(np.float64), axis=1)
     return 4.0 * gamma * norms * max(float(max_norm), 1e-30) + 1e-300
 
@@ -52,17 +52,20 @@ def similarity_margin(query: np.ndarray, max_norm: float) -> np.ndarray:
 Fetch = Callable[[np.ndarray, int], Iterable[tuple[np.ndarray, np.ndarray]]]
 
 
-def widen_until_complete(n_rows: int, k: int, n_allowed: int, margin: np.ndarray, fetch: Fetch) -> list[np.ndarray]:
+def widen_until_complete(
+    n_rows: int, k: int, n_allowed: int, margin: np.ndarray, fetch: Fetch, first: int | None = None
+) -> list[np.ndarray]:
     """Per query row, ascending ids of every vector within `margin[row]` of the k-th largest
     float32 similarity: a superset of the exact top k, for `rank_neighbours` to decide.
 
     `fetch(rows, kk)` gives, for each of those rows, its best (at most) kk allowed similarities,
     descending, and their ids. A row is settled once the last fetched value lies below the
     margin of the k-th, so nothing unfetched can be within it; the others ask for twice as
-    many. An index's exact mode only supplies `fetch`."""
+    many. An index's exact mode only supplies `fetch`; `first` (default k + max(8, k/4)) is
+    how many the first fetch asks for, more where a fetch costs the same for any kk (a GPU)."""
     out: list[np.ndarray | None] = [None] * n_rows
     todo = np.arange(n_rows)
-    kk = min(k + max(8, k // 4), n_allowed)
+    kk = min(max(k, first or k + max(8, k // 4)), n_allowed)
     while len(todo):
         again = []
         for row, (s, i) in zip(todo, fetch(todo, kk)):

@@ -573,11 +573,12 @@ def bench_stage1_index(args, config: VPRConfig, sizes: list[int], repeats: int) 
                 "exact_backend": args.exact_backend,
                 "torch_device": args.torch_device,
                 "torch_block_rows": args.torch_block_rows,
+                "torch_storage": args.torch_storage,
             }
         )
         exact = StageOneIndex(exact_config, d, per)
-        entry["exact_search"] = {"backend": args.exact_backend,
-                                 "device": exact.search_device or "cpu (faiss)"}  # fmt: skip
+        entry["exact_search"] = {"backend": args.exact_backend, "device": exact.search_device or "cpu (faiss)",
+                                 "storage": exact.search_storage or "float32"}  # fmt: skip
         t0 = time.perf_counter()
         exact.sync(n_places, rows, flat[: n_places * per])
         entry["exact_build_s"] = round(time.perf_counter() - t0, 3)
@@ -966,7 +967,9 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--torch-device", choices=("auto", "cpu", "cuda"), default="auto",
                     help="--exact-backend torch: its device")  # fmt: skip
     ap.add_argument("--torch-block-rows", type=int, default=None,
-                    help="--exact-backend torch: vectors per block (default: 256 MB of similarities)")  # fmt: skip
+                    help="--exact-backend torch: vectors per block (default: 256 MB of similarities, 1 GB on a GPU)")  # fmt: skip
+    ap.add_argument("--torch-storage", choices=("auto", "float32", "float16"), default="auto",
+                    help="--exact-backend torch: the device copy's precision (auto: float16 on a GPU)")  # fmt: skip
     ap.add_argument("--hnsw-ef", default="", help="also build HNSW and sweep these efSearch values (slow to build)")
     ap.add_argument("--ivf-codes", choices=("flat", "sq8"), default="flat", help="IVF list storage")
     ap.add_argument("--append-places", type=int, default=20, help="places appended one by one after the IVF build")

@@ -87,12 +87,16 @@ def _unit(x: np.ndarray) -> np.ndarray:
 
 
 # exact search in faiss, and through torch matrix products (on the CPU here; a GPU runs the same code)
-# and torch scanning the map in blocks of 7 vectors (a city on a GPU: 256 MB of similarities per block)
+# and torch scanning the map in blocks of 7 vectors (a city on a GPU: 1 GB of similarities per block),
+# and from a float16 copy (a GPU's default: the rounding is the GPU's, the products are widened here)
 BACKENDS = {
     "faiss": {},
     "torch": {"exact_backend": "torch", "torch_device": "cpu"},
     "torch-blocks": {"exact_backend": "torch", "torch_device": "cpu", "torch_block_rows": 7},
-}
+    "torch-float16": {"exact_backend": "torch", "torch_device": "cpu", "torch_storage": "float16"},
+    "torch-float16-blocks": {"exact_backend": "torch", "torch_device": "cpu", "torch_storage": "float16",
+                             "torch_block_rows": 7},
+}  # fmt: skip
 
 
 def _exclusions(draw, places: int) -> list[np.ndarray | None]:
@@ -368,7 +372,7 @@ def test_a_sync_cut_short_is_redone_at_the_right_rows():
     search.write(5, np.full((2, 3), 3.0, np.float32))  # the next sync starts again at row 5
     assert len(search) == 7
     margin = np.zeros(1)
-    got = search.propose(np.ones((1, 3), np.float32), 2, len(search), np.empty(0, np.int64), margin)
+    got = search.propose(np.ones((1, 3), np.float32), 2, len(search), np.empty(0, np.int64), margin, 1.0)
     np.testing.assert_array_equal(got[0], [5, 6])
     with pytest.raises(ValueError, match="write at vector 9"):
         search.write(9, np.ones((1, 3), np.float32))
@@ -454,7 +458,54 @@ def test_a_map_too_large_for_the_device_is_an_error_naming_its_size(monkeypatch)
 
     search = TorchExactSearch(100, "cpu")
     search.write(0, np.ones((3, 100), np.float32))
-    monkeypatch.setattr(torch, "empty", no_room)
+    monkeypatch.setattr(torch, "zeros", no_room)
     with pytest.raises(LoopClosureError, match=r"stage-I vectors \(6\.4 GB float32\) do not fit on cpu"):
         search.reserve(16_000_000)
     assert len(search) == 3  # what was held stays
+
+
+# ---- the GPU's selection of a row's top k ------------------------------------------------------
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    rows=st.integers(1, 5),
+    columns=st.integers(1, 3000),
+    chunk=st.sampled_from([4, 16, 64]),
+    kk=st.integers(1, 40),
+    levels=st.sampled_from([0, 3, 50]),
+    excluded=st.floats(0.0, 0.9),
+)
+@settings(max_examples=200, deadline=None)
+def test_chunk_selection_keeps_the_values_topk_keeps(seed, rows, columns, chunk, kk, levels, excluded):
+    """The selection a GPU runs (forced here on the CPU) keeps each row's kk largest values, as
+    torch.topk does, and ids that point at them: ties (a few levels: mass ties fall back to
+    topk), excluded columns at -inf, columns past the last whole chunk."""
+    import torch
+
+    from loopclosure.device_search import top_k_columns
+
+    rng = np.random.default_rng(seed)
+    values = rng.integers(0, levels, (rows, columns)) if levels else rng.standard_normal((rows, columns))
+    sims = torch.from_numpy(values.astype(np.float32))
+    sims[torch.from_numpy(rng.random((rows, columns)) < excluded)] = -torch.inf
+    kk = min(kk, columns)
+    got_values, got_ids = top_k_columns(sims, kk, chunk=chunk, select=True)
+    expected = torch.topk(sims, kk, dim=1).values
+    assert torch.equal(torch.sort(got_values, dim=1, descending=True).values, expected)
+    assert torch.equal(torch.gather(sims, 1, got_ids), got_values)
+    assert all(len(set(row.tolist())) == kk for row in got_ids)  # no column twice
+
+
+def test_the_float16_copy_is_a_gpus_default_and_refuses_values_it_cannot_hold(monkeypatch):
+    from loopclosure.device_search import TorchExactSearch
+    from loopclosure.errors import LoopClosureInputError
+
+    assert TorchExactSearch(8, "cpu").storage == "float32"  # the CPU's float16 products are slow
+    monkeypatch.setattr(TorchExactSearch, "on_gpu", property(lambda self: True))
+    search = TorchExactSearch(10, "cpu")
+    assert search.storage == "float16" and search._rows is None
+    search.write(0, np.full((2, 10), 3.0, np.float32))
+    assert tuple(search._rows.shape[1:]) == (16,)  # padded to the width tensor cores take
+    with pytest.raises(LoopClosureInputError, match="torch_storage: float32"):
+        search.write(2, np.full((1, 10), 7e4, np.float32))
+    assert len(search) == 2  # what was held stays
+    assert TorchExactSearch(10, "cpu", storage="float32").storage == "float32"

@@ -39,7 +39,7 @@ def test_stage1_index_through_the_torch_exact_backend() -> None:
     )
     assert proc.returncode == 0, proc.stderr[-2000:]
     size = json.loads(proc.stdout)["stage1_index"]["sizes"]["400"]
-    assert size["exact_search"] == {"backend": "torch", "device": "cpu"}
+    assert size["exact_search"] == {"backend": "torch", "device": "cpu", "storage": "float32"}
     assert size["exact_query_ms"]["median"] > 0
     (ivf,) = [v for k, v in size.items() if k.startswith("ivf_nlist_")]
     assert ivf["nprobe"]["1024"]["recall_at_n_mean"] == 1.0
