@@ -54,3 +54,23 @@ def test_storage_rows_include_int8() -> None:
     storage = bench_vpr.bench_storage(VPRConfig())
     assert storage["int8"]["bytes_per_place"] == 16 * 100 + 16 * 4 + 13 * 13 * 100 + 13 * 13 * 4 <= 20_000
     assert storage["stage2_int8"]["bytes_per_place"] == 16 * 100 * 4 + 13 * 13 * 100 + 13 * 13 * 4
+
+
+def test_the_device_search_breakdown_runs_on_the_cpu() -> None:
+    """tools/bench_device_search.py (a GPU's stage-I breakdown) at a tiny size on the CPU device:
+    every part timed, the forced chunk selection equal to torch.topk, at least k candidates."""
+    script = SCRIPT.parent / "bench_device_search.py"
+    proc = subprocess.run(
+        [sys.executable, str(script), "--vectors", "20000", "--repeats", "1", "--device", "cpu"],
+        capture_output=True, text=True, timeout=300, check=False,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    out = json.loads(proc.stdout)
+    assert out["device"] == "cpu" and out["selection_equals_topk"] is True
+    assert set(out["selection_ms"]) == {"torch_topk", "chunks_1024", "chunks_4096", "chunks_16384"}
+    assert set(out["proposal_ms"]) == {"float32_torch_topk", "float32_default", "float16_torch_topk", "float16_default"}
+    assert all(p["ms"] > 0 and p["candidates_per_row"] >= out["k"] for p in out["proposal_ms"].values())
+    too_few = subprocess.run(
+        [sys.executable, str(script), "--vectors", "100"], capture_output=True, text=True, check=False
+    )
+    assert too_few.returncode == 2 and "--vectors: at least 1616" in too_few.stderr

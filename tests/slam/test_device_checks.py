@@ -28,10 +28,13 @@ def test_every_step_runs_and_leaves_its_measurements(tmp_path: Path, weights_pat
     summary = json.loads(proc.stdout)
     assert all(step["ok"] for step in summary["steps"].values())
 
-    stage1 = json.loads((out / "stage1.json").read_text())["results"]["stage1_2000"]["stage1_index"]["sizes"]["2000"]
-    assert stage1["exact_search"] == {"backend": "torch", "device": "cpu"}
+    stage1_results = json.loads((out / "stage1.json").read_text())["results"]
+    stage1 = stage1_results["stage1_2000"]["stage1_index"]["sizes"]["2000"]
+    assert stage1["exact_search"] == {"backend": "torch", "device": "cpu", "storage": "float32"}
     assert stage1["exact_equals_numpy"] == {"queries": 3, "equal": 3}
     assert stage1["exact_query_ms"]["median"] > 0
+    breakdown = stage1_results["stage1_breakdown"]  # where a query's time goes
+    assert breakdown["vectors"] == 20000 and breakdown["selection_equals_topk"] is True
 
     backbone = json.loads((out / "backbone.json").read_text())["results"]["backbone"]
     assert backbone["machine"]["device"] == "cpu" and backbone["weights"]["random_weights"] is False
@@ -85,3 +88,5 @@ def test_votes_that_differ_from_numpy_fail_the_step() -> None:
     assert "differ from numpy" in device_checks._verdict("stage1", {"stage1_index": {"sizes": sizes}})
     sizes["1000000"]["exact_equals_numpy"]["equal"] = 3
     assert device_checks._verdict("stage1", {"stage1_index": {"sizes": sizes}}) is None
+    assert "chunk selection" in device_checks._verdict("stage1", {"selection_equals_topk": False})
+    assert device_checks._verdict("stage1", {"selection_equals_topk": True}) is None
