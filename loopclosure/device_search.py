@@ -202,11 +202,11 @@ class TorchExactSearch:
             self.reserve(max(stop, capacity + capacity // 2, 1024))
         self._count = offset
         wide = torch.from_numpy(rows).to(self.device)
-        if self.storage == "float16" and len(rows) and float(wide.abs().max()) > FLOAT16_LIMIT:  # on the device: fast
-            raise LoopClosureInputError(
-                f"stage-I values beyond ±{FLOAT16_LIMIT:g} do not fit the GPU's float16 copy: "
-                "set vpr.filtering.torch_storage: float32"
-            )
+        if len(rows):  # checked on the device: one pass there, none on the host
+            if not bool(torch.isfinite(wide).all()):
+                raise LoopClosureInputError(f"stage-I vectors {offset}..{offset + len(rows) - 1} hold NaN or inf")
+            if self.storage == "float16" and float(wide.abs().max()) > FLOAT16_LIMIT:
+                raise LoopClosureInputError(_too_large("stage-I values"))
         self._rows[offset:stop, : self.dim] = wide.to(self._dtype())
         self._count = stop
 
@@ -217,7 +217,9 @@ class TorchExactSearch:
 
         |q.x - q16.x16| <= |q| |x - x16| + |q - q16| |x16|, with |x - x16| <= 2^-11 |x| + 2^-25 sqrt(d)
         per vector (torch and numpy round to nearest; 2^-25 where float16 is subnormal) and
-        |q - q16| measured: a bound, not an estimate, so no safety factor on top."""
+        |q - q16| measured. Tensor cores may truncate their float32 sums instead of rounding
+        them, up to twice the error `similarity_margin` allows per addition: their whole sum
+        bound, gamma_w(2u) |q16| |x16|, is added as well."""
         if self.storage != "float16":
             return np.zeros(len(query))
         q = np.asarray(query, np.float64)
@@ -227,9 +229,8 @@ class TorchExactSearch:
         x16_norm = max_norm + x_error
         q_norm, q16_norm = np.linalg.norm(q, axis=1), np.linalg.norm(q16, axis=1)
         bound = q_norm * x_error + np.linalg.norm(q - q16, axis=1) * x16_norm
-        # the float32 sum's own bound (similarity_margin) for the rounded vectors' larger norms
-        gamma = self._width * F32_UNIT_ROUNDOFF / (1.0 - self._width * F32_UNIT_ROUNDOFF)
-        bound += gamma * np.maximum(0.0, q16_norm * x16_norm - q_norm * max_norm)
+        u = 2.0 * F32_UNIT_ROUNDOFF  # a truncating sum's error per addition
+        bound += self._width * u / (1.0 - self._width * u) * q16_norm * x16_norm
         return 2.0 * bound
 
     def propose(
@@ -242,6 +243,10 @@ class TorchExactSearch:
         import torch
 
         threads = self.cpu_threads if not self.on_gpu else None
+        if not np.isfinite(query).all():
+            raise LoopClosureInputError("a stage-I query holds NaN or inf")
+        if self.storage == "float16" and np.abs(query).max(initial=0.0) > FLOAT16_LIMIT:
+            raise LoopClosureInputError(_too_large("stage-I query values"))
         margin = np.asarray(margin, np.float64) + self.storage_margin(query, max_norm)
         with full_float32(), torch_threads(threads), torch.inference_mode():
             padded = np.zeros((len(query), self._width), np.float32)
@@ -309,6 +314,12 @@ class TorchExactSearch:
         return _descending(values, ids)
 
 
+def _too_large(what: str) -> str:
+    return (
+        f"{what} beyond ±{FLOAT16_LIMIT:g} do not fit the GPU's float16 copy: set vpr.filtering.torch_storage: float32"
+    )
+
+
 def _float32_product(q: Any, rows: Any) -> Any:
     """q @ rows.T summed and returned in float32, float16 operands too (products of float16
     values are exact in float32). Where torch has no float16 product into float32 (the CPU,
@@ -320,7 +331,7 @@ def _float32_product(q: Any, rows: Any) -> Any:
     if q.device.type != "cpu":
         try:
             return torch.mm(q, rows.T, out_dtype=torch.float32)
-        except (TypeError, RuntimeError, NotImplementedError):
+        except (TypeError, NotImplementedError):  # no such product here; out of memory is raised
             pass
     return q.float() @ rows.float().T
 
@@ -354,12 +365,13 @@ def top_k_columns(sims: Any, kk: int, chunk: int = 0, select: bool | None = None
         return top.values, top.indices
     whole = torch.as_strided(sims, (n_rows, n_chunks, chunk), (sims.stride(0), chunk * sims.stride(1), sims.stride(1)))
     floor = torch.topk(whole.amax(dim=2), kk, dim=1, sorted=False).values.amin(dim=1, keepdim=True)
-    hits = (sims >= floor).nonzero()  # (row, column) in row order
-    counts = torch.bincount(hits[:, 0], minlength=n_rows)
+    above = sims >= floor
+    counts = above.sum(dim=1)
     widest = int(counts.max())
-    if widest > n // 4:
+    if widest > n // 4:  # before the gather, which would hold 16 bytes a hit
         top = torch.topk(sims, kk, dim=1, sorted=False)
         return top.values, top.indices
+    hits = above.nonzero()  # (row, column) in row order
     starts = torch.cumsum(counts, 0) - counts
     slot = torch.arange(len(hits), device=sims.device) - starts[hits[:, 0]]
     values = torch.full((n_rows, widest), -torch.inf, dtype=sims.dtype, device=sims.device)

@@ -508,4 +508,13 @@ def test_the_float16_copy_is_a_gpus_default_and_refuses_values_it_cannot_hold(mo
     with pytest.raises(LoopClosureInputError, match="torch_storage: float32"):
         search.write(2, np.full((1, 10), 7e4, np.float32))
     assert len(search) == 2  # what was held stays
+    query, margin = np.ones((1, 10), np.float32), np.zeros(1)
+    with pytest.raises(LoopClosureInputError, match="query values beyond"):
+        search.propose(query * 7e4, 1, 2, np.empty(0, np.int64), margin, 3.0 * np.sqrt(10))
+    for bad in (np.nan, np.inf):
+        with pytest.raises(LoopClosureInputError, match="vectors 2..2 hold NaN or inf"):
+            search.write(2, np.full((1, 10), bad, np.float32))
+        with pytest.raises(LoopClosureInputError, match="query holds NaN or inf"):
+            search.propose(query * bad, 1, 2, np.empty(0, np.int64), margin, 3.0 * np.sqrt(10))
+    assert len(search.propose(query, 1, 2, np.empty(0, np.int64), margin, 3.0 * np.sqrt(10))[0]) == 2  # a tie
     assert TorchExactSearch(10, "cpu", storage="float32").storage == "float32"
