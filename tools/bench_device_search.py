@@ -60,7 +60,7 @@ def median_ms(fn: Callable[[], object], repeats: int, sync: Callable[[], None]) 
 def forced_selection(select: bool | None) -> Iterator[None]:
     """`TorchExactSearch` with the selection forced on or off (None: the device's default)."""
     original = device_search.top_k_columns
-    device_search.top_k_columns = lambda sims, kk, chunk=0, select_=None: original(sims, kk, chunk, select)
+    device_search.top_k_columns = lambda sims, kk, chunk=0: original(sims, kk, chunk, select)
     try:
         yield
     finally:
