@@ -196,17 +196,17 @@ class TorchExactSearch:
             raise ValueError(f"stage-I rows must be (m, {self.dim}), got {rows.shape}")
         if not rows.flags.writeable or not rows.flags.c_contiguous:  # a read-only memory-mapped map
             rows = np.array(rows, np.float32, order="C")
+        wide = torch.from_numpy(rows).to(self.device)
+        if len(rows):  # checked on the device (one pass there, none on the host), before anything changes
+            if not bool(torch.isfinite(wide).all()):
+                raise LoopClosureInputError(f"stage-I vectors {offset}..{offset + len(rows) - 1} hold NaN or inf")
+            if self.storage == "float16" and float(wide.abs().max()) > FLOAT16_LIMIT:
+                raise LoopClosureInputError(_too_large("stage-I values"))
         stop = offset + len(rows)
         capacity = 0 if self._rows is None else len(self._rows)
         if stop > capacity:
             self.reserve(max(stop, capacity + capacity // 2, 1024))
         self._count = offset
-        wide = torch.from_numpy(rows).to(self.device)
-        if len(rows):  # checked on the device: one pass there, none on the host
-            if not bool(torch.isfinite(wide).all()):
-                raise LoopClosureInputError(f"stage-I vectors {offset}..{offset + len(rows) - 1} hold NaN or inf")
-            if self.storage == "float16" and float(wide.abs().max()) > FLOAT16_LIMIT:
-                raise LoopClosureInputError(_too_large("stage-I values"))
         self._rows[offset:stop, : self.dim] = wide.to(self._dtype())
         self._count = stop
 

@@ -517,4 +517,7 @@ def test_the_float16_copy_is_a_gpus_default_and_refuses_values_it_cannot_hold(mo
         with pytest.raises(LoopClosureInputError, match="query holds NaN or inf"):
             search.propose(query * bad, 1, 2, np.empty(0, np.int64), margin, 3.0 * np.sqrt(10))
     assert len(search.propose(query, 1, 2, np.empty(0, np.int64), margin, 3.0 * np.sqrt(10))[0]) == 2  # a tie
+    with pytest.raises(LoopClosureInputError, match="vectors 1..1 hold NaN"):
+        search.write(1, np.full((1, 10), np.nan, np.float32))  # a refused rewrite keeps what it would replace
+    assert len(search) == 2
     assert TorchExactSearch(10, "cpu", storage="float32").storage == "float32"
