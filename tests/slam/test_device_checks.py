@@ -43,10 +43,13 @@ def test_every_step_runs_and_leaves_its_measurements(tmp_path: Path, weights_pat
     assert backbone["precisions"]["auto"]["agreement_with_fp32"]["stage1"]["cosine_min"] > 0.999
 
     slam = json.loads((out / "slam.json").read_text())
-    assert [(c["name"], c["returncode"]) for c in slam["commands"]] == [("simulate", 0), ("bench_slam", 0)]
-    bench = slam["results"]["bench_slam"]  # the simulated log, run with the stages overlapped
-    assert bench["frames"] == 12 and bench["keyframes"] >= 2 and bench["error"] is None
-    assert bench["settings"]["overlap"] is True
+    names = [(c["name"], c["returncode"]) for c in slam["commands"]]
+    assert names == [("simulate", 0), ("bench_slam", 0), ("bench_slam_fast", 0)]
+    bench, fast = slam["results"]["bench_slam"], slam["results"]["bench_slam_fast"]  # the simulated log, overlapped
+    for run in (bench, fast):
+        assert run["frames"] == 12 and run["keyframes"] >= 2 and run["error"] is None
+        assert run["settings"]["overlap"] is True
+    assert fast["machine"]["omp_wait_policy"] == "PASSIVE"
 
 
 def test_a_kit_folder_the_call_did_not_carry_is_named(tmp_path: Path) -> None:
