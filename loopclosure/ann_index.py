@@ -18,9 +18,10 @@ exactly and votes. Modes (`vpr.filtering.index`):
 - auto: exact up to `ann_threshold_places`, ivf beyond; exact at any size when exact search
   runs on a GPU.
 
-Exact search runs in faiss on the CPU, or (`exact_backend: torch`) as torch matrix products
-on `torch_device` (`loopclosure.device_search`): a GPU holds every stage-I vector and scans
-them all for a query. Both propose, and the same exact re-scoring decides.
+Exact search runs in faiss on the CPU, or (`exact_backend: torch`, which `auto` picks where
+torch sees a GPU) as torch matrix products on `torch_device` (`loopclosure.device_search`): a
+GPU holds every stage-I vector and scans them all for a query. Both propose, and the same
+exact re-scoring decides.
 
 The index is not saved with a map: the first query after loading builds it (exact: one norm
 pass over the codes; IVF: 278 s for 1M places on this 2-core machine). A retrain at a growth
@@ -44,7 +45,7 @@ from typing import Any
 import numpy as np
 
 from loopclosure.config import FilteringConfig
-from loopclosure.device_search import TorchExactSearch
+from loopclosure.device_search import TorchExactSearch, resolve_backend
 from loopclosure.filtering import max_row_norm, similarity_margin, widen_until_complete
 
 Rows = Callable[[int, int], np.ndarray]  # (start, stop) vector ids -> float32 (stop - start, d)
@@ -97,7 +98,7 @@ class StageOneIndex:
         self.max_norm = 0.0  # largest stage-I vector norm seen (the exactness margin needs it)
         self.kind = "exact" if config.index in ("auto", "exact") else config.index
         self._mirror: np.ndarray | None = None  # float32 vectors for exact search (compact storage)
-        torch_exact = self.kind == "exact" and config.exact_backend == "torch"
+        torch_exact = self.kind == "exact" and resolve_backend(config) == "torch"
         self._device = (
             TorchExactSearch(
                 dim, config.torch_device, config.torch_block_rows, config.faiss_threads, config.torch_storage

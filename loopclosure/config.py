@@ -84,14 +84,15 @@ class FilteringConfig(_Strict):
         default="auto",
         description="exact: faiss brute-force inner products; ivf: faiss IVF (trained k-means lists), "
         "hnsw: faiss HNSW graph (no training, slow to build); auto: exact up to ann_threshold_places, "
-        "ivf beyond (exact at any size when exact_backend torch runs on a GPU); numpy: the reference "
+        "ivf beyond (exact at any size when the exact search runs on a GPU); numpy: the reference "
         "brute force without faiss.",
     )
-    exact_backend: Literal["faiss", "torch"] = Field(
-        default="faiss",
+    exact_backend: Literal["auto", "faiss", "torch"] = Field(
+        default="auto",
         description="exact search: faiss's brute force on the CPU, or torch matrix products on torch_device "
-        "(a GPU keeps a float32 copy of every stage-I vector and scans them all per query; the same votes, "
-        "bit for bit, as the exact re-scoring decides in both).",
+        "(a GPU keeps a copy of every stage-I vector and scans them all per query; the same votes, bit for "
+        "bit, as the exact re-scoring decides in both); auto: torch where torch sees a GPU and torch_device "
+        "is not cpu, faiss otherwise.",
     )
     torch_device: Literal["auto", "cpu", "cuda"] = Field(
         default="auto", description="exact_backend torch: where it runs; auto is cuda when torch sees a GPU, else cpu."

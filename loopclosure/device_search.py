@@ -50,10 +50,20 @@ def resolve_device(device: str) -> str:
     return device
 
 
+def resolve_backend(filtering: FilteringConfig) -> str:
+    """auto -> torch where torch sees a GPU it may use (torch_device auto or cuda): a GPU scans a
+    city exactly in milliseconds; faiss otherwise, as fast as torch on the CPU."""
+    if filtering.exact_backend != "auto":
+        return filtering.exact_backend
+    import torch
+
+    return "torch" if filtering.torch_device != "cpu" and torch.cuda.is_available() else "faiss"
+
+
 def check_search_device(filtering: FilteringConfig) -> None:
     """Refuse a torch exact search on a GPU that is not there before any work is done (a SLAM
     run would otherwise fail only once its PCA warm-up is over, a benchmark after encoding)."""
-    if filtering.exact_backend == "torch" and filtering.index in ("auto", "exact"):
+    if resolve_backend(filtering) == "torch" and filtering.index in ("auto", "exact"):
         resolve_device(filtering.torch_device)
 
 

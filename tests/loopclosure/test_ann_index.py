@@ -521,3 +521,20 @@ def test_the_float16_copy_is_a_gpus_default_and_refuses_values_it_cannot_hold(mo
         search.write(1, np.full((1, 10), np.nan, np.float32))  # a refused rewrite keeps what it would replace
     assert len(search) == 2
     assert TorchExactSearch(10, "cpu", storage="float32").storage == "float32"
+
+
+def test_the_exact_backend_is_torch_where_torch_sees_a_gpu(monkeypatch):
+    """auto: a GPU scans a city exactly, so a GPU user gets it without a setting; the CPU keeps
+    faiss (as fast there), and torch_device cpu or an explicit backend is obeyed."""
+    import torch
+
+    from loopclosure.device_search import resolve_backend
+
+    assert resolve_backend(FilteringConfig()) == "faiss"  # no GPU here
+    assert StageOneIndex(FilteringConfig(), 8, 2).search_device is None
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert resolve_backend(FilteringConfig()) == "torch"
+    assert resolve_backend(FilteringConfig(torch_device="cpu")) == "faiss"
+    assert resolve_backend(FilteringConfig(exact_backend="faiss")) == "faiss"
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert resolve_backend(FilteringConfig(exact_backend="torch", torch_device="cpu")) == "torch"
