@@ -1,7 +1,8 @@
 """The stages overlapped (`pipeline.overlap`): a producer thread runs the source, odometry and
 keyframe selection while this thread runs the backbone, recognition, registration and iSAM2.
 It must not change the result: the same keyframes, loops and trajectory as the sequential
-path. And keyframes keep bounded images, never the camera's full ones.
+path. Nor must the stage-I search a GPU runs (torch from a float16 copy). And keyframes keep
+bounded images, never the camera's full ones.
 
 Traverse: the block_grid route in a city of 10 m blocks, 5 Hz, 100 frames, camera only
 (forward and rear), drifting logged odometry; a keyframe every second frame (50), the first
@@ -103,6 +104,29 @@ def test_overlap_gives_the_sequential_keyframes_loops_and_trajectory(sequential:
     np.testing.assert_array_equal(a.optimised, b.optimised)
     # the front end's own time is recorded per keyframe beside the back end's stages
     assert all(row["front_end"] > 0 for row in b.timings) and len(b.timings) == len(b.keyframes)
+
+
+@pytest.fixture(scope="module")
+def gpu_search(weights_path: Path, frames: list[Frame], backbone: object) -> Run:
+    """Stage I as `exact_backend: auto` searches on a GPU: torch products from a float16 copy
+    (on the CPU device here, the float16 values widened for the product)."""
+    cfg = _config(weights_path, overlap=False)
+    cfg.vpr.filtering.exact_backend, cfg.vpr.filtering.torch_device = "torch", "cpu"
+    cfg.vpr.filtering.torch_storage = "float16"
+    return _run(cfg, frames, backbone)
+
+
+def test_the_gpus_stage_one_search_streams_the_same_loops(sequential: Run, gpu_search: Run) -> None:
+    """Keyframes appended one at a time, exclusion windows, rear camera: the torch search from a
+    float16 copy proposes, the exact re-scoring decides, so the loops and trajectory are faiss's."""
+    index = gpu_search.pipeline.system.detector.database.search_index()
+    assert (index.search_device, index.search_storage) == ("cpu", "float16")
+    assert sequential.pipeline.system.detector.database.search_index().search_device is None  # faiss
+    a, b = sequential.result, gpu_search.result
+    assert any(r.in_graph for r in a.loops)
+    assert [(r.proposal, r.factor_handle, r.dropped) for r in a.loops] == [(r.proposal, r.factor_handle, r.dropped)
+                                                                            for r in b.loops]  # fmt: skip
+    np.testing.assert_array_equal(a.optimised, b.optimised)
 
 
 def test_keyframes_keep_bounded_grey_copies_and_thumbnails_not_the_images(sequential: Run, frames: list[Frame]) -> None:
