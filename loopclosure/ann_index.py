@@ -248,8 +248,7 @@ class StageOneIndex:
         if self._device is not None:
             stop = self.n_places * self.per_place if limit is None else limit * self.per_place
             excluded_ids = np.empty(0, np.int64) if limit is not None else excluded_ids_of(excluded, self.per_place)
-            margin = similarity_margin(query, self.max_norm)
-            return self._device.propose(query, k, stop, excluded_ids, margin, self.max_norm)
+            return self._device.propose(query, k, stop, excluded_ids, self.max_norm)
         import faiss
 
         mirror = view if view is not None else self._mirror

@@ -28,7 +28,7 @@ import numpy as np
 
 from loopclosure.config import FilteringConfig
 from loopclosure.errors import LoopClosureError, LoopClosureInputError
-from loopclosure.filtering import F32_UNIT_ROUNDOFF, widen_until_complete
+from loopclosure.filtering import F32_UNIT_ROUNDOFF, similarity_margin, widen_until_complete
 
 _PRECISION_LOCK = threading.Lock()
 SIMILARITY_BYTES = 256 << 20  # one query's block of similarities on the CPU (vpr.filtering.torch_block_rows)
@@ -244,12 +244,12 @@ class TorchExactSearch:
         return 2.0 * bound
 
     def propose(
-        self, query: np.ndarray, k: int, limit: int, excluded_ids: np.ndarray, margin: np.ndarray, max_norm: float
+        self, query: np.ndarray, k: int, limit: int, excluded_ids: np.ndarray, max_norm: float
     ) -> list[np.ndarray]:
         """Per query row, ascending ids among the first `limit` vectors (less `excluded_ids`) of
-        every vector whose computed similarity lies within `margin[row]` (the float32 product's
-        margin; the float16 copy's is added here, from `max_norm`, the largest vector norm) of the
-        k-th largest: a superset of the exact top k."""
+        every vector whose computed similarity lies within the rounding margin of the k-th
+        largest (the float32 product's, plus the float16 copy's; `max_norm` bounds the stored
+        vectors' norms): a superset of the exact top k."""
         import torch
 
         threads = self.cpu_threads if not self.on_gpu else None
@@ -257,7 +257,7 @@ class TorchExactSearch:
             raise LoopClosureInputError("a stage-I query holds NaN or inf")
         if self.storage == "float16" and np.abs(query).max(initial=0.0) > FLOAT16_LIMIT:
             raise LoopClosureInputError(_too_large("stage-I query values"))
-        margin = np.asarray(margin, np.float64) + self.storage_margin(query, max_norm)
+        margin = similarity_margin(query, max_norm) + self.storage_margin(query, max_norm)
         with full_float32(), torch_threads(threads), torch.inference_mode():
             padded = np.zeros((len(query), self._width), np.float32)
             padded[:, : self.dim] = query

@@ -35,7 +35,6 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # a bare checkout (the GPU machine)
 
 from loopclosure import device_search  # noqa: E402
-from loopclosure.filtering import similarity_margin  # noqa: E402
 
 DIM, K, PER_PLACE, EXCLUDED_PLACES = 100, 50, 16, 100
 
@@ -113,7 +112,6 @@ def run(vectors: int, device: str, repeats: int) -> dict:
 
     excluded = np.arange(vectors - EXCLUDED_PLACES * PER_PLACE, vectors)
     q = query.cpu().numpy()
-    margin = similarity_margin(q, 1.0)
     proposal: dict = {}
     for storage, held in (("float32", rows), ("float16", rows16)):
         search = device_search.TorchExactSearch(DIM, device, storage=storage)
@@ -121,8 +119,8 @@ def run(vectors: int, device: str, repeats: int) -> dict:
         for name, select in (("torch_topk", False), ("default", None)):
             log(f"proposal, {storage} copy, selection {name}")
             with forced_selection(select):
-                ms = median_ms(lambda: search.propose(q, K, vectors, excluded, margin, 1.0), repeats, sync)
-                candidates = search.propose(q, K, vectors, excluded, margin, 1.0)
+                ms = median_ms(lambda: search.propose(q, K, vectors, excluded, 1.0), repeats, sync)
+                candidates = search.propose(q, K, vectors, excluded, 1.0)
             proposal[f"{storage}_{name}"] = {"ms": ms, "candidates_per_row": round(float(np.mean([len(c) for c in candidates])), 1)}  # fmt: skip
         search._rows = None
     out["proposal_ms"] = proposal

@@ -371,8 +371,7 @@ def test_a_sync_cut_short_is_redone_at_the_right_rows():
     search.write(5, np.full((4, 3), 2.0, np.float32))  # rows 5..8 of a load that then failed
     search.write(5, np.full((2, 3), 3.0, np.float32))  # the next sync starts again at row 5
     assert len(search) == 7
-    margin = np.zeros(1)
-    got = search.propose(np.ones((1, 3), np.float32), 2, len(search), np.empty(0, np.int64), margin, 1.0)
+    got = search.propose(np.ones((1, 3), np.float32), 2, len(search), np.empty(0, np.int64), 1.0)
     np.testing.assert_array_equal(got[0], [5, 6])
     with pytest.raises(ValueError, match="write at vector 9"):
         search.write(9, np.ones((1, 3), np.float32))
@@ -508,15 +507,15 @@ def test_the_float16_copy_is_a_gpus_default_and_refuses_values_it_cannot_hold(mo
     with pytest.raises(LoopClosureInputError, match="torch_storage: float32"):
         search.write(2, np.full((1, 10), 7e4, np.float32))
     assert len(search) == 2  # what was held stays
-    query, margin = np.ones((1, 10), np.float32), np.zeros(1)
+    query = np.ones((1, 10), np.float32)
     with pytest.raises(LoopClosureInputError, match="query values beyond"):
-        search.propose(query * 7e4, 1, 2, np.empty(0, np.int64), margin, 3.0 * np.sqrt(10))
+        search.propose(query * 7e4, 1, 2, np.empty(0, np.int64), 3.0 * np.sqrt(10))
     for bad in (np.nan, np.inf):
         with pytest.raises(LoopClosureInputError, match="vectors 2..2 hold NaN or inf"):
             search.write(2, np.full((1, 10), bad, np.float32))
         with pytest.raises(LoopClosureInputError, match="query holds NaN or inf"):
-            search.propose(query * bad, 1, 2, np.empty(0, np.int64), margin, 3.0 * np.sqrt(10))
-    assert len(search.propose(query, 1, 2, np.empty(0, np.int64), margin, 3.0 * np.sqrt(10))[0]) == 2  # a tie
+            search.propose(query * bad, 1, 2, np.empty(0, np.int64), 3.0 * np.sqrt(10))
+    assert len(search.propose(query, 1, 2, np.empty(0, np.int64), 3.0 * np.sqrt(10))[0]) == 2  # a tie
     with pytest.raises(LoopClosureInputError, match="vectors 1..1 hold NaN"):
         search.write(1, np.full((1, 10), np.nan, np.float32))  # a refused rewrite keeps what it would replace
     assert len(search) == 2
