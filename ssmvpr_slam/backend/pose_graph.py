@@ -395,9 +395,11 @@ class PoseGraph:
 
     def _cut_odometry(self, keyframes: tuple[int, ...]) -> list[int]:
         """Cut the odometry edges into `keyframes` (a prior at the guess holds each); returns them."""
-        pcfg = self.config.prior
-        prior_noise = noise.gaussian(noise.sigmas6(pcfg.rot_sigma, pcfg.trans_sigma))
-        cut = [kf for kf in keyframes if self._prior is None or kf != self._prior[0]]
+        if not keyframes:
+            return []
+        assert self._prior is not None  # set with the first keyframe, and `keyframes` are the graph's
+        first, _, prior_noise = self._prior  # the first keyframe's prior noise holds each cut one too
+        cut = [kf for kf in keyframes if kf != first]
         for kf in cut:
             self._segment_priors[kf] = (self._pending_values.atPose3(_key(kf)).matrix(), prior_noise)
         return cut
@@ -414,11 +416,7 @@ class PoseGraph:
         for handle, loop in self._loops.items():
             slots.append((graph.size(), handle))
             graph.add(loop.factor)
-        values = gtsam.Values()
-        for key in list(self._estimate.keys()) + list(self._pending_values.keys()):
-            if not values.exists(key):
-                values.insert(key, self._initial(key))
-        indices = list(isam.update(graph, values).getNewFactorsIndices())
+        indices = list(isam.update(graph, self._with_guesses()).getNewFactorsIndices())
         for _ in range(self.config.isam2.extra_updates_after_loop):
             isam.update()
         estimate = isam.calculateEstimate()
@@ -427,11 +425,13 @@ class PoseGraph:
         self._isam, self._estimate = isam, estimate
         self._clear_queue()
 
-    def _initial(self, key: int) -> gtsam.Pose3:
-        """Where a variable starts in a rebuild: the last estimate, else its queued guess."""
-        if self._estimate.exists(key):
-            return self._estimate.atPose3(key)
-        return self._pending_values.atPose3(key)
+    def _with_guesses(self) -> gtsam.Values:
+        """A copy of the last estimate with each queued variable it lacks at its guess."""
+        values = gtsam.Values(self._estimate)
+        for key in self._pending_values.keys():
+            if not values.exists(key):
+                values.insert(key, self._pending_values.atPose3(key))
+        return values
 
     def _give_up(self, keyframes: tuple[int, ...], reason: str) -> NoReturn:
         """Keep the estimate so far (new keyframes at their odometry guesses) and refuse from now on."""
@@ -444,9 +444,7 @@ class PoseGraph:
     def _keep_guesses(self) -> None:
         """The queue out of the way without iSAM2: new variables join the estimate at their
         guesses (the odometry's word), queued loops and removals are forgotten."""
-        for key in self._pending_values.keys():
-            if not self._estimate.exists(key):
-                self._estimate.insert(key, self._pending_values.atPose3(key))
+        self._estimate = self._with_guesses()
         self._drop_new_loops()
         self._clear_queue()
 
