@@ -178,14 +178,16 @@ class LoopRegistrar:
             yaw_seed=seeds_yaw[best.seed_index],
         )
 
-    def _rejected(self, reason: str, yaw_guess: float) -> LoopRegistration:
+    def _rejected(
+        self, reason: str, yaw_guess: float, inlier_ratio: float = 0.0, method: str = "icp"
+    ) -> LoopRegistration:
         return LoopRegistration(
             T_mq=make_pose(rot_z(yaw_guess), np.zeros(3)),
             accepted=False,
             reason=reason,
-            inlier_ratio=0.0,
+            inlier_ratio=inlier_ratio,
             rmse=float("nan"),
-            method="icp",
+            method=method,
         )
 
     # ------------------------------------------------------------------ images
@@ -207,14 +209,7 @@ class LoopRegistrar:
         if est.rotation_mq is None:
             ratio = est.n_inliers / est.n_matches if est.n_matches else 0.0
             if cfg.on_geometry_failure == "reject":
-                return LoopRegistration(
-                    T_mq=make_pose(rot_z(yaw_guess), np.zeros(3)),
-                    accepted=False,
-                    reason=f"two-view geometry failed: {est.reason}",
-                    inlier_ratio=ratio,
-                    rmse=float("nan"),
-                    method="two_view_failed",
-                )
+                return self._rejected(f"two-view geometry failed: {est.reason}", yaw_guess, ratio, "two_view_failed")
             return self.yaw_prior(yaw_guess, est.reason, ratio)
         body_from_cam = project_to_so3(np.asarray(cfg.body_from_camera, dtype=np.float64))
         rot = project_to_so3(body_from_cam @ est.rotation_mq @ body_from_cam.T @ rot_z(-_finite_yaw(query_yaw_offset)))
