@@ -382,7 +382,7 @@ class PlaceDatabase:
             raise LoopClosureInputError(
                 f"{len(codes.stage1)} stage-I but {len(codes.stage2)} stage-II codes: one of each per place"
             )
-        if not (np.isfinite(codes.stage1).all() and np.isfinite(codes.stage2).all()):
+        if not codes.all_finite():
             raise LoopClosureInputError("place codes contain NaN or inf")
         for stage, dtype in (("stage1", self.config.stage1_dtype), ("stage2", self.config.stage2_dtype)):
             values = getattr(codes, stage)

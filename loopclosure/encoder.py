@@ -34,6 +34,10 @@ class PlaceCodes:
             index = slice(index, index + 1)
         return PlaceCodes(self.stage1[index], self.stage2[index])
 
+    def all_finite(self) -> bool:
+        """No NaN or inf in either stage: such a code votes for nothing or matches everything."""
+        return bool(np.isfinite(self.stage1).all() and np.isfinite(self.stage2).all())
+
     @staticmethod
     def concatenate(parts: Sequence[PlaceCodes]) -> PlaceCodes:
         return PlaceCodes(np.concatenate([p.stage1 for p in parts]), np.concatenate([p.stage2 for p in parts]))

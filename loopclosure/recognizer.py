@@ -51,7 +51,7 @@ class Recognizer:
         and get `frame_correlation.boost` added before scores are renormalised to [0, 1]."""
         if len(codes) != 1:
             raise LoopClosureInputError(f"query one place at a time, got {len(codes)}")
-        if not (np.isfinite(codes.stage1).all() and np.isfinite(codes.stage2).all()):
+        if not codes.all_finite():
             raise LoopClosureInputError("query codes contain NaN or inf")
         filtering = self.config.filtering
         candidates = self.database.filter(codes.stage1[0], filtering.k_neighbours, filtering.num_candidates, excluded)
