@@ -24,8 +24,8 @@ def test_kiss_icp_settings_come_from_the_slam_preset() -> None:
     assert proc.returncode == 0, proc.stderr[-2000:]
     out = json.loads(proc.stdout)
     kiss = out["kiss_icp"]
-    assert (kiss["convergence_criterion"], kiss["max_points_per_voxel"]) == (1e-3, 10)
-    assert out["frames"] == 4 and out["ms_per_frame"]["mean"] > 0
+    assert (kiss["convergence_criterion"], kiss["voxel_size"], kiss["max_points_per_voxel"]) == (1e-3, 1.5, 5)
+    assert out["frames"] == 4 and out["ms_per_frame"]["mean"] > 0 and out["cpu_ms_per_frame"] > 0
 
 
 def test_an_unknown_preset_is_one_line_naming_the_option() -> None:

@@ -73,8 +73,9 @@ def test_fast_preset_inherits_default() -> None:
     assert fast.vpr.backbone.precision == "auto"
     assert (
         fast.frontend.odometry.kiss_icp.convergence_criterion,
+        fast.frontend.odometry.kiss_icp.voxel_size,
         fast.frontend.odometry.kiss_icp.max_points_per_voxel,
-    ) == (1e-3, 10)
+    ) == (1e-3, 1.5, 5)
     assert fast.vpr.filtering.cubes == load_config().vpr.filtering.cubes
     assert fast.detector.min_score == 0.3
 
