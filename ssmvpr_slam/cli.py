@@ -450,6 +450,7 @@ def optimize(
         optimize_graph,
         trajectory_ate,
     )  # fmt: skip
+    from ssmvpr_slam.backend.pose_graph import gtsam_reason
     from ssmvpr_slam.evaluation.trajectory_io import write_tum
     from ssmvpr_slam.results import output_dir, write_json
 
@@ -477,9 +478,8 @@ def optimize(
         try:
             result = optimize_graph(data, settings)
         except RuntimeError as exc:  # GTSAM's: an indeterminate or ill-conditioned system
-            reason = " ".join(str(exc).split()).split(". ")[0][:200]  # GTSAM's first sentence names the variable
             raise g2o_io.PoseGraphFileError(
-                f"{graph}: GTSAM could not optimise this graph ({reason}); look for edges with extreme information "
+                f"{graph}: GTSAM could not optimise this graph ({gtsam_reason(exc)}); look for edges with extreme information "
                 "or translations, and for vertices no edge connects to the first"
             ) from None
         g2o_io.write_g2o(out / "optimised.g2o", data, result.poses)

@@ -76,7 +76,7 @@ class GraphRecovery:
     """One line: what failed and what the graph did instead."""
 
 
-def _gtsam_reason(error: Exception) -> str:
+def gtsam_reason(error: Exception) -> str:
     """GTSAM's multi-line message in a few words (its indeterminate-system text runs to ten lines)."""
     text = " ".join(str(error).split())
     symbol = re.search(r"Symbol: (\w+)", text)
@@ -355,7 +355,7 @@ class PoseGraph:
         loops, then also with the new keyframes cut loose; PoseGraphError (estimate kept) when
         even that fails. Each stage that has nothing to change is passed over."""
         new = tuple(kf for kf in self._order if not self._estimate.exists(_key(kf)))
-        reason = _gtsam_reason(error)
+        reason = gtsam_reason(error)
         dropped: list[int] = []
         for stage in ("qr", "loops", "odometry"):
             if stage == "qr":
@@ -372,7 +372,7 @@ class PoseGraph:
             try:
                 self._rebuild_with_qr()
             except RuntimeError as again:
-                reason = _gtsam_reason(again)
+                reason = gtsam_reason(again)
                 continue
             self._note(new, f"iSAM2 failed ({reason}){self._steps_text(new)}; {what}")
             return
@@ -501,7 +501,7 @@ class PoseGraph:
         try:
             result = self.batch_gnc()
         except RuntimeError as error:  # the batch solve hit what iSAM2 had to work around
-            self._note((), f"the final GNC pass failed ({_gtsam_reason(error)}); iSAM2's estimate is kept")
+            self._note((), f"the final GNC pass failed ({gtsam_reason(error)}); iSAM2's estimate is kept")
             return self.optimized_poses()
         for handle in result.outliers:
             self.remove_loop(handle)
