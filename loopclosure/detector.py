@@ -29,6 +29,7 @@ from loopclosure.encoder import Encoder, PlaceCodes, RawCubes
 from loopclosure.errors import LoopClosureInputError
 from loopclosure.filtering import Candidates
 from loopclosure.recognizer import Recognition, Recognizer
+from loopclosure.saved_state import saved_finite, saved_ints
 from loopclosure.sequence_gate import SequenceGate
 from loopclosure.sequence_matcher import SequenceMatch, SequenceMatcher
 from loopclosure.spatial import spatial_scores
@@ -356,40 +357,17 @@ def _preferred(front: LoopProposal | None, rear: LoopProposal | None) -> LoopPro
 def _check_state(arrays: dict[str, np.ndarray], n_places: int) -> None:
     """Refuse a saved detector state that would resume wrongly without an error: distances that
     are not finite or run backwards, matcher places outside the map, scores or tokens with NaN."""
-
-    def ints(name: str, lo: int, hi: int) -> np.ndarray:
-        value = np.asarray(arrays[name])
-        if value.dtype.kind not in "iu" or (value.size and (value.min() < lo or value.max() >= hi)):
-            raise LoopClosureInputError(
-                f"detector state {name}: expected integers in {lo}..{hi - 1}, got {value!r:.80}"
-            )
-        return value
-
-    def finite(name: str) -> np.ndarray:
-        value = np.asarray(arrays[name])
-        if value.dtype.kind not in "fiu" or not np.isfinite(value).all():
-            raise LoopClosureInputError(f"detector state {name}: expected finite numbers, got {value!r:.80}")
-        return value
-
-    ints("prior_places", 0, n_places + 1)
-    travelled = finite("session_travelled")
+    saved_ints(arrays, "prior_places", 0, n_places + 1)
+    travelled = saved_finite(arrays, "session_travelled")
     if (
         travelled.ndim != 1
         or np.any(np.diff(travelled) < 0)
-        or float(finite("travelled")) < (travelled[-1] if travelled.size else 0.0)
+        or float(saved_finite(arrays, "travelled")) < (travelled[-1] if travelled.size else 0.0)
     ):
         raise LoopClosureInputError("detector state: the distances travelled run backwards")
     last = np.asarray(arrays["last_position"], np.float64)
     if last.shape != (3,) or not (np.isfinite(last).all() or np.isnan(last).all()):
         raise LoopClosureInputError(f"detector state last_position: expected 3 numbers (or NaN), got {last!r:.80}")
     for prefix in ("sequence_", "rear_sequence_"):
-        recent = int(ints(f"{prefix}recent", 0, 1 << 20))
-        for i in range(recent):
-            finite(f"{prefix}q{i}_token")
-            ints(f"{prefix}q{i}_limit", 0, n_places + 1)
-            ints(f"{prefix}q{i}_places", 0, max(n_places, 1))
-            finite(f"{prefix}q{i}_scores")
-        for name in [n for n in arrays if n.startswith(f"{prefix}previous_")]:
-            ints(name, 0, n_places)
-    if "gate_matches" in arrays:
-        ints("gate_matches", -1, n_places)
+        SequenceMatcher.check_state_arrays(arrays, prefix, n_places)
+    SequenceGate.check_state_arrays(arrays, n_places)

@@ -15,6 +15,7 @@ from typing import Literal
 import numpy as np
 
 from loopclosure.config import SequenceGateConfig
+from loopclosure.saved_state import saved_ints
 
 
 @dataclass(frozen=True)
@@ -69,6 +70,12 @@ class SequenceGate:
             "gate_queries": np.array([q for q, _ in recent], np.int64),
             "gate_matches": np.array([-1 if m is None else m for _, m in recent], np.int64),
         }
+
+    @staticmethod
+    def check_state_arrays(arrays: dict[str, np.ndarray], n_places: int) -> None:
+        """Refuse saved matches outside a map of `n_places` (-1 is "recognised nothing")."""
+        if "gate_matches" in arrays:
+            saved_ints(arrays, "gate_matches", -1, n_places)
 
     def load_state_arrays(self, arrays: dict[str, np.ndarray]) -> None:
         self.reset()

@@ -40,6 +40,7 @@ import numpy as np
 
 from loopclosure.config import SequenceMatchConfig
 from loopclosure.errors import LoopClosureInputError
+from loopclosure.saved_state import saved_finite, saved_ints
 
 Direction = Literal["forward", "reverse"]
 Scorer = Callable[[Any, np.ndarray], np.ndarray]
@@ -347,6 +348,18 @@ class SequenceMatcher:
             for direction, ranked in self._previous.items():
                 out[f"{prefix}previous_{direction}"] = np.asarray(ranked, np.int64)
         return out
+
+    @staticmethod
+    def check_state_arrays(arrays: dict[str, np.ndarray], prefix: str, n_places: int) -> None:
+        """Refuse saved arrays that would resume wrongly: NaN tokens or scores, places outside a
+        map of `n_places` (LoopClosureInputError naming the array)."""
+        for i in range(int(saved_ints(arrays, f"{prefix}recent", 0, 1 << 20))):
+            saved_finite(arrays, f"{prefix}q{i}_token")
+            saved_ints(arrays, f"{prefix}q{i}_limit", 0, n_places + 1)
+            saved_ints(arrays, f"{prefix}q{i}_places", 0, max(n_places, 1))
+            saved_finite(arrays, f"{prefix}q{i}_scores")
+        for name in [n for n in arrays if n.startswith(f"{prefix}previous_")]:
+            saved_ints(arrays, name, 0, n_places)
 
     def load_state_arrays(self, arrays: dict[str, np.ndarray], prefix: str = "") -> None:
         """Restore what `state_arrays` saved (into a matcher of the same configuration)."""
