@@ -15,6 +15,7 @@ import pytest
 from frontend.frame import Frame
 from frontend.odometry import KissIcpOdometry
 from frontend.simulation import TraverseSimulator, default_demo_config
+from frontend.sources.kitti_source import read_velodyne
 from ssmvpr_slam.config import load_config
 
 # KITTI 00 ground truth of the two pairs (PROVENANCE.txt), camera frame (x right, y down, z
@@ -44,7 +45,6 @@ def test_the_preset_registers_real_kitti_scans(shared_dir: Path, preset: str, pa
     velodyne = shared_dir / "data" / "kitti00_scans" / "velodyne"
     odometry = KissIcpOdometry(load_config(preset).frontend.odometry.kiss_icp)
     for k, name in enumerate(pair):
-        points = np.fromfile(velodyne / f"{name}.bin", np.float32).reshape(-1, 4)[:, :3]
-        pose = odometry.update(Frame(k, 0.1 * k, points=points))
+        pose = odometry.update(Frame(k, 0.1 * k, points=read_velodyne(velodyne / f"{name}.bin")))
     error = np.linalg.norm(pose[:3, 3] - np.array(KITTI_PAIRS[pair]))
     assert error < 0.04, (preset, pair, pose[:3, 3])
