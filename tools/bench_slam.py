@@ -148,6 +148,8 @@ def main(argv: list[str] | None = None) -> int:
     pipeline.finish()  # ends an odometry process too (its CPU time counts once it is reaped)
     cpu = _cpu_use(cpu_start, _cpu_seconds(), wall, n_kf, np.diff(cpu_at), latency_summary)
     error = pipeline.step_error
+    database = pipeline.detector.database
+    index = database.search_index() if database is not None and len(database) else None
     failure = f"{type(error).__name__}: {error}" if error is not None else pipeline.ending.source_error
     result: dict[str, Any] = {
         "machine": {
@@ -168,6 +170,10 @@ def main(argv: list[str] | None = None) -> int:
             "lidar_loops": config.pipeline.use_lidar_for_loops,
             "keyframe_image_pixels": config.pipeline.keyframe_image_pixels,
             "release_heap_every_keyframes": config.pipeline.release_heap_every_keyframes,
+            # what stage I ran on (exact_backend auto picks torch where torch sees a GPU)
+            "stage1_index": None if index is None else index.kind,
+            "stage1_torch_device": None if index is None else index.search_device,
+            "stage1_torch_storage": None if index is None else index.search_storage,
         },
         "heap_trims": {"calls": pipeline.heap.calls, "seconds": round(pipeline.heap.seconds, 3)},
         "frames": state.frames_seen,

@@ -5,11 +5,13 @@ CPU time it cost."""
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 SCRIPT = Path(__file__).resolve().parents[2] / "tools" / "bench_slam.py"
 
@@ -19,10 +21,16 @@ def test_bench_slam_reports_stages_and_the_pace_per_keyframe(weights_path: Path)
     proc = subprocess.run(
         [sys.executable, str(SCRIPT), "--frames", "12", "--overlap", "--weights", str(weights_path)],
         capture_output=True, text=True, timeout=600, check=False,
+        # a warm-up short enough (3 keyframes, 48 stage-I vectors) for the short run to query stage I
+        env={**os.environ, "SSMVPR_DETECTOR__PCA_WARMUP_KEYFRAMES": "3", "SSMVPR_VPR__FILTERING__PCA__DIM": "32"},
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-2000:]
     out = json.loads(proc.stdout)  # stdout is exactly one JSON object
     assert out["frames"] == 12 and out["settings"]["overlap"] is True and out["error"] is None
+    # stage I searched exactly: torch on a GPU, faiss without one (exact_backend auto)
+    assert out["settings"]["stage1_index"] == "exact"
+    expected_device = "cuda" if torch.cuda.is_available() else None
+    assert out["settings"]["stage1_torch_device"] == expected_device
     n = out["keyframes"]
     assert 2 <= n <= 12
     stages = out["latency_per_keyframe_s"]
