@@ -418,6 +418,8 @@ class PlaceDatabase:
         per_place, dim = stage1.row_shape
         if query_stage1.ndim != 2 or query_stage1.shape[1] != dim:
             raise ValueError(f"stage-I query must be (n, {dim}), got {query_stage1.shape}")
+        if not np.isfinite(query_stage1).all():  # every backend would rank NaN similarities silently
+            raise LoopClosureInputError("a stage-I query holds NaN or inf")
         if self.filtering.index == "numpy":
             if self._max_norm is None:
                 self._max_norm = max_row_norm(stage1.flat_rows(0, None))

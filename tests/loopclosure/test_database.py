@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from loopclosure.config import DatabaseConfig
+from loopclosure.config import DatabaseConfig, FilteringConfig
 from loopclosure.database import MANIFEST, PlaceDatabase, PlaceInfo, code_weights
 from loopclosure.encoder import PlaceCodes
 from loopclosure.errors import LoopClosureInputError
@@ -194,6 +194,19 @@ def test_non_finite_codes_refused(codebooks, stage, bad):
     with pytest.raises(LoopClosureInputError, match="NaN or inf"):
         db.add(codes)
     assert len(db) == 0
+
+
+@pytest.mark.parametrize("index, backend", [("numpy", "faiss"), ("exact", "faiss"), ("exact", "torch"), ("ivf", "faiss")])
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+def test_a_non_finite_query_is_refused_by_every_search(codebooks, index, backend, bad):
+    db = PlaceDatabase(codebooks)
+    db.add(_codes(6, seed=3))
+    db.configure_search(FilteringConfig(index=index, exact_backend=backend, torch_device="cpu", ivf_nlist=2))
+    query = _codes(1, seed=4).stage1[0]
+    assert len(db.filter(query, 5, 3)) == 3  # the clean query is answered
+    query[2, 7] = bad
+    with pytest.raises(LoopClosureInputError, match="stage-I query holds NaN or inf"):
+        db.filter(query, 5, 3)
 
 
 def test_info_count_mismatch_refused(codebooks):
