@@ -569,12 +569,9 @@ def chain_odometry(graph: PoseGraphData) -> np.ndarray:
     return out
 
 
-def from_pose_graph(pose_graph, poses: np.ndarray) -> PoseGraphData:  # noqa: ANN001
-    """A `PoseGraph`'s keyframes (with `poses`, in keyframe order) and its odometry and
-    session loop factors as a 3-D graph, for `write_g2o`. Prior-map loops are left out (their
-    first end is a map place, not a keyframe). Reads the graph's edge records directly."""
+def from_pose_graph(pose_graph, poses: np.ndarray) -> PoseGraphData:  # noqa: ANN001 - a PoseGraph
+    """A `PoseGraph`'s keyframes (with `poses`, in keyframe order) and the factors it solves
+    between them (`PoseGraph.solved_edges`) as a 3-D graph, for `write_g2o`."""
     ids = tuple(pose_graph.keyframe_ids)
-    edges = [GraphEdge(e.i, e.j, e.measured, np.asarray(e.gaussian.information())) for e in pose_graph._odom_edges]
-    edges += [GraphEdge(lp.i, lp.j, lp.measured, np.asarray(lp.gaussian.information()))
-              for lp in pose_graph._loops.values() if not lp.on_map]  # fmt: skip
-    return PoseGraphData(3, ids, np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4), tuple(edges), "run")
+    edges = tuple(GraphEdge(i, j, measured, information) for i, j, measured, information in pose_graph.solved_edges())
+    return PoseGraphData(3, ids, np.asarray(poses, dtype=np.float64).reshape(-1, 4, 4), edges, "run")

@@ -190,6 +190,23 @@ class PoseGraph:
         loop = self._get_loop(handle)
         return loop.i, loop.j, loop.measured.copy()
 
+    def solved_edges(self) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
+        """(i, j, T_ij, 6x6 information) of each between factor on the session's keyframes that
+        the graph solves: the odometry edges, less those a recovery cut (a prior at its guess
+        holds such a keyframe instead), then the loops. What `pose_graph.g2o` lists, so that
+        re-optimising the file optimises this graph, not one with the edge that broke iSAM2.
+        Prior-map loops are left out: their first end is a map place, not a keyframe."""
+        edges = [(e.i, e.j, e.measured.copy(), np.asarray(e.gaussian.information()))
+                 for e in self._odom_edges if e.j not in self._segment_priors]  # fmt: skip
+        edges += [(lp.i, lp.j, lp.measured.copy(), np.asarray(lp.gaussian.information()))
+                  for lp in self._loops.values() if not lp.on_map]  # fmt: skip
+        return edges
+
+    @property
+    def segment_starts(self) -> list[int]:
+        """Keyframes whose odometry edge a recovery cut: each starts a new graph segment."""
+        return sorted(self._segment_priors)
+
     def add_keyframe(self, kf_id: int, odom_pose: np.ndarray) -> None:
         """Add a keyframe with its odometry pose (body-to-world, odometry frame).
 

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from ssmvpr_slam.backend.config import GncConfig, PoseGraphConfig
+from ssmvpr_slam.backend.g2o_io import from_pose_graph
 from ssmvpr_slam.backend.pose_graph import PoseGraph, PoseGraphError
 from ssmvpr_slam.errors import SlamError
 
@@ -108,9 +109,16 @@ def test_when_qr_fails_too_new_loops_go_first_then_the_keyframe_starts_a_segment
     assert graph.loop_handles == [kept] and dropped not in graph.loop_handles
     _track(graph, [6e3 + 1.0, 6e3 + 2.0], first=6)  # short steps after the segment join it as usual
     assert len(graph.recoveries) == 2
-    assert [float(p[0, 3]) for p in graph.finalize().values()] == pytest.approx(
+    final = graph.finalize()
+    assert [float(p[0, 3]) for p in final.values()] == pytest.approx(
         [0.0, 1.0, 2.0, 5e3, 5e3 + 1.0, 6e3, 6e3 + 1.0, 6e3 + 2.0], abs=1e-3
     )
+    # pose_graph.g2o lists what was solved: not the cut edge 2 -> 3, nor the dropped loop
+    assert graph.segment_starts == [3]
+    data = from_pose_graph(graph, np.stack(list(final.values())))
+    assert [(e.i, e.j) for e in data.edges] == [(0, 1), (1, 2), (3, 4), (4, 5), (5, 6), (6, 7), (0, 2)]
+    three_four = data.edges[2]
+    assert three_four.measured[0, 3] == pytest.approx(1.0) and three_four.information.shape == (6, 6)
 
 
 def test_when_nothing_helps_the_estimate_so_far_is_kept_and_the_error_is_clear(monkeypatch: pytest.MonkeyPatch) -> None:
