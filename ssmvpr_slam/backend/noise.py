@@ -45,12 +45,12 @@ def check_information(name: str, information: np.ndarray) -> np.ndarray:
     return arr
 
 
-def gaussian(sigmas: np.ndarray) -> gtsam.noiseModel.Base:
+def gaussian(sigmas: np.ndarray) -> gtsam.noiseModel.Gaussian:
     """Diagonal Gaussian from already-checked sigmas."""
     return gtsam.noiseModel.Diagonal.Sigmas(np.asarray(sigmas, dtype=np.float64))
 
 
-def gaussian_from_information(information: np.ndarray) -> gtsam.noiseModel.Base:
+def gaussian_from_information(information: np.ndarray) -> gtsam.noiseModel.Gaussian:
     """Full Gaussian from an already-checked information matrix."""
     return gtsam.noiseModel.Gaussian.Information(np.asarray(information, dtype=np.float64))
 

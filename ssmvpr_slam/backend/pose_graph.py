@@ -133,7 +133,7 @@ class _Edge:
     i: int
     j: int
     measured: np.ndarray
-    gaussian: gtsam.noiseModel.Base
+    gaussian: gtsam.noiseModel.Gaussian
 
 
 @dataclass
@@ -568,7 +568,7 @@ class PoseGraph:
 
     def _loop_noise(
         self, sigmas: Sequence[float] | np.ndarray | None, information: np.ndarray | None
-    ) -> gtsam.noiseModel.Base:
+    ) -> gtsam.noiseModel.Gaussian:
         """The Gaussian part of a loop factor: given sigmas or information, else the configured loop noise."""
         if sigmas is not None and information is not None:
             raise ValueError("sigmas, information: give one of them, not both")
@@ -578,7 +578,7 @@ class PoseGraph:
             return noise.gaussian(noise.sigmas6(self.config.loop.rot_sigma, self.config.loop.trans_sigma))
         return noise.gaussian(noise.check_sigmas("sigmas", sigmas))
 
-    def _queue_loop(self, i: int, j: int, measured: np.ndarray, base: gtsam.noiseModel.Base, on_map: bool) -> int:
+    def _queue_loop(self, i: int, j: int, measured: np.ndarray, base: gtsam.noiseModel.Gaussian, on_map: bool) -> int:
         factor = gtsam.BetweenFactorPose3(
             _loop_key(i, on_map), _key(j), gtsam.Pose3(measured), noise.robustify(base, self._kernel)
         )

@@ -196,7 +196,9 @@ def test_non_finite_codes_refused(codebooks, stage, bad):
     assert len(db) == 0
 
 
-@pytest.mark.parametrize("index, backend", [("numpy", "faiss"), ("exact", "faiss"), ("exact", "torch"), ("ivf", "faiss")])
+@pytest.mark.parametrize(
+    "index, backend", [("numpy", "faiss"), ("exact", "faiss"), ("exact", "torch"), ("ivf", "faiss")]
+)
 @pytest.mark.parametrize("bad", [np.nan, np.inf])
 def test_a_non_finite_query_is_refused_by_every_search(codebooks, index, backend, bad):
     db = PlaceDatabase(codebooks)
