@@ -8,8 +8,8 @@ Topics (frame ``map``, the session's optimised frame; times are the keyframes' l
 - ``/slam/odometry/pose``, ``/slam/optimised/pose`` (geometry_msgs/PoseStamped): one per
   keyframe, to follow the run along the timeline;
 - ``/slam/loops`` (visualization_msgs/MarkerArray): loop edges between optimised keyframe
-  positions (green: in the graph, red: gate-accepted but rejected by registration or GNC), once
-  at the first keyframe's time; prior-map loops are not drawn (their other end is in another
+  positions (green: in the graph, red: gate-accepted but rejected by registration or GNC; loops
+  spaced out by `loop_spacing_keyframes` are not drawn), once at the first keyframe's time; prior-map loops are not drawn (their other end is in another
   session's frame);
 - ``/slam/keyframes/image/compressed`` (sensor_msgs/CompressedImage, JPEG): a thumbnail per
   keyframe (made when the keyframe was selected, `thumbnail_jpeg`: the run keeps no full image).
@@ -81,7 +81,7 @@ def _loop_markers(result: RunResult, seconds: float) -> dict[str, object]:
     rejected: list[tuple[np.ndarray, np.ndarray]] = []
     for record in result.session_loops:
         p = record.proposal
-        if not p.accepted:
+        if not p.accepted or record.spaced:  # a spaced loop was not registered: neither kept nor rejected
             continue
         segment = (positions[p.match_id], positions[p.query_id])
         (kept if record.in_graph else rejected).append(segment)

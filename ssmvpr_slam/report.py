@@ -73,6 +73,7 @@ class LoopReport:
     proposed: int
     gate_accepted: int
     in_graph: int
+    spaced: int  # gate-accepted, not registered: a loop in the graph a few keyframes back stands for each
     judged_in_graph: int | None  # loops in graph with both ends covered; None when all are
     in_graph_by_sequence_direction: dict[str, int]  # what the detector called each judged loop
     rear_camera_keyframes: int
@@ -81,13 +82,15 @@ class LoopReport:
     def to_dict(self) -> dict[str, Any]:
         out = copy.deepcopy(self.evaluation.to_dict())  # its by_direction is extended below, not the evaluation's
         out.update(proposed=self.proposed, gate_accepted=self.gate_accepted, in_graph=self.in_graph)
+        if self.spaced:  # precision and recall then judge the spaced loops beside those in the graph
+            out["spaced"] = self.spaced
         by_direction: dict[str, dict[str, Any]] = out["by_direction"]  # type: ignore[assignment]  # to_dict's values are plain JSON
         for name, counts in by_direction.items():
             counts["loops_in_graph_by_sequence_direction"] = self.in_graph_by_sequence_direction.get(name, 0)
         out["rear_camera_keyframes"] = self.rear_camera_keyframes
         out["in_graph_by_camera"] = dict(self.in_graph_by_camera)
         if self.judged_in_graph is not None:
-            out["judged_in_graph"] = self.judged_in_graph  # those precision/recall are computed on
+            out["judged_in_graph"] = self.judged_in_graph  # those precision/recall are computed on (with spaced ones)
         return out
 
 
@@ -236,7 +239,10 @@ def _loop_report(
     gt: np.ndarray, judged: list[LoopRecord], result: RunResult, cfg: LoopMetricsConfig, partial: bool
 ) -> LoopReport:
     in_graph = [r for r in judged if r.in_graph]
-    evaluation = evaluate_loops(gt, [(r.proposal.query_id, r.proposal.match_id) for r in in_graph], cfg,
+    # a spaced loop is the recogniser's claim that a loop in the graph a few keyframes back
+    # stands for: judged with them, so spacing loops out does not read as lost recall
+    closed = [r for r in judged if r.closed]
+    evaluation = evaluate_loops(gt, [(r.proposal.query_id, r.proposal.match_id) for r in closed], cfg,
                                 rear_camera=result.rear_keyframes > 0)  # fmt: skip
     counted = list(result.session_loops) if partial else judged  # every proposal is still counted
     return LoopReport(
@@ -244,6 +250,7 @@ def _loop_report(
         proposed=len(counted),
         gate_accepted=sum(r.proposal.accepted for r in counted),
         in_graph=sum(r.in_graph for r in counted),
+        spaced=sum(r.spaced for r in counted),
         judged_in_graph=len(in_graph) if partial else None,
         # evaluate_loops splits recall by direction and camera visibility; beside it, what the
         # detector itself called each loop in the graph (the direction of its winning sequence)

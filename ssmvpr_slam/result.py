@@ -68,6 +68,17 @@ class LoopRecord:
     def in_graph(self) -> bool:
         return self.factor_handle is not None and not self.dropped
 
+    @property
+    def spaced(self) -> bool:
+        """Not registered: an ICP loop of the same revisit a few keyframes back stands for it
+        (`backend.registration.lidar.loop_spacing_keyframes`)."""
+        return self.registration is not None and self.registration.method == "spaced"
+
+    @property
+    def closed(self) -> bool:
+        """The run closed this loop: in the graph, or spaced out by a loop in the graph."""
+        return self.in_graph or self.spaced
+
 
 @dataclass
 class StageTimes:

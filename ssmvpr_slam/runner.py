@@ -212,6 +212,8 @@ def summary_table(metrics: dict[str, Any], title: str = "ssmvpr-slam run") -> Ta
     if loops:
         table.add_row("loops proposed / gate-accepted / in graph",
                       f"{loops['proposed']} / {loops['gate_accepted']} / {loops['in_graph']}")  # fmt: skip
+        if loops.get("spaced"):  # loop_spacing_keyframes: judged with the loops in the graph below
+            table.add_row("loops spaced out (not registered)", str(loops["spaced"]))
         fmt = lambda v: "n/a" if v is None else f"{v:.3f}"  # noqa: E731
         table.add_row("loop precision / recall", f"{fmt(loops['precision'])} / {fmt(loops['recall'])}")
         if "recall_visible" in loops:  # what a camera could see: reverse revisits show the far side

@@ -299,20 +299,26 @@ class SlamSystem:
         return keep_scan(points, lidar.voxel_size * lidar.map_downsample_factor)
 
     def _register(self, kf: Keyframe, proposal: LoopProposal) -> LoopRegistration:
-        """ICP against a local map around the match when both have scans, else a place prior."""
+        """ICP against a local map around the match when both have scans, else a place prior;
+        none when a recent ICP loop of the same revisit spaces this one out."""
         if proposal.prior_map:
             return self._register_to_map(kf, proposal)
         match = self.state.keyframes[proposal.match_id]
         if kf.scan is not None and match.scan is not None:
-            half = self.config.backend.registration.lidar.local_map_half_window
+            lidar = self.config.backend.registration.lidar
+            recent = self._carried(kf, match, lidar.loop_spacing_keyframes - 1)
+            if recent is not None:  # registered a moment ago: the odometry carries it here
+                record, carried = recent
+                return self.registrar.spaced(carried, record.proposal.query_id, record.proposal.match_id)
+            half = lidar.local_map_half_window
             window = self.state.keyframes[max(0, match.id - half) : match.id + half + 1]
             with_scans = [(k.scan.points, k.odom_pose) for k in window if k.scan is not None]
             local_map = build_local_map(
-                [scan for scan, _ in with_scans], [pose for _, pose in with_scans], match.odom_pose,
-                self.config.backend.registration.lidar.max_range,
-            )  # fmt: skip
+                [scan for scan, _ in with_scans], [pose for _, pose in with_scans], match.odom_pose, lidar.max_range
+            )
+            seed = self._carried(kf, match, lidar.carry_loop_keyframes)
             return self.registrar.register_scans(
-                kf.scan.points, local_map, proposal.yaw_guess, self._carried(kf, match)
+                kf.scan.points, local_map, proposal.yaw_guess, None if seed is None else seed[1]
             )
         if proposal.camera == "rear":  # the rear image saw what the match's forward camera saw
             if kf.rear_image is None:
@@ -326,17 +332,17 @@ class SlamSystem:
             return self.registrar.yaw_prior(proposal.yaw_guess, "a keyframe kept no image")
         return self.registrar.register_images(kf.image, match.image, proposal.yaw_guess)
 
-    def _carried(self, kf: Keyframe, match: Keyframe) -> np.ndarray | None:
-        """A recent accepted ICP loop of this revisit moved to (match, kf), else None (see
-        `loop_to_carry`). Read from the recorded loops, so a run resumed from its checkpoint
-        carries on as the uninterrupted one."""
-        reach = self.config.backend.registration.lidar.carry_loop_keyframes
+    def _carried(self, kf: Keyframe, match: Keyframe, reach: int) -> tuple[LoopRecord, np.ndarray] | None:
+        """A recent accepted ICP loop of this revisit (see `loop_to_carry`) and its T_mq moved
+        to (match, kf) by odometry, else None. Read from the recorded loops, so a run resumed
+        from its checkpoint carries on as the uninterrupted one."""
         record = loop_to_carry(self.state.loops, kf.id, match.id, reach)
         if record is None:
             return None
         assert record.registration is not None  # checked by loop_to_carry
         kfs, q, m = self.state.keyframes, record.proposal.query_id, record.proposal.match_id
-        return carry_loop(record.registration.T_mq, kfs[m].odom_pose, kfs[q].odom_pose, match.odom_pose, kf.odom_pose)
+        moved = carry_loop(record.registration.T_mq, kfs[m].odom_pose, kfs[q].odom_pose, match.odom_pose, kf.odom_pose)
+        return record, moved
 
     def _register_to_map(self, kf: Keyframe, proposal: LoopProposal) -> LoopRegistration:
         """ICP against the prior map's scans around the place, else the visual place prior."""

@@ -56,7 +56,8 @@ class LoopRegistration:
     sigmas: np.ndarray = field(default_factory=lambda: np.full(6, np.nan))
     """Loop factor sigmas (rx, ry, rz, tx, ty, tz) for `PoseGraph.add_loop`."""
     method: str = "icp"
-    """'icp', 'two_view_essential', 'two_view_homography', 'two_view_failed' (rejected) or 'yaw_prior'."""
+    """'icp', 'two_view_essential', 'two_view_homography', 'two_view_failed' (rejected),
+    'yaw_prior', or 'spaced' (not registered: see `LoopRegistrar.spaced`)."""
     yaw_seed: float = float("nan")
     """ICP: the yaw seed (rad) that won."""
 
@@ -221,6 +222,21 @@ class LoopRegistrar:
             rmse=est.error_px,
             sigmas=sigmas6(cfg.rot_sigma, cfg.translation_sigma),
             method=f"two_view_{est.model}",
+        )
+
+    def spaced(self, carried: np.ndarray, query_id: int, match_id: int) -> LoopRegistration:
+        """No registration: the accepted ICP loop query_id -> match_id of the same revisit is
+        within `lidar.loop_spacing_keyframes`. Not a factor (accepted False); T_mq is that loop
+        carried here by odometry (`carry_loop`), what the graph already implies."""
+        spacing = self.config.lidar.loop_spacing_keyframes
+        return LoopRegistration(
+            T_mq=carried,
+            accepted=False,
+            reason=f"spaced: loop {query_id} -> {match_id} of this revisit is within {spacing} keyframes "
+            "(backend.registration.lidar.loop_spacing_keyframes)",
+            inlier_ratio=float("nan"),
+            rmse=float("nan"),
+            method="spaced",
         )
 
     def yaw_prior(self, yaw_guess: float, why: str, inlier_ratio: float = 0.0) -> LoopRegistration:

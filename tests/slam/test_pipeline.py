@@ -59,6 +59,7 @@ INTERRUPT_AFTER = 150  # frames; the second lap's loops have started by then
 WRONG_LOOP_RATE = 0.1  # per keyframe after the PCA warm-up: ~7 wrong loops over the 75 keyframes
 CORRECT_RADIUS = 10.0
 OPEN_GATE_SCORE = 0.2  # sequence score to propose and accept (the default accepts from 0.45)
+LOOP_SPACING = 3  # keyframes between registered ICP loops of a revisit, for the spaced run
 
 
 def simulation(frames: int, lidar: bool) -> SimulationConfig:
@@ -454,6 +455,54 @@ def test_kiss_icp_run_closes_loops_by_icp_without_harm(kiss: Run) -> None:
     odom, optimised = kiss.metrics["ate_odometry"]["rmse"], kiss.metrics["ate_optimised"]["rmse"]
     assert odom <= 1.0
     assert optimised <= 1.05 * odom + 0.02
+
+
+@pytest.fixture(scope="module")
+def spaced(tmp_path_factory, weights_path, backbone, kiss) -> Run:  # noqa: ANN001
+    """The kiss-icp run again, its ICP loops registered at least LOOP_SPACING keyframes apart."""
+    cfg = slam_config(weights_path, "kiss_icp")
+    cfg.backend.registration.lidar.loop_spacing_keyframes = LOOP_SPACING
+    frames = TraverseSimulator(simulation(KISS_FRAMES, lidar=True)).frames()
+    return _run(tmp_path_factory.mktemp("slam") / "spaced", cfg, backbone, frames)
+
+
+def test_loop_spacing_registers_fewer_loops_and_judges_the_spaced_with_them(spaced: Run, kiss: Run) -> None:
+    def decisions(run: Run) -> list[tuple[int, int, bool]]:
+        return [(r.proposal.query_id, r.proposal.match_id, r.proposal.accepted) for r in run.result.loops]
+
+    assert decisions(spaced) == decisions(kiss)  # the recogniser decides alike: only registration changes
+    records = spaced.result.loops
+    out = [r for r in records if r.spaced]
+    registered = [r for r in records if r.registration is not None and r.registration.method == "icp"]
+    assert out and not any(r.spaced for r in kiss.result.loops)
+    kiss_registered = [r for r in kiss.result.loops if r.registration is not None]
+    assert len(registered) + len(out) == len(kiss_registered)  # each accepted proposal: registered or spaced
+    assert sum(r.in_graph for r in records) >= 3
+    kfs = spaced.pipeline.state.keyframes
+    for record in out:
+        p = record.proposal
+        assert p.accepted and not record.in_graph and record.factor_handle is None
+        # an accepted ICP loop of the same revisit, fewer than LOOP_SPACING keyframes back, stands for it
+        near = LOOP_SPACING - 1
+        assert any(
+            0 < p.query_id - e.proposal.query_id <= near and abs(p.match_id - e.proposal.match_id) <= near
+            for e in registered
+            if e.registration.accepted
+        )
+        # the pose it records (that loop carried along by odometry) is the true relative pose
+        truth = np.linalg.inv(kfs[p.match_id].gt_pose) @ kfs[p.query_id].gt_pose
+        error = np.linalg.inv(truth) @ record.registration.T_mq
+        assert np.linalg.norm(error[:3, 3]) <= 0.5
+    loops = spaced.metrics["loops"]
+    assert loops["spaced"] == len(out) and "spaced" not in kiss.metrics["loops"]
+    assert loops["in_graph"] == sum(r.in_graph for r in records) < kiss.metrics["loops"]["in_graph"]
+    # precision and recall judge the spaced loops with those in the graph: spacing costs no recall
+    assert loops["precision"] == 1.0 and loops["recall"] >= 0.9 * kiss.metrics["loops"]["recall"]
+    odom, optimised = spaced.metrics["ate_odometry"]["rmse"], spaced.metrics["ate_optimised"]["rmse"]
+    assert optimised <= 1.05 * odom + 0.02
+    with open(spaced.folder / "loop_closures.csv", newline="") as f:
+        rows = [row for row in csv.DictReader(f) if row["registration"] == "spaced"]
+    assert len(rows) == len(out) and all(row["in_graph"] == "0" for row in rows)
 
 
 # ------------------------------------------------------------------------ prior map (--map)
