@@ -78,6 +78,8 @@ def test_fast_preset_inherits_default() -> None:
     ) == (1e-3, 1.5, 5)
     assert fast.vpr.filtering.cubes == load_config().vpr.filtering.cubes
     assert fast.detector.min_score == 0.3
+    assert fast.backend.registration.lidar.loop_spacing_keyframes == 4
+    assert load_config().backend.registration.lidar.loop_spacing_keyframes == 1  # the default registers every loop
 
 
 def test_yaml_file_over_a_preset_base(tmp_path: Path) -> None:
