@@ -32,6 +32,7 @@ def test_only_accepted_icp_loops_of_the_session_before_the_query_are_carried():
         record(11, 101, accepted=False),
         record(11, 101, method="yaw_prior"),
         record(11, 101, prior_map=True),
+        record(11, 101, accepted=False, method="spaced"),  # spaced out: never registered
         record(12, 101),  # the query's own proposal, recorded before it is registered
     ):
         assert loop_to_carry([earlier, unusable], 12, 102, reach=3) is earlier
@@ -50,3 +51,14 @@ def test_nothing_is_carried_past_the_reach_or_with_no_loops():
     assert loop_to_carry([record(10, 100)], 19, 100, reach=8) is None  # query 9 keyframes on
     assert loop_to_carry([record(10, 100)], 12, 120, reach=8) is None  # another place
     assert loop_to_carry([record(10, 100)], 12, 102, reach=0) is None  # carrying turned off
+
+
+def test_loop_spacing_registers_every_fourth_keyframe_of_a_revisit():
+    """The system spaces loops out with reach = loop_spacing_keyframes - 1: with 4, the loop
+    registered at 10 stands for 11, 12 and 13, and 14 is registered again."""
+    loops = [record(10, 100)]
+    for q in (11, 12, 13):
+        assert loop_to_carry(loops, q, 100 + (q - 10), reach=3) is loops[0]
+        loops.append(record(q, 100 + (q - 10), accepted=False, method="spaced"))
+    assert loop_to_carry(loops, 14, 104, reach=3) is None
+    assert loop_to_carry(loops, 11, 101, reach=0) is None  # spacing 1: every loop is registered
