@@ -8,9 +8,9 @@ Topics (frame ``map``, the session's optimised frame; times are the keyframes' l
 - ``/slam/odometry/pose``, ``/slam/optimised/pose`` (geometry_msgs/PoseStamped): one per
   keyframe, to follow the run along the timeline;
 - ``/slam/loops`` (visualization_msgs/MarkerArray): loop edges between optimised keyframe
-  positions (green: in the graph, red: gate-accepted but rejected by registration or GNC; loops
-  spaced out by `loop_spacing_keyframes` are not drawn), once at the first keyframe's time; prior-map loops are not drawn (their other end is in another
-  session's frame);
+  positions (green: in the graph, red: gate-accepted but rejected by registration or GNC), once
+  at the first keyframe's time; loops spaced out by `loop_spacing_keyframes` (never registered)
+  and prior-map loops (their other end is in another session's frame) are not drawn;
 - ``/slam/keyframes/image/compressed`` (sensor_msgs/CompressedImage, JPEG): a thumbnail per
   keyframe (made when the keyframe was selected, `thumbnail_jpeg`: the run keeps no full image).
 

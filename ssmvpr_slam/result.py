@@ -76,7 +76,7 @@ class LoopRecord:
 
     @property
     def closed(self) -> bool:
-        """The run closed this loop: in the graph, or spaced out by a loop in the graph."""
+        """The run closed this loop: in the graph, or spaced out by an accepted ICP loop."""
         return self.in_graph or self.spaced
 
 

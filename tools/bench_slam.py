@@ -148,8 +148,6 @@ def main(argv: list[str] | None = None) -> int:
     pipeline.finish()  # ends an odometry process too (its CPU time counts once it is reaped)
     cpu = _cpu_use(cpu_start, _cpu_seconds(), wall, n_kf, np.diff(cpu_at), latency_summary)
     error = pipeline.step_error
-    database = pipeline.detector.database
-    index = database.search_index() if database is not None and len(database) else None
     failure = f"{type(error).__name__}: {error}" if error is not None else pipeline.ending.source_error
     result: dict[str, Any] = {
         "machine": {
@@ -170,10 +168,7 @@ def main(argv: list[str] | None = None) -> int:
             "lidar_loops": config.pipeline.use_lidar_for_loops,
             "keyframe_image_pixels": config.pipeline.keyframe_image_pixels,
             "release_heap_every_keyframes": config.pipeline.release_heap_every_keyframes,
-            # what stage I ran on (exact_backend auto picks torch where torch sees a GPU)
-            "stage1_index": None if index is None else index.kind,
-            "stage1_torch_device": None if index is None else index.search_device,
-            "stage1_torch_storage": None if index is None else index.search_storage,
+            **_stage1_search(pipeline.detector.database),
         },
         "heap_trims": {"calls": pipeline.heap.calls, "seconds": round(pipeline.heap.seconds, 3)},
         "frames": state.frames_seen,
@@ -199,6 +194,19 @@ def main(argv: list[str] | None = None) -> int:
         print(f"bench_slam: the run failed: {failure}", file=sys.stderr)
         return 1
     return 0
+
+
+def _stage1_search(database: Any) -> dict[str, str | None]:
+    """What stage I ran on (`exact_backend: auto` picks torch where torch sees a GPU); None
+    before the database had a place."""
+    out: dict[str, str | None] = {"stage1_index": None, "stage1_torch_device": None, "stage1_torch_storage": None}
+    if database is None or not len(database):
+        return out
+    if database.filtering.index == "numpy":
+        return {**out, "stage1_index": "numpy"}
+    index = database.search_index()  # the index the run searched, already up to date
+    return {"stage1_index": index.kind, "stage1_torch_device": index.search_device,
+            "stage1_torch_storage": index.search_storage}  # fmt: skip
 
 
 def _cpu_seconds() -> tuple[float, float]:
