@@ -196,7 +196,7 @@ class LidarRegistrationConfig(_Strict):
         "whose query is fewer keyframes after an accepted ICP loop's query, with its match as near that "
         "loop's match, is recorded (method 'spaced') but not registered, as odometry already carries that "
         "loop's correction to it. Registration is most of a revisit keyframe's back-end cost: the fast preset's 4 "
-        "took the demo log from 349 to 291 core-ms a keyframe with the same ATE after the loops (README, 'SLAM "
+        "took the demo log from 329 to 287 core-ms a keyframe with the same ATE after the loops (README, 'SLAM "
         "demo'). 1: register every accepted loop",
     )
     rot_sigma: float = Field(0.02, gt=0, description="rad; factor sigma of an accepted ICP loop")
