@@ -250,11 +250,43 @@ class TwoViewConfig(_Strict):
         return value
 
 
+OdometryKind = Literal["kiss_icp", "logged"]
+
+
+def _gated_sources() -> list[OdometryKind]:
+    return ["kiss_icp"]
+
+
+class OdometryGateConfig(_Strict):
+    """A session loop is refused before registration when the odometry puts its two keyframes
+    farther apart than the odometry's drift over the path between them could explain. Appearance
+    aliases across a city (the rear camera on the KITTI 06 route shape: 197 wrong loops 17-385 m
+    away) then cost no failed ICP, and a camera-only run keeps them out of the graph."""
+
+    sources: list[OdometryKind] = Field(
+        default_factory=_gated_sources,
+        description="odometry kinds (frontend.odometry.kind) whose drift the bound below holds for; logged "
+        "poses may be wheel odometry of any drift, so they are not gated unless named",
+    )
+    base_m: float = Field(10.0, gt=0, description="m allowed whatever the path (the place radius and more)")
+    per_m_travelled: float = Field(
+        0.02,
+        ge=0,
+        description="m allowed per metre driven between the two keyframes (kiss-icp drifts 0.4-0.6 % of the "
+        "distance on the simulated routes; its right loops there lie within 10.3 m)",
+    )
+
+    def limit(self, travelled_m: float) -> float:
+        """The largest odometry offset of a loop across `travelled_m` metres of driving."""
+        return self.base_m + self.per_m_travelled * travelled_m
+
+
 class LoopRegistrationConfig(_Strict):
-    """Both registration paths."""
+    """Both registration paths, and the odometry check before either."""
 
     lidar: LidarRegistrationConfig = LidarRegistrationConfig()
     two_view: TwoViewConfig = TwoViewConfig()
+    odometry_gate: OdometryGateConfig = OdometryGateConfig()
 
 
 class BackendConfig(_Strict):

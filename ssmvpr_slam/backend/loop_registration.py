@@ -57,7 +57,7 @@ class LoopRegistration:
     """Loop factor sigmas (rx, ry, rz, tx, ty, tz) for `PoseGraph.add_loop`."""
     method: str = "icp"
     """'icp', 'two_view_essential', 'two_view_homography', 'two_view_failed' (rejected),
-    'yaw_prior', or 'spaced' (not registered: see `LoopRegistrar.spaced`)."""
+    'yaw_prior', or, not registered, 'spaced' and 'implausible' (`LoopRegistrar.spaced`, `.implausible`)."""
     yaw_seed: float = float("nan")
     """ICP: the yaw seed (rad) that won."""
 
@@ -237,6 +237,21 @@ class LoopRegistrar:
             inlier_ratio=float("nan"),
             rmse=float("nan"),
             method="spaced",
+        )
+
+    def implausible(self, offset_m: float, travelled_m: float) -> LoopRegistration:
+        """No registration: odometry puts the two keyframes `offset_m` apart after `travelled_m`
+        of driving between them, beyond what its drift explains (`odometry_gate`)."""
+        gate = self.config.odometry_gate
+        return LoopRegistration(
+            T_mq=np.eye(4),
+            accepted=False,
+            reason=f"implausible: odometry puts the keyframes {offset_m:.1f} m apart, beyond "
+            f"{gate.limit(travelled_m):.1f} m ({gate.base_m:g} m + {gate.per_m_travelled:g} x {travelled_m:.0f} m "
+            "driven between them; backend.registration.odometry_gate)",
+            inlier_ratio=float("nan"),
+            rmse=float("nan"),
+            method="implausible",
         )
 
     def yaw_prior(self, yaw_guess: float, why: str, inlier_ratio: float = 0.0) -> LoopRegistration:

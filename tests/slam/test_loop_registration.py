@@ -237,6 +237,17 @@ def test_nan_points_are_dropped_and_too_few_points_rejected(scans, registrar):
     assert not no_map.accepted and "map has 0 points" in no_map.reason
 
 
+def test_the_odometry_gate_allows_a_base_plus_a_share_of_the_path_and_says_so():
+    config = LoopRegistrationConfig()
+    gate = config.odometry_gate
+    assert gate.sources == ["kiss_icp"]  # logged poses (wheel odometry of any drift) are not gated by default
+    assert gate.limit(0.0) == 10.0 and gate.limit(500.0) == pytest.approx(20.0)
+    refused = LoopRegistrar(config).implausible(107.25, 95.0)
+    assert not refused.accepted and refused.method == "implausible"
+    assert refused.reason.startswith("implausible: odometry puts the keyframes 107.2 m apart, beyond 11.9 m")
+    assert "10 m + 0.02 x 95 m driven between them" in refused.reason
+
+
 def test_bad_shapes_and_yaw_are_value_errors(registrar):
     with pytest.raises(ValueError, match="query_points"):
         registrar.register_scans(np.zeros((10, 2)), np.zeros((10, 3)))

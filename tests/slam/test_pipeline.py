@@ -60,6 +60,7 @@ WRONG_LOOP_RATE = 0.1  # per keyframe after the PCA warm-up: ~7 wrong loops over
 CORRECT_RADIUS = 10.0
 OPEN_GATE_SCORE = 0.2  # sequence score to propose and accept (the default accepts from 0.45)
 LOOP_SPACING = 3  # keyframes between registered ICP loops of a revisit, for the spaced run
+TIGHT_GATE_M = 0.8  # an odometry gate that refuses most of the kiss-icp run's (right) loops
 
 
 def simulation(frames: int, lidar: bool) -> SimulationConfig:
@@ -503,6 +504,44 @@ def test_loop_spacing_registers_fewer_loops_and_judges_the_spaced_with_them(spac
     with open(spaced.folder / "loop_closures.csv", newline="") as f:
         rows = [row for row in csv.DictReader(f) if row["registration"] == "spaced"]
     assert len(rows) == len(out) and all(row["in_graph"] == "0" for row in rows)
+
+
+@pytest.fixture(scope="module")
+def gated(tmp_path_factory, weights_path, backbone, kiss) -> Run:  # noqa: ANN001
+    """The kiss-icp run again with an odometry gate too tight for most of its (right) loops."""
+    cfg = slam_config(weights_path, "kiss_icp")
+    cfg.backend.registration.odometry_gate.base_m = TIGHT_GATE_M
+    cfg.backend.registration.odometry_gate.per_m_travelled = 0.0
+    frames = TraverseSimulator(simulation(KISS_FRAMES, lidar=True)).frames()
+    return _run(tmp_path_factory.mktemp("slam") / "gated", cfg, backbone, frames)
+
+
+def test_the_odometry_gate_refuses_loops_its_odometry_puts_too_far_apart_before_registering(
+    gated: Run, kiss: Run
+) -> None:
+    def decisions(run: Run) -> list[tuple[int, int, bool]]:
+        return [(r.proposal.query_id, r.proposal.match_id, r.proposal.accepted) for r in run.result.loops]
+
+    assert decisions(gated) == decisions(kiss)  # the recogniser decides alike
+    kfs = gated.pipeline.state.keyframes
+    refused = kept = 0
+    for record, unguarded in zip(gated.result.loops, kiss.result.loops, strict=True):
+        if not record.proposal.accepted:
+            continue
+        q, m = kfs[record.proposal.query_id], kfs[record.proposal.match_id]
+        offset = float(np.linalg.norm(q.odom_pose[:3, 3] - m.odom_pose[:3, 3]))
+        if offset > TIGHT_GATE_M:  # refused without registration, whatever ICP would have said
+            assert record.registration.method == "implausible" and not record.in_graph
+            assert record.registration.reason.startswith(f"implausible: odometry puts the keyframes {offset:.1f} m")
+            refused += 1
+        else:  # registered as in the ungated run
+            assert record.registration.method == unguarded.registration.method == "icp"
+            assert record.registration.accepted == unguarded.registration.accepted
+            kept += 1
+    assert refused >= 3 and kept >= 3  # the tight gate splits this run's loops
+    assert gated.metrics["loops"]["in_graph"] < kiss.metrics["loops"]["in_graph"]
+    # the default gate (10 m + 2 % of the path) refuses none of the ungated run's right loops
+    assert not any(r.registration is not None and r.registration.method == "implausible" for r in kiss.result.loops)
 
 
 # ------------------------------------------------------------------------ prior map (--map)
