@@ -301,7 +301,8 @@ class SlamSystem:
 
     def _register(self, kf: Keyframe, proposal: LoopProposal) -> LoopRegistration:
         """ICP against a local map around the match when both have scans, else a place prior;
-        none when a recent ICP loop of the same revisit spaces this one out."""
+        none when the odometry puts the two keyframes too far apart (`odometry_gate`) or a
+        recent ICP loop of the same revisit spaces this one out."""
         if proposal.prior_map:
             return self._register_to_map(kf, proposal)
         match = self.state.keyframes[proposal.match_id]

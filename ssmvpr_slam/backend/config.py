@@ -11,6 +11,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 RobustKernelKind = Literal["cauchy", "huber", "dcs", "geman_mcclure", "tukey", "none"]
+OdometryKind = Literal["kiss_icp", "logged"]  # frontend.odometry.kind once `auto` is resolved
 
 DEFAULT_KERNEL_SCALES: dict[str, float] = {
     "cauchy": 1.0,
@@ -104,7 +105,7 @@ class PoseGraphConfig(_Strict):
     odometry: OdometryNoiseConfig = Field(
         OdometryNoiseConfig(), description="odometry factors of a source without its own entry in odometry_by_source"
     )
-    odometry_by_source: dict[Literal["kiss_icp", "logged"], OdometryNoiseConfig] = Field(
+    odometry_by_source: dict[OdometryKind, OdometryNoiseConfig] = Field(
         default_factory=lambda: {"kiss_icp": OdometryNoiseConfig(rot_sigma=1e-3, trans_sigma=0.05)},  # type: ignore[arg-type,dict-item]
         description=(
             "odometry sigmas per source (frontend.odometry.kind). LiDAR odometry turns far more "
@@ -248,9 +249,6 @@ class TwoViewConfig(_Strict):
         if len(value) != 3 or any(len(row) != 3 for row in value):
             raise ValueError("body_from_camera must be a 3x3 matrix")
         return value
-
-
-OdometryKind = Literal["kiss_icp", "logged"]
 
 
 def _gated_sources() -> list[OdometryKind]:
