@@ -205,6 +205,13 @@ class LoopDetector:
             self._travelled += float(np.linalg.norm(position - self._last_position))
         self._last_position = position
 
+    def travelled_since(self, place: int) -> float:
+        """Metres driven, keyframe position to keyframe position, from session place `place` to
+        the latest keyframe: the path a loop to that place spans."""
+        if not self.prior_places <= place < self.prior_places + len(self._session_travelled):
+            raise ValueError(f"place {place} is not one of this session's places")
+        return self._travelled - self._session_travelled[place - self.prior_places]
+
     def _warm_up(self, raw: RawCubes, info: PlaceInfo) -> None:
         """Buffer cubes until PCA can be fitted (or use configured codebooks at once)."""
         if self.config.codebooks is not None:

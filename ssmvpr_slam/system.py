@@ -124,7 +124,6 @@ class SlamSystem:
         self._front = FrontCounts()
         self._result: RunResult | None = None
         self._recoveries_told = 0  # the graph's recoveries already warned about
-        self._travelled: list[float] = []  # odometry path length to each keyframe (`_travelled_to`)
 
     # ---- per frame ------------------------------------------------------------------------
     def process(self, frame: Frame) -> None:
@@ -309,7 +308,7 @@ class SlamSystem:
         gate = self.config.backend.registration.odometry_gate
         if self.config.frontend.odometry.kind in gate.sources:
             offset = float(np.linalg.norm(kf.odom_pose[:3, 3] - match.odom_pose[:3, 3]))
-            travelled = self._travelled_to(kf.id) - self._travelled_to(match.id)
+            travelled = self.detector.travelled_since(proposal.match_place)
             if offset > gate.limit(travelled):
                 return self.registrar.implausible(offset, travelled)
         if kf.scan is not None and match.scan is not None:
@@ -339,15 +338,6 @@ class SlamSystem:
         if kf.image is None or match.image is None:
             return self.registrar.yaw_prior(proposal.yaw_guess, "a keyframe kept no image")
         return self.registrar.register_images(kf.image, match.image, proposal.yaw_guess)
-
-    def _travelled_to(self, kf_id: int) -> float:
-        """Metres the odometry drove from the first keyframe to `kf_id`, keyframe to keyframe
-        (extended from the keyframes on demand, so a resumed run counts as the uninterrupted one)."""
-        kfs, path = self.state.keyframes, self._travelled
-        for i in range(len(path), kf_id + 1):
-            step = float(np.linalg.norm(kfs[i].odom_pose[:3, 3] - kfs[i - 1].odom_pose[:3, 3])) if i else 0.0
-            path.append((path[-1] if i else 0.0) + step)
-        return path[kf_id]
 
     def _carried(self, kf: Keyframe, match: Keyframe, reach: int) -> tuple[LoopRecord, np.ndarray] | None:
         """A recent accepted ICP loop of this revisit (see `loop_to_carry`) and its T_mq moved

@@ -232,6 +232,15 @@ def test_distance_window_counts_travel_not_keyframes(codebooks: str) -> None:
     assert proposal is not None and proposal.match_place == 9 and proposal.score == pytest.approx(1.0)
 
 
+def test_travelled_since_a_place_is_the_path_driven_from_it(codebooks: str) -> None:
+    det = detector(codebooks=codebooks)
+    feed(det, list(range(6)), 0, positions=[0.0, 1.0, 3.0, 3.0, 2.0, 5.0])  # back and forth: 1+2+0+1+3 m
+    assert det.travelled_since(0) == pytest.approx(7.0)
+    assert det.travelled_since(3) == pytest.approx(4.0) and det.travelled_since(5) == 0.0
+    with pytest.raises(ValueError, match="place 6 is not one of this session's places"):
+        det.travelled_since(6)
+
+
 def test_position_none_does_not_advance_the_distance(codebooks: str) -> None:
     det = detector(distance=10.0, codebooks=codebooks)
     feed(det, list(range(10)), 0, positions=[0.0] * 10)
