@@ -204,8 +204,18 @@ def open_gate(tmp_path_factory, weights_path, backbone, camera_frames, clean) ->
 
 @pytest.fixture(scope="module")
 def kiss(tmp_path_factory, weights_path, backbone, clean) -> Run:  # noqa: ANN001
+    return _kiss_run(tmp_path_factory, "kiss", slam_config(weights_path, "kiss_icp"), backbone)
+
+
+def _kiss_run(tmp_path_factory, name: str, cfg: SlamConfig, backbone: MemoBackbone) -> Run:  # noqa: ANN001
+    """The kiss-icp traverse (rendered again: its scans and images are too large to keep) under `cfg`."""
     frames = TraverseSimulator(simulation(KISS_FRAMES, lidar=True)).frames()
-    return _run(tmp_path_factory.mktemp("slam") / "kiss", slam_config(weights_path, "kiss_icp"), backbone, frames)
+    return _run(tmp_path_factory.mktemp("slam") / name, cfg, backbone, frames)
+
+
+def _decisions(run: Run) -> list[tuple[int, int, bool]]:
+    """What the recogniser decided, proposal by proposal."""
+    return [(r.proposal.query_id, r.proposal.match_id, r.proposal.accepted) for r in run.result.loops]
 
 
 def _gt_distance(run: Run, query: int, match: int) -> float:
@@ -463,15 +473,11 @@ def spaced(tmp_path_factory, weights_path, backbone, kiss) -> Run:  # noqa: ANN0
     """The kiss-icp run again, its ICP loops registered at least LOOP_SPACING keyframes apart."""
     cfg = slam_config(weights_path, "kiss_icp")
     cfg.backend.registration.lidar.loop_spacing_keyframes = LOOP_SPACING
-    frames = TraverseSimulator(simulation(KISS_FRAMES, lidar=True)).frames()
-    return _run(tmp_path_factory.mktemp("slam") / "spaced", cfg, backbone, frames)
+    return _kiss_run(tmp_path_factory, "spaced", cfg, backbone)
 
 
 def test_loop_spacing_registers_fewer_loops_and_judges_the_spaced_with_them(spaced: Run, kiss: Run) -> None:
-    def decisions(run: Run) -> list[tuple[int, int, bool]]:
-        return [(r.proposal.query_id, r.proposal.match_id, r.proposal.accepted) for r in run.result.loops]
-
-    assert decisions(spaced) == decisions(kiss)  # the recogniser decides alike: only registration changes
+    assert _decisions(spaced) == _decisions(kiss)  # the recogniser decides alike: only registration changes
     records = spaced.result.loops
     out = [r for r in records if r.spaced]
     registered = [r for r in records if r.registration is not None and r.registration.method == "icp"]
@@ -512,17 +518,13 @@ def gated(tmp_path_factory, weights_path, backbone, kiss) -> Run:  # noqa: ANN00
     cfg = slam_config(weights_path, "kiss_icp")
     cfg.backend.registration.odometry_gate.base_m = TIGHT_GATE_M
     cfg.backend.registration.odometry_gate.per_m_travelled = 0.0
-    frames = TraverseSimulator(simulation(KISS_FRAMES, lidar=True)).frames()
-    return _run(tmp_path_factory.mktemp("slam") / "gated", cfg, backbone, frames)
+    return _kiss_run(tmp_path_factory, "gated", cfg, backbone)
 
 
 def test_the_odometry_gate_refuses_loops_its_odometry_puts_too_far_apart_before_registering(
     gated: Run, kiss: Run
 ) -> None:
-    def decisions(run: Run) -> list[tuple[int, int, bool]]:
-        return [(r.proposal.query_id, r.proposal.match_id, r.proposal.accepted) for r in run.result.loops]
-
-    assert decisions(gated) == decisions(kiss)  # the recogniser decides alike
+    assert _decisions(gated) == _decisions(kiss)  # the recogniser decides alike
     kfs = gated.pipeline.state.keyframes
     refused = kept = 0
     for record, unguarded in zip(gated.result.loops, kiss.result.loops, strict=True):
