@@ -16,6 +16,16 @@ show the two paths agree.
 Tolerance: the resumed trajectory equals the uninterrupted one to 1e-6 (m, and per element of
 the rotation matrices), which is the 9 decimals of the TUM files compared: the detector's state
 and the graph are restored exactly, and logged odometry replays deterministically.
+
+A second log has LiDAR (14 m blocks, 180 frames, 90 keyframes): kiss-icp odometry and loop ICP,
+both on one thread so that they are bit-reproducible, loops registered 3 keyframes apart
+(`loop_spacing_keyframes`) and the odometry gate at its defaults. The uninterrupted run refuses
+the first lap's aliases as implausible, registers the second lap's loops from keyframe ~65 and
+spaces out those between (ICP at keyframes 65, 67, 70, 73, ...; spaced 66, 68, 69, 71, 72, ...).
+Checkpoints come every 4 keyframes from the warm-up's 15th, so the kill after the first one of at
+least 70 keyframes cuts the run at 71: the resumed run must replay kiss-icp to the same odometry
+and read the restored loop records and travelled distances to the same decisions, among them
+spaced loops carried from a loop registered before the cut.
 """
 
 from __future__ import annotations
@@ -46,6 +56,8 @@ pytestmark = pytest.mark.slow
 
 FRAMES = 120
 KILL_AT_KEYFRAMES = 40
+LIDAR_FRAMES = 180
+LIDAR_KILL_AT_KEYFRAMES = 70
 TOLERANCE = 1e-6
 
 CONFIG = """\
@@ -64,32 +76,58 @@ evaluation: {loops: {min_frame_gap: 25}}
 results: {plots: false, checkpoint_every_keyframes: 5, checkpoint_every_s: null}
 """
 
+LIDAR_CONFIG = """\
+vpr:
+  backbone: {input_size: 112, device: cpu}
+  filtering: {pca: {dim: 8}}
+  spatial: {pca: {dim: 8}}
+detector: {pca_warmup_keyframes: 15}
+frontend:
+  keyframes: {min_distance_m: null, min_angle_deg: null, max_interval_s: 0.35}
+  odometry: {kind: kiss_icp, kiss_icp: {max_num_threads: 1}}
+backend: {registration: {lidar: {max_threads: 1, loop_spacing_keyframes: 3}}}
+pipeline: {overlap: OVERLAP}
+evaluation: {loops: {min_frame_gap: 25}}
+results: {plots: false, checkpoint_every_keyframes: 4, checkpoint_every_s: null}
+"""
+
+
+def _write_inputs(base: Path, sim: SimulationConfig, frames: int, config: str) -> SimpleNamespace:
+    """The log (lossless PNG images: the same pixels on every read), its first 8 frames, and the
+    config twice: stages overlapped and sequential."""
+    rendered = list(TraverseSimulator(sim).frames())
+    writer = McapWriterConfig(image_format="png", chunk_size=256 * 1024)
+    log = base / "log.mcap"
+    assert write_frames(iter(rendered), log, writer) == frames
+    short = base / "short.mcap"
+    assert write_frames(iter(rendered[:8]), short, writer) == 8
+    overlapped = base / "small.yaml"
+    overlapped.write_text(config.replace("OVERLAP", "true"))
+    sequential = base / "small_sequential.yaml"
+    sequential.write_text(config.replace("OVERLAP", "false"))
+    return SimpleNamespace(base=base, log=log, short=short, config=overlapped, sequential=sequential)
+
 
 @pytest.fixture(scope="module")
 def inputs(tmp_path_factory: pytest.TempPathFactory) -> SimpleNamespace:
-    base = tmp_path_factory.mktemp("resume")
     sim = SimulationConfig(frame_rate_hz=5.0, city={"block_size_m": 10.0}, route={"preset": "block_grid", "laps": 2},
                            max_frames=FRAMES, lidar={"enabled": False})  # fmt: skip
-    frames = list(TraverseSimulator(sim).frames())
-    writer = McapWriterConfig(image_format="png", chunk_size=256 * 1024)  # lossless: the same pixels on every read
-    log = base / "log.mcap"
-    assert write_frames(iter(frames), log, writer) == FRAMES
-    short = base / "short.mcap"
-    assert write_frames(iter(frames[:8]), short, writer) == 8
-    config = base / "small.yaml"
-    config.write_text(CONFIG.replace("OVERLAP", "true"))
-    sequential = base / "small_sequential.yaml"
-    sequential.write_text(CONFIG.replace("OVERLAP", "false"))
-    return SimpleNamespace(base=base, log=log, short=short, config=config, sequential=sequential)
+    return _write_inputs(tmp_path_factory.mktemp("resume"), sim, FRAMES, CONFIG)
+
+
+@pytest.fixture(scope="module")
+def lidar_inputs(tmp_path_factory: pytest.TempPathFactory) -> SimpleNamespace:
+    sim = SimulationConfig(frame_rate_hz=5.0, city={"block_size_m": 14.0}, route={"preset": "block_grid", "laps": 2},
+                           max_frames=LIDAR_FRAMES, lidar={"enabled": True, "beams": 16, "azimuths": 512})  # fmt: skip
+    return _write_inputs(tmp_path_factory.mktemp("resume_lidar"), sim, LIDAR_FRAMES, LIDAR_CONFIG)
 
 
 def _env() -> dict[str, str]:
     return {k: v for k, v in os.environ.items() if not k.upper().startswith("SSMVPR_")}
 
 
-@pytest.fixture(scope="module")
-def killed(inputs: SimpleNamespace, weights_path: Path) -> SimpleNamespace:
-    """`run` in a subprocess, killed with SIGKILL once a checkpoint holds KILL_AT_KEYFRAMES."""
+def _kill(inputs: SimpleNamespace, weights_path: Path, at_keyframes: int) -> SimpleNamespace:
+    """`run` in a subprocess, killed with SIGKILL once a checkpoint holds `at_keyframes`."""
     out = inputs.base / "killed"
     command = [sys.executable, "-c", "from ssmvpr_slam.cli import app; app()", "run", str(inputs.log),
                "-c", str(inputs.config), "--weights", str(weights_path), "--out", str(out)]  # fmt: skip
@@ -98,7 +136,7 @@ def killed(inputs: SimpleNamespace, weights_path: Path) -> SimpleNamespace:
     checkpointed = 0
     deadline = time.monotonic() + 600
     try:
-        while checkpointed < KILL_AT_KEYFRAMES:
+        while checkpointed < at_keyframes:
             assert process.poll() is None, f"the run ended before the kill:\n{(inputs.base / 'killed.log').read_text()}"
             assert time.monotonic() < deadline, "no checkpoint came"
             for record in out.glob("run_*/checkpoint/checkpoint.json"):
@@ -117,19 +155,51 @@ def killed(inputs: SimpleNamespace, weights_path: Path) -> SimpleNamespace:
     return SimpleNamespace(out=out, run_folder=run_folder, checkpoint=load_checkpoint(run_folder))
 
 
-@pytest.fixture(scope="module")
-def uninterrupted(inputs: SimpleNamespace, weights_path: Path) -> Path:
+def _uninterrupted(inputs: SimpleNamespace, weights_path: Path) -> Path:
     out = inputs.base / "uninterrupted"
     result = invoke("run", inputs.log, "-c", inputs.sequential, "--weights", weights_path, "--out", out)
     assert result.exit_code == 0, result.output
     return (out / "latest").resolve()
 
 
-@pytest.fixture(scope="module")
-def resumed(killed: SimpleNamespace, inputs: SimpleNamespace, weights_path: Path) -> SimpleNamespace:
+def _resume(killed: SimpleNamespace, inputs: SimpleNamespace, weights_path: Path) -> SimpleNamespace:
     result = invoke("run", inputs.log, "--resume", killed.run_folder, "--weights", weights_path)
     assert result.exit_code == 0, result.output
     return SimpleNamespace(result=result, folder=killed.run_folder)
+
+
+@pytest.fixture(scope="module")
+def killed(inputs: SimpleNamespace, weights_path: Path) -> SimpleNamespace:
+    return _kill(inputs, weights_path, KILL_AT_KEYFRAMES)
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(inputs: SimpleNamespace, weights_path: Path) -> Path:
+    return _uninterrupted(inputs, weights_path)
+
+
+@pytest.fixture(scope="module")
+def resumed(killed: SimpleNamespace, inputs: SimpleNamespace, weights_path: Path) -> SimpleNamespace:
+    return _resume(killed, inputs, weights_path)
+
+
+def _assert_finished_as_if_never_killed(resumed: SimpleNamespace, uninterrupted: Path, killed: SimpleNamespace,
+                                        frames: int) -> None:  # fmt: skip
+    folder = resumed.folder
+    assert (killed.out / "latest").resolve() == folder  # published under the run's own name
+    assert not list(folder.glob("checkpoint*"))  # the final results replaced the checkpoints
+    metrics = json.loads((folder / "metrics.json").read_text())
+    expected = json.loads((uninterrupted / "metrics.json").read_text())
+    assert metrics["resumed_from"]["frames"] == killed.checkpoint.result.frames_seen
+    assert metrics["frames"] == expected["frames"] == frames and metrics["keyframes"] == expected["keyframes"]
+    assert metrics["loops"] == expected["loops"]
+    for name in ("odometry.tum", "optimised.tum"):
+        stamps, poses = read_tum(folder / name)
+        stamps_ref, poses_ref = read_tum(uninterrupted / name)
+        np.testing.assert_array_equal(stamps, stamps_ref)
+        assert np.abs(poses - poses_ref).max() <= TOLERANCE, name
+    assert (folder / "loop_closures.csv").read_text() == (uninterrupted / "loop_closures.csv").read_text()
+    assert (folder / "trajectory.mcap").stat().st_size > 0 and (folder / "database" / "manifest.json").is_file()
 
 
 def test_the_kill_leaves_a_checkpoint_and_no_finished_results(killed: SimpleNamespace) -> None:
@@ -187,23 +257,31 @@ def test_resume_refuses_other_settings_and_another_log(killed: SimpleNamespace, 
 
 def test_resume_finishes_the_run_as_if_never_killed(resumed: SimpleNamespace, uninterrupted: Path,
                                                      killed: SimpleNamespace) -> None:  # fmt: skip
-    folder = resumed.folder
-    assert (killed.out / "latest").resolve() == folder  # published under the run's own name
-    assert not list(folder.glob("checkpoint*"))  # the final results replaced the checkpoints
-    metrics = json.loads((folder / "metrics.json").read_text())
-    expected = json.loads((uninterrupted / "metrics.json").read_text())
-    assert metrics["resumed_from"]["frames"] == killed.checkpoint.result.frames_seen
-    assert metrics["frames"] == expected["frames"] == FRAMES and metrics["keyframes"] == expected["keyframes"]
-    assert metrics["loops"] == expected["loops"]
-    for name in ("odometry.tum", "optimised.tum"):
-        stamps, poses = read_tum(folder / name)
-        stamps_ref, poses_ref = read_tum(uninterrupted / name)
-        np.testing.assert_array_equal(stamps, stamps_ref)
-        assert np.abs(poses - poses_ref).max() <= TOLERANCE, name
-    assert (folder / "loop_closures.csv").read_text() == (uninterrupted / "loop_closures.csv").read_text()
-    assert (folder / "trajectory.mcap").stat().st_size > 0 and (folder / "database" / "manifest.json").is_file()
+    _assert_finished_as_if_never_killed(resumed, uninterrupted, killed, FRAMES)
 
 
 def test_a_finished_run_is_not_resumed_again(resumed: SimpleNamespace, inputs: SimpleNamespace) -> None:
     result = invoke("run", inputs.log, "--resume", resumed.folder)
     assert_user_error(result, str(resumed.folder), "this run finished")
+
+
+def test_a_lidar_run_with_spaced_and_gated_loops_resumes_as_if_never_killed(
+    lidar_inputs: SimpleNamespace, weights_path: Path
+) -> None:
+    killed = _kill(lidar_inputs, weights_path, LIDAR_KILL_AT_KEYFRAMES)
+    cut = len(killed.checkpoint.result.keyframes)
+    uninterrupted = _uninterrupted(lidar_inputs, weights_path)
+    with open(uninterrupted / "loop_closures.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
+    method = {(int(r["query_kf"]), int(r["match_kf"])): r["registration"] for r in rows}
+    before = [m for (q, _), m in method.items() if q < cut]
+    after = [m for (q, _), m in method.items() if q >= cut]
+    # every decision that reads restored state happens on both sides of the cut: a refusal by the
+    # gate (travelled distances), a loop registered by ICP, and one spaced out by an earlier one
+    assert {"implausible", "icp", "spaced"} <= set(before), before
+    assert {"icp", "spaced"} <= set(after), after
+    carried_over = [r for r in rows if r["registration"] == "spaced" and int(r["query_kf"]) >= cut
+                    and int(r["registration_reason"].split(" -> ")[0].split()[-1]) < cut]  # fmt: skip
+    assert carried_over, "no spaced loop after the resume is carried from a loop registered before it"
+    _assert_finished_as_if_never_killed(_resume(killed, lidar_inputs, weights_path), uninterrupted, killed,
+                                        LIDAR_FRAMES)  # fmt: skip
