@@ -60,36 +60,38 @@ LIDAR_FRAMES = 180
 LIDAR_KILL_AT_KEYFRAMES = 70
 TOLERANCE = 1e-6
 
-CONFIG = """\
+SMALL = """\
 vpr:
   backbone: {input_size: 112, device: cpu}
   filtering: {pca: {dim: 8}}
   spatial: {pca: {dim: 8}}
 detector: {pca_warmup_keyframes: 15}
-frontend:
-  keyframes: {min_distance_m: null, min_angle_deg: null, max_interval_s: 0.35}
+evaluation: {loops: {min_frame_gap: 25}}
+"""
+FRONTEND = "frontend:\n  keyframes: {min_distance_m: null, min_angle_deg: null, max_interval_s: 0.35}\n"
+
+CONFIG = (
+    SMALL
+    + FRONTEND
+    + """\
   odometry:
     kind: logged
     logged: {pose_source: logged, drift: {enabled: true, yaw_bias_per_m: 0.002, translation_scale_error: 0.02}}
 pipeline: {use_lidar_for_loops: false, overlap: OVERLAP}
-evaluation: {loops: {min_frame_gap: 25}}
 results: {plots: false, checkpoint_every_keyframes: 5, checkpoint_every_s: null}
 """
+)
 
-LIDAR_CONFIG = """\
-vpr:
-  backbone: {input_size: 112, device: cpu}
-  filtering: {pca: {dim: 8}}
-  spatial: {pca: {dim: 8}}
-detector: {pca_warmup_keyframes: 15}
-frontend:
-  keyframes: {min_distance_m: null, min_angle_deg: null, max_interval_s: 0.35}
+LIDAR_CONFIG = (
+    SMALL
+    + FRONTEND
+    + """\
   odometry: {kind: kiss_icp, kiss_icp: {max_num_threads: 1}}
 backend: {registration: {lidar: {max_threads: 1, loop_spacing_keyframes: 3}}}
 pipeline: {overlap: OVERLAP}
-evaluation: {loops: {min_frame_gap: 25}}
 results: {plots: false, checkpoint_every_keyframes: 4, checkpoint_every_s: null}
 """
+)
 
 
 def _write_inputs(base: Path, sim: SimulationConfig, frames: int, config: str) -> SimpleNamespace:
