@@ -96,6 +96,7 @@ class McapSource(Source):
         self._rotation_tolerance = (pose_config or PoseFileConfig()).rotation_tolerance
         if not self.path.is_file():
             raise FrontendInputError(f"{self.path}: MCAP file not found")
+        self._scan_stopped: str | None = None  # why a linear channel scan ended early (cut or corrupt log)
         self._indexed, channels, counts = self._discover()
         present = {c.topic: t for c, t in channels}
         self._roles = self._select_topics(present)
@@ -142,8 +143,9 @@ class McapSource(Source):
                     schemas[record.id] = record
                 elif isinstance(record, Channel):
                     channels.append((record, self._type(schemas.get(record.schema_id))))
-        except Exception as error:  # cut or corrupt: report it while reading frames
+        except Exception as error:  # cut or corrupt: reported while reading frames, or below if no topic was seen
             log.debug("%s: channel scan stopped early: %s", self.path, error)
+            self._scan_stopped = f"{type(error).__name__}: {error}" if str(error) else type(error).__name__
         return channels
 
     @staticmethod
@@ -185,6 +187,11 @@ class McapSource(Source):
                 log.info("%s: %s topics %s; using %s", self.path, role, candidates, candidates[0])
             chosen[role] = _Topic(role, candidates[0], present[candidates[0]])
         if "camera" not in chosen and "lidar" not in chosen:
+            if self._scan_stopped is not None:
+                raise FrontendInputError(
+                    f"{self.path}: log is truncated or corrupt before any camera or LiDAR topic "
+                    f"({self._scan_stopped}); topics read: {listing}"
+                )
             raise FrontendInputError(
                 f"{self.path}: no camera (Image/CompressedImage) or LiDAR (PointCloud2) topic; "
                 f"topics present: {listing}"

@@ -214,6 +214,19 @@ def test_truncated_log_yields_frames_before_the_cut_then_raises(tmp_path: Path) 
         np.testing.assert_allclose(have.gt_pose, want.gt_pose)
 
 
+def test_a_log_cut_before_any_topic_is_called_truncated_not_topicless(tmp_path: Path) -> None:
+    rng = np.random.default_rng(2)
+    path = tmp_path / "full.mcap"
+    # one large chunk: a cut inside it leaves no channel record readable
+    write_frames([_frame(i, 10.0 + 0.1 * i, rng) for i in range(6)], path, McapWriterConfig(compression="none"))
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(path.read_bytes()[:2000])
+    with pytest.raises(
+        FrontendInputError, match=r"cut\.mcap: log is truncated or corrupt before any camera or LiDAR topic"
+    ):
+        McapSource(cut)
+
+
 def test_truncated_log_non_strict_warns_once_and_stops(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     cut, _ = _truncated_log(tmp_path)
     source = McapSource(cut, McapSourceConfig(strict=False))
