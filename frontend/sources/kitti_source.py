@@ -94,6 +94,10 @@ class KittiSource(Source):
         self.config = config or KittiSourceConfig()
         if not self.path.is_dir():
             raise FrontendInputError(f"{self.path}: KITTI sequence folder not found")
+        if not (self.path / "times.txt").is_file():
+            raise FrontendInputError(
+                f"{self.path}: a KITTI sequence folder needs times.txt (one timestamp per frame); it has none"
+            )
         self.times = self._read_times(self.path / "times.txt")
         self.camera_folder = self._camera_folder()
         self.images = image_files(self.path / self.camera_folder) if self.camera_folder else []
@@ -109,8 +113,6 @@ class KittiSource(Source):
         self.gt_poses = self._read_gt(pose_config)
 
     def _read_times(self, path: Path) -> np.ndarray:
-        if not path.is_file():
-            raise FrontendInputError(f"{path}: KITTI times.txt not found")
         try:
             times = np.loadtxt(path, dtype=np.float64, ndmin=1)
         except ValueError as error:
