@@ -16,6 +16,14 @@ def choose_odometry(config: OdometryConfig, topics: dict[str, str], log: str) ->
     feed is refused here, naming the log, instead of running with a pose that never moves."""
     streams = ", ".join(sorted(topics)) or "none"
     pose_role = "gt_pose" if config.logged.pose_source == "gt" else "logged_pose"
+    # poses read as ground truth only (an image folder's poses file by default): say how to drive with them
+    hint = (
+        "; its poses are read as ground truth: to take odometry from them set "
+        "frontend.odometry.logged.pose_source: gt (an image folder: frontend.source.folder.pose_role: logged, "
+        "or both to evaluate against them too)"
+        if pose_role == "logged_pose" and "gt_pose" in topics
+        else ""
+    )
     kind = config.kind
     if kind == "auto":
         if "lidar" in topics:
@@ -24,7 +32,7 @@ def choose_odometry(config: OdometryConfig, topics: dict[str, str], log: str) ->
             kind = "logged"
         else:
             raise FrontendInputError(
-                f"{log}: no LiDAR scans and no logged poses to take odometry from (streams: {streams})"
+                f"{log}: no LiDAR scans and no logged poses to take odometry from (streams: {streams}){hint}"
             )
     if kind == "kiss_icp" and "lidar" not in topics:
         raise FrontendInputError(
@@ -32,7 +40,7 @@ def choose_odometry(config: OdometryConfig, topics: dict[str, str], log: str) ->
             "try --odometry logged"
         )
     if kind == "logged" and pose_role not in topics:
-        raise FrontendInputError(f"{log}: logged odometry needs a {pose_role} stream (streams: {streams})")
+        raise FrontendInputError(f"{log}: logged odometry needs a {pose_role} stream (streams: {streams}){hint}")
     return config.model_copy(update={"kind": kind})
 
 

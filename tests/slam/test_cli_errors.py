@@ -154,6 +154,33 @@ def test_run_refuses_an_odometry_the_log_cannot_feed(camera_only_log: Path, weig
     assert _run_folders(out) == []  # refused before any work: no results folder
 
 
+@pytest.fixture(scope="module")
+def image_folder(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Images and a KITTI-format poses.txt, as a user would lay out a folder."""
+    folder = tmp_path_factory.mktemp("logs") / "images_and_poses"
+    folder.mkdir()
+    frames = list(TraverseSimulator(SimulationConfig(max_frames=6, lidar={"enabled": False})).frames())
+    for frame in frames:
+        cv2.imwrite(str(folder / f"{frame.index:06d}.png"), cv2.cvtColor(frame.image, cv2.COLOR_RGB2BGR))
+    np.savetxt(folder / "poses.txt", np.array([f.gt_pose[:3].reshape(-1) for f in frames]))
+    return folder
+
+
+def test_an_image_folders_poses_drive_the_run_once_named_odometry(
+    image_folder: Path, weights_path: Path, tmp_path: Path
+) -> None:
+    out = tmp_path / "out"
+    result = invoke("run", image_folder, "--weights", weights_path, "--out", out)
+    assert_user_error(result, str(image_folder), "no LiDAR scans and no logged poses",
+                      "read as ground truth", "frontend.source.folder.pose_role: logged")  # fmt: skip
+    assert _run_folders(out) == []
+    env = {"SSMVPR_FRONTEND__SOURCE__FOLDER__POSE_ROLE": "both"}  # as the error says
+    result = invoke("run", image_folder, "--weights", weights_path, "--device", "cpu", "--out", out, env=env)
+    assert result.exit_code == 0, result.output
+    metrics = json.loads((_run_folders(out)[0] / "metrics.json").read_text())
+    assert metrics["odometry_kind"] == "logged" and metrics["frames"] == 6 and metrics["keyframes"] >= 2
+
+
 def test_run_refuses_a_log_without_camera_images(lidar_only_log: Path, weights_path: Path, tmp_path: Path) -> None:
     result = invoke("run", lidar_only_log, "--weights", weights_path, "--out", tmp_path / "out")
     assert_user_error(result, str(lidar_only_log), "no camera images", "lidar")
