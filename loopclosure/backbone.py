@@ -40,6 +40,7 @@ _CONVS: list[tuple[str, int, int]] = [
 ]  # fmt: skip
 _POOLS = (4, 9, 16, 23)
 CONV_INDEX = {name: idx for name, idx, _ in _CONVS}
+LAYER_CHANNELS = {name: channels for name, _, channels in _CONVS}
 
 _TORCHVISION_MEAN = (0.485, 0.456, 0.406)
 _TORCHVISION_STD = (0.229, 0.224, 0.225)

@@ -21,6 +21,7 @@ from typing import Literal
 
 import numpy as np
 
+from loopclosure.backbone import LAYER_CHANNELS
 from loopclosure.blas import one_blas_thread
 from loopclosure.config import DetectorConfig, VPRConfig, feature_side, grid_side
 from loopclosure.database import PlaceDatabase, PlaceInfo
@@ -28,6 +29,7 @@ from loopclosure.device_search import check_search_device
 from loopclosure.encoder import Encoder, PlaceCodes, RawCubes
 from loopclosure.errors import LoopClosureInputError
 from loopclosure.filtering import Candidates
+from loopclosure.pca import Codebooks
 from loopclosure.recognizer import Recognition, Recognizer
 from loopclosure.saved_state import saved_finite, saved_ints
 from loopclosure.sequence_gate import SequenceGate
@@ -93,6 +95,28 @@ class LoopDetector:
         self._last_position: np.ndarray | None = None
         gw = grid_side(feature_side(vpr.backbone.stage2_layer, vpr.backbone.input_size), vpr.spatial.cubes)
         self._yaw_per_column = math.radians(config.camera_hfov_deg) / gw
+        # read before the first frame: a wrong path or a codebook of other cubes is refused up front
+        self._configured_codebooks = (
+            self._load_codebooks(config.codebooks) if config.codebooks is not None and database is None else None
+        )
+
+    def _load_codebooks(self, path: str) -> Codebooks:
+        """`detector.codebooks`, checked against the cube vectors this backbone and these cubes make."""
+        try:
+            books = Codebooks.load(path)
+        except LoopClosureInputError as exc:
+            raise LoopClosureInputError(f"detector.codebooks: {exc}") from None
+        backbone = self.vpr.backbone
+        stages = (("stage1", books.stage1, backbone.stage1_layer, self.vpr.filtering.cubes),
+                  ("stage2", books.stage2, backbone.stage2_layer, self.vpr.spatial.cubes))  # fmt: skip
+        for name, book, layer, cubes in stages:
+            made = LAYER_CHANNELS[layer] * cubes.cube_size**2
+            if book.input_dim != made:
+                raise LoopClosureInputError(
+                    f"detector.codebooks: {path}: the {name} codebook takes {book.input_dim}-dim cube vectors, "
+                    f"but {layer} in {cubes.cube_size}x{cubes.cube_size} cubes makes {made} (fitted with other settings)"
+                )
+        return books
 
     @property
     def ready(self) -> bool:
@@ -214,10 +238,8 @@ class LoopDetector:
 
     def _warm_up(self, raw: RawCubes, info: PlaceInfo) -> None:
         """Buffer cubes until PCA can be fitted (or use configured codebooks at once)."""
-        if self.config.codebooks is not None:
-            from loopclosure.pca import Codebooks
-
-            self.encoder.codebooks = Codebooks.load(self.config.codebooks)
+        if self._configured_codebooks is not None:
+            self.encoder.codebooks = self._configured_codebooks
         self._warmup.append((raw, info, self._travelled))
         if self.encoder.codebooks is None and len(self._warmup) < self.config.pca_warmup_keyframes:
             return

@@ -122,8 +122,14 @@ class Codebooks:
         except FileNotFoundError:
             raise LoopClosureInputError(f"PCA codebooks not found: {path}") from None
         except (KeyError, ValueError, OSError, EOFError, IndexError, zipfile.BadZipFile, zlib.error) as exc:
-            # a truncated or garbled .npz raises any of these, depending on where it was cut
-            raise LoopClosureInputError(f"not a PCA codebook file: {path} ({type(exc).__name__}: {exc})") from None
+            # a truncated or garbled .npz raises any of these, depending on where it was cut; numpy
+            # takes a file that is neither .npz nor .npy for a pickle, and its advice does not apply
+            why = (
+                "neither an .npz archive nor an .npy array"
+                if "allow_pickle" in str(exc)
+                else f"{type(exc).__name__}: {exc}"
+            )
+            raise LoopClosureInputError(f"not a PCA codebook file: {path} ({why})") from None
         for name, p in (("stage1", books.stage1), ("stage2", books.stage2)):
             arrays_ok = (p.components.ndim == 2 and p.mean.shape == (p.input_dim,)
                          and p.explained_variance.shape == (p.dim,))  # fmt: skip

@@ -11,6 +11,7 @@ Recognition quality itself is tested with the real weights elsewhere.
 from __future__ import annotations
 
 import hashlib
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +23,7 @@ from loopclosure.database import PlaceDatabase
 from loopclosure.detector import LoopDetector, LoopProposal
 from loopclosure.encoder import Encoder
 from loopclosure.errors import LoopClosureInputError
+from loopclosure.pca import Codebooks
 
 WARMUP = 5
 VPR = VPRConfig.model_validate({
@@ -168,6 +170,28 @@ def test_configured_codebooks_skip_the_warmup(codebooks: str) -> None:
     proposal = det.process(scene(0), 2)
     assert proposal is not None and proposal.match_place == 0 and proposal.score == pytest.approx(1.0)
     assert len(det.database) == 3
+
+
+def test_configured_codebooks_that_cannot_serve_are_refused_before_the_first_keyframe(
+    codebooks: str, tmp_path: Path
+) -> None:
+    with pytest.raises(LoopClosureInputError, match=r"^detector\.codebooks: PCA codebooks not found: .*nope\.npz"):
+        detector(codebooks=str(tmp_path / "nope.npz"))
+    junk = tmp_path / "junk.npz"
+    junk.write_text("junk\n")
+    with pytest.raises(LoopClosureInputError, match=r"not a PCA codebook file: .*junk\.npz \(neither an \.npz"):
+        detector(codebooks=str(junk))
+    books = Codebooks.load(codebooks)
+    stage2 = books.stage2
+    other_cubes = replace(stage2, mean=stage2.mean[:512], components=stage2.components[:, :512])  # 1x1 cubes
+    other = tmp_path / "other_cubes.npz"
+    Codebooks(books.stage1, other_cubes).save(other)
+    made = 512 * VPR.spatial.cubes.cube_size**2
+    with pytest.raises(
+        LoopClosureInputError, match=rf"stage2 codebook takes 512-dim cube vectors, but conv4_2 .* makes {made}"
+    ):
+        detector(codebooks=str(other))
+    detector(codebooks=codebooks)  # the fitted ones pass
 
 
 def test_distinct_images_are_not_proposed(codebooks: str) -> None:

@@ -181,6 +181,16 @@ def test_an_image_folders_poses_drive_the_run_once_named_odometry(
     assert metrics["odometry_kind"] == "logged" and metrics["frames"] == 6 and metrics["keyframes"] >= 2
 
 
+def test_run_refuses_configured_codebooks_it_cannot_read_before_any_work(
+    camera_only_log: Path, weights_path: Path, tmp_path: Path
+) -> None:
+    out, missing = tmp_path / "out", tmp_path / "no_codebooks.npz"
+    env = {"SSMVPR_DETECTOR__CODEBOOKS": str(missing)}
+    result = invoke("run", camera_only_log, "--weights", weights_path, "--out", out, env=env)
+    assert_user_error(result, "detector.codebooks", str(missing))
+    assert _run_folders(out) == []
+
+
 def test_run_refuses_a_log_without_camera_images(lidar_only_log: Path, weights_path: Path, tmp_path: Path) -> None:
     result = invoke("run", lidar_only_log, "--weights", weights_path, "--out", tmp_path / "out")
     assert_user_error(result, str(lidar_only_log), "no camera images", "lidar")
