@@ -518,6 +518,8 @@ class PlaceDatabase:
         mmap: map the code files instead of reading them (checked for NaN chunk by chunk)."""
         folder = Path(folder)
         manifest_path = folder / MANIFEST
+        if not folder.exists():
+            raise LoopClosureInputError(f"no such place database folder: {folder}")
         if not manifest_path.is_file():
             raise LoopClosureInputError(f"not a place database (no {MANIFEST}): {folder}")
         manifest = _read_manifest(manifest_path)

@@ -68,6 +68,8 @@ def run_log(
     extra = run_description(log, source, config, prior_map, resume)
     folder, metrics = publish_results(run_folder, result, report, config, extra, name)
     print_summary(console, metrics, result, folder, name)
+    if not metrics["recognition_started"]:
+        warn_recognition_never_started(console, config, len(result.keyframes))
     raise_if_failed(pipeline, folder)
     return folder, metrics
 
@@ -185,6 +187,17 @@ def print_summary(
     if result.ending.interrupted:
         console.print("[yellow]stopped early on request: results cover the frames processed so far[/yellow]")
     console.print(f"results in [bold]{escape(str(folder))}[/bold]")
+
+
+def warn_recognition_never_started(console: Console, config: SlamConfig, keyframes: int) -> None:
+    """A run shorter than the PCA warm-up looks like one that found no loop; say which it was."""
+    warmup = config.detector.pca_warmup_keyframes
+    console.print(
+        f"[yellow]warning: recognition never started: the PCA warm-up takes {warmup} keyframes "
+        f"(detector.pca_warmup_keyframes) and the run had {keyframes}, so no place was matched and no "
+        "place database was saved; for a run this short, fit codebooks first (ssmvpr-slam fit-pca) and "
+        "pass them as detector.codebooks[/yellow]"
+    )
 
 
 def raise_if_failed(pipeline: SlamPipeline, folder: Path) -> None:

@@ -158,6 +158,8 @@ def run_metrics(result: RunResult) -> dict[str, Any]:
         "frames": result.frames_seen,
         "frames_skipped": dict(result.frames_skipped),
         "keyframes": len(result.keyframes),
+        # False when the run ended inside the PCA warm-up: nothing was matched and no database saved
+        "recognition_started": result.database is not None,
         "interrupted": end.interrupted,
         "source_error": end.source_error,
         "error": end.error,

@@ -145,6 +145,10 @@ def test_run_picks_logged_odometry_for_a_log_without_scans(
     assert metrics["odometry_kind"] == "logged", metrics["odometry_kind"]
     # the logged poses move (kiss-icp without scans would predict a standstill: one keyframe)
     assert metrics["keyframes"] >= 2, (metrics["frames"], metrics["keyframes"])
+    # 6 frames end inside the PCA warm-up: the run says so rather than looking like one without loops
+    assert metrics["recognition_started"] is False
+    assert "recognition never started" in result.output and "detector.pca_warmup_keyframes" in result.output
+    assert not (_run_folders(tmp_path / "out")[0] / "database").exists()
 
 
 def test_run_refuses_an_odometry_the_log_cannot_feed(camera_only_log: Path, weights_path: Path, tmp_path: Path) -> None:

@@ -443,9 +443,8 @@ def test_map_path_that_is_no_map(kind: str, inputs: SimpleNamespace, tmp_path: P
         path.write_text("x")
     elif kind == "empty_folder":
         path.mkdir()
-    assert_user_error(
-        invoke("run", inputs.log, "--odometry", "logged", "--map", path), str(path), "not a place database"
-    )
+    said = "no such place database folder" if kind == "missing" else "not a place database"
+    assert_user_error(invoke("run", inputs.log, "--odometry", "logged", "--map", path), str(path), said)
 
 
 SMALL_PCA = {"SSMVPR_VPR__FILTERING__PCA__DIM": "8", "SSMVPR_VPR__SPATIAL__PCA__DIM": "8"}  # 3 images suffice

@@ -238,6 +238,7 @@ def test_every_other_frame_is_a_keyframe_and_the_backbone_ran_once_each(clean: R
     assert [k.frame_index for k in state.keyframes] == list(range(0, FRAMES, 2))
     assert len(state.times.rows) == len(state.keyframes)
     assert len(clean.pipeline.detector.database) == len(state.keyframes)
+    assert clean.metrics["recognition_started"] is True
 
 
 def test_loops_are_found_and_all_correct(clean: Run) -> None:
