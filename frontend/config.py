@@ -127,7 +127,13 @@ class KissIcpConfig(_Model):
     max_points_per_voxel: int = Field(20, ge=1)
     max_num_iterations: int = Field(500, ge=1)
     convergence_criterion: float = Field(1e-4, gt=0.0)
-    max_num_threads: int = Field(0, ge=0, description="0 = all cores")
+    max_num_threads: int = Field(
+        0,
+        ge=0,
+        description="0 = all cores. kiss-icp fixes one cap per process at its first registration "
+        "(frontend/odometry/kiss_threads.py): where the odometry runs in the main process (pipeline.overlap "
+        "false), the first built of this and backend.registration.lidar.max_threads counts for both",
+    )
     fixed_threshold: float | None = Field(None, gt=0.0)
     initial_threshold: float = Field(2.0, gt=0.0)
     min_motion_th: float = Field(0.1, ge=0.0)

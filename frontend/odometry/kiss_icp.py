@@ -16,6 +16,7 @@ from frontend.config import KissIcpConfig
 from frontend.errors import FrontendInputError
 from frontend.frame import Frame
 from frontend.odometry.base import OdometryStats
+from frontend.odometry.kiss_threads import claim_kiss_icp_threads
 
 NO_TIMES = np.zeros(0, dtype=np.float64)
 
@@ -56,6 +57,7 @@ class KissIcpOdometry:
 
         self.config = config or KissIcpConfig()
         self.stats = OdometryStats()
+        claim_kiss_icp_threads(self.config.max_num_threads, "frontend.odometry.kiss_icp.max_num_threads")
         self._kiss = KissICP(kiss_config(self.config))
         self.last_scan: np.ndarray | None = None
         """The last registered scan, motion-compensated (deskewed) by kiss-icp; loop closure

@@ -151,7 +151,13 @@ class LidarRegistrationConfig(_Strict):
     max_points_per_voxel: int = Field(20, ge=1)
     max_range: float = Field(100.0, gt=0, description="m; points farther away are dropped")
     convergence_criterion: float = Field(1e-4, gt=0)
-    max_threads: int = Field(0, ge=0, description="0 = all cores")
+    max_threads: int = Field(
+        0,
+        ge=0,
+        description="0 = all cores. kiss-icp fixes one cap per process at its first registration "
+        "(frontend/odometry/kiss_threads.py): where the odometry runs in the main process (pipeline.overlap "
+        "false), the first built of this and frontend.odometry.kiss_icp.max_num_threads counts for both",
+    )
     stages: list[IcpStageConfig] = Field(default_factory=_default_stages, min_length=1)
     yaw_seed_offsets_deg: list[float] = Field(
         default_factory=lambda: [0.0, 30.0, -30.0, 60.0, -60.0, 90.0, -90.0, 180.0],

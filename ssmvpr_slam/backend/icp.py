@@ -16,6 +16,7 @@ from kiss_icp.registration import Registration
 from kiss_icp.voxelization import voxel_down_sample
 from scipy.spatial import cKDTree
 
+from frontend.odometry.kiss_threads import claim_kiss_icp_threads
 from ssmvpr_slam.backend.config import LidarRegistrationConfig
 
 
@@ -82,6 +83,7 @@ class SeededIcp:
 
     def __init__(self, config: LidarRegistrationConfig) -> None:
         self.config = config
+        claim_kiss_icp_threads(config.max_threads, "backend.registration.lidar.max_threads")
         self._screen = self._registration(config.screening_iterations)
         self._stages = [self._registration(stage.max_iterations) for stage in config.stages]
 
