@@ -25,9 +25,12 @@ spaces out those between (ICP at keyframes 65, 67, 70, 73, ...; spaced 66, 68, 6
 Checkpoints come every 4 keyframes from the warm-up's 15th, so the kill after the first one of at
 least 70 keyframes cuts the run at 71: the resumed run must replay kiss-icp to the same odometry
 and read the restored loop records and travelled distances to the same decisions, among them
-spaced loops carried from a loop registered before the cut. The odometry replays bit for bit;
-loop ICP does not (in a CI run its inlier ratio differed in the third decimal, 0.312 vs 0.313),
-so the decisions are compared exactly and the optimised poses within 1 cm.
+spaced loops carried from a loop registered before the cut. All three LiDAR runs are processes
+of their own, as a user's are: kiss-icp caps its threads once per process, at its first
+registration (frontend/odometry/kiss_threads.py), and earlier tests in this process may have
+built registrations on every core. Run in-process, the resumed and uninterrupted runs' loop ICP
+then ran on 2 threads against the killed run's 1, and an inlier ratio came out 0.313 against
+0.312 (the optimised poses 1.9 mm apart).
 """
 
 from __future__ import annotations
@@ -61,7 +64,6 @@ KILL_AT_KEYFRAMES = 40
 LIDAR_FRAMES = 180
 LIDAR_KILL_AT_KEYFRAMES = 70
 TOLERANCE = 1e-6
-LOOP_ICP_TOLERANCE = 0.01  # m, and per rotation element: loops registered by ICP, see the docstring
 
 SMALL = """\
 vpr:
@@ -160,17 +162,34 @@ def _kill(inputs: SimpleNamespace, weights_path: Path, at_keyframes: int) -> Sim
     return SimpleNamespace(out=out, run_folder=run_folder, checkpoint=load_checkpoint(run_folder))
 
 
-def _uninterrupted(inputs: SimpleNamespace, weights_path: Path) -> Path:
+def _cli_in_own_process(inputs: SimpleNamespace, name: str, *args: object) -> None:
+    """`ssmvpr-slam *args` in a fresh interpreter, as a user runs it (see the docstring: kiss-icp's
+    thread cap is per process)."""
+    command = [sys.executable, "-c", "from ssmvpr_slam.cli import app; app()", *map(str, args)]
+    done = subprocess.run(command, capture_output=True, env=_env(), timeout=600)
+    (inputs.base / f"{name}.log").write_bytes(done.stdout + done.stderr)
+    assert done.returncode == 0, (done.stdout + done.stderr).decode(errors="replace")[-3000:]
+
+
+def _uninterrupted(inputs: SimpleNamespace, weights_path: Path, own_process: bool = False) -> Path:
     out = inputs.base / "uninterrupted"
-    result = invoke("run", inputs.log, "-c", inputs.sequential, "--weights", weights_path, "--out", out)
-    assert result.exit_code == 0, result.output
+    args = ("run", inputs.log, "-c", inputs.sequential, "--weights", weights_path, "--out", out)
+    if own_process:
+        _cli_in_own_process(inputs, "uninterrupted", *args)
+    else:
+        result = invoke(*args)
+        assert result.exit_code == 0, result.output
     return (out / "latest").resolve()
 
 
-def _resume(killed: SimpleNamespace, inputs: SimpleNamespace, weights_path: Path) -> SimpleNamespace:
-    result = invoke("run", inputs.log, "--resume", killed.run_folder, "--weights", weights_path)
-    assert result.exit_code == 0, result.output
-    return SimpleNamespace(result=result, folder=killed.run_folder)
+def _resume(killed: SimpleNamespace, inputs: SimpleNamespace, weights_path: Path, own_process: bool = False) -> Path:
+    args = ("run", inputs.log, "--resume", killed.run_folder, "--weights", weights_path)
+    if own_process:
+        _cli_in_own_process(inputs, "resumed", *args)
+    else:
+        result = invoke(*args)
+        assert result.exit_code == 0, result.output
+    return killed.run_folder
 
 
 @pytest.fixture(scope="module")
@@ -184,15 +203,14 @@ def uninterrupted(inputs: SimpleNamespace, weights_path: Path) -> Path:
 
 
 @pytest.fixture(scope="module")
-def resumed(killed: SimpleNamespace, inputs: SimpleNamespace, weights_path: Path) -> SimpleNamespace:
+def resumed(killed: SimpleNamespace, inputs: SimpleNamespace, weights_path: Path) -> Path:
+    """The run's folder, finished by a resume."""
     return _resume(killed, inputs, weights_path)
 
 
-def _assert_finished_as_if_never_killed(resumed: SimpleNamespace, uninterrupted: Path, killed: SimpleNamespace,
-                                        frames: int, loop_icp: bool = False) -> None:  # fmt: skip
-    """loop_icp: the runs registered loops by ICP, whose last digits differ from run to run, so
-    the decisions must agree and the optimised poses within LOOP_ICP_TOLERANCE; else all bit for bit."""
-    folder = resumed.folder
+def _assert_finished_as_if_never_killed(
+    folder: Path, uninterrupted: Path, killed: SimpleNamespace, frames: int
+) -> None:
     assert (killed.out / "latest").resolve() == folder  # published under the run's own name
     assert not list(folder.glob("checkpoint*"))  # the final results replaced the checkpoints
     metrics = json.loads((folder / "metrics.json").read_text())
@@ -200,30 +218,13 @@ def _assert_finished_as_if_never_killed(resumed: SimpleNamespace, uninterrupted:
     assert metrics["resumed_from"]["frames"] == killed.checkpoint.result.frames_seen
     assert metrics["frames"] == expected["frames"] == frames and metrics["keyframes"] == expected["keyframes"]
     assert metrics["loops"] == expected["loops"]
-    for name, tolerance in (
-        ("odometry.tum", TOLERANCE),
-        ("optimised.tum", LOOP_ICP_TOLERANCE if loop_icp else TOLERANCE),
-    ):
+    for name in ("odometry.tum", "optimised.tum"):
         stamps, poses = read_tum(folder / name)
         stamps_ref, poses_ref = read_tum(uninterrupted / name)
         np.testing.assert_array_equal(stamps, stamps_ref)
-        assert np.abs(poses - poses_ref).max() <= tolerance, name
-    if loop_icp:
-        assert _decisions(folder) == _decisions(uninterrupted)
-    else:
-        assert (folder / "loop_closures.csv").read_text() == (uninterrupted / "loop_closures.csv").read_text()
+        assert np.abs(poses - poses_ref).max() <= TOLERANCE, name
+    assert (folder / "loop_closures.csv").read_text() == (uninterrupted / "loop_closures.csv").read_text()
     assert (folder / "trajectory.mcap").stat().st_size > 0 and (folder / "database" / "manifest.json").is_file()
-
-
-def _decisions(folder: Path) -> list[tuple[str, ...]]:
-    """Each proposal's decisions, without ICP's inlier ratio and RMSE (in an ICP loop's reason too)."""
-    with open(folder / "loop_closures.csv", newline="") as f:
-        rows = list(csv.DictReader(f))
-    keep = ("query_kf", "match_kf", "score", "gate_accepted", "gate_reason", "camera", "direction", "sequence_score",
-            "registration", "registration_accepted", "in_graph", "prior_map", "gt_distance_m")  # fmt: skip
-    return [
-        tuple(r[k] for k in keep) + ((r["registration_reason"],) if r["registration"] != "icp" else ()) for r in rows
-    ]
 
 
 def test_the_kill_leaves_a_checkpoint_and_no_finished_results(killed: SimpleNamespace) -> None:
@@ -279,14 +280,14 @@ def test_resume_refuses_other_settings_and_another_log(killed: SimpleNamespace, 
     assert_user_error(invoke("run", inputs.log, "--resume", missing), str(missing), "no such results folder")
 
 
-def test_resume_finishes_the_run_as_if_never_killed(resumed: SimpleNamespace, uninterrupted: Path,
+def test_resume_finishes_the_run_as_if_never_killed(resumed: Path, uninterrupted: Path,
                                                      killed: SimpleNamespace) -> None:  # fmt: skip
     _assert_finished_as_if_never_killed(resumed, uninterrupted, killed, FRAMES)
 
 
-def test_a_finished_run_is_not_resumed_again(resumed: SimpleNamespace, inputs: SimpleNamespace) -> None:
-    result = invoke("run", inputs.log, "--resume", resumed.folder)
-    assert_user_error(result, str(resumed.folder), "this run finished")
+def test_a_finished_run_is_not_resumed_again(resumed: Path, inputs: SimpleNamespace) -> None:
+    result = invoke("run", inputs.log, "--resume", resumed)
+    assert_user_error(result, str(resumed), "this run finished")
 
 
 def test_a_lidar_run_with_spaced_and_gated_loops_resumes_as_if_never_killed(
@@ -294,7 +295,7 @@ def test_a_lidar_run_with_spaced_and_gated_loops_resumes_as_if_never_killed(
 ) -> None:
     killed = _kill(lidar_inputs, weights_path, LIDAR_KILL_AT_KEYFRAMES)
     cut = len(killed.checkpoint.result.keyframes)
-    uninterrupted = _uninterrupted(lidar_inputs, weights_path)
+    uninterrupted = _uninterrupted(lidar_inputs, weights_path, own_process=True)
     with open(uninterrupted / "loop_closures.csv", newline="") as f:
         rows = list(csv.DictReader(f))
     method = {(int(r["query_kf"]), int(r["match_kf"])): r["registration"] for r in rows}
@@ -307,5 +308,5 @@ def test_a_lidar_run_with_spaced_and_gated_loops_resumes_as_if_never_killed(
     carried_over = [r for r in rows if r["registration"] == "spaced" and int(r["query_kf"]) >= cut
                     and int(r["registration_reason"].split(" -> ")[0].split()[-1]) < cut]  # fmt: skip
     assert carried_over, "no spaced loop after the resume is carried from a loop registered before it"
-    _assert_finished_as_if_never_killed(_resume(killed, lidar_inputs, weights_path), uninterrupted, killed,
-                                        LIDAR_FRAMES, loop_icp=True)  # fmt: skip
+    resumed = _resume(killed, lidar_inputs, weights_path, own_process=True)
+    _assert_finished_as_if_never_killed(resumed, uninterrupted, killed, LIDAR_FRAMES)
