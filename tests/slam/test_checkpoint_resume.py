@@ -301,8 +301,8 @@ def test_a_lidar_run_with_spaced_and_gated_loops_resumes_as_if_never_killed(
     method = {(int(r["query_kf"]), int(r["match_kf"])): r["registration"] for r in rows}
     before = [m for (q, _), m in method.items() if q < cut]
     after = [m for (q, _), m in method.items() if q >= cut]
-    # every decision that reads restored state happens on both sides of the cut: a refusal by the
-    # gate (travelled distances), a loop registered by ICP, and one spaced out by an earlier one
+    # the decisions that read restored state: the gate's refusals (travelled distances) before the
+    # cut, loops registered by ICP and loops spaced out by an earlier one on both sides of it
     assert {"implausible", "icp", "spaced"} <= set(before), before
     assert {"icp", "spaced"} <= set(after), after
     carried_over = [r for r in rows if r["registration"] == "spaced" and int(r["query_kf"]) >= cut
