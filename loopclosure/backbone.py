@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from loopclosure.config import BackboneConfig
+from loopclosure.config import BackboneConfig, VPRConfig
 from loopclosure.errors import LoopClosureInputError
 
 if TYPE_CHECKING:
@@ -41,6 +41,16 @@ _CONVS: list[tuple[str, int, int]] = [
 _POOLS = (4, 9, 16, 23)
 CONV_INDEX = {name: idx for name, idx, _ in _CONVS}
 LAYER_CHANNELS = {name: channels for name, _, channels in _CONVS}
+
+
+def cube_dims(config: VPRConfig) -> dict[str, int]:
+    """Length of a cube vector at each stage ('stage1', 'stage2'): the tapped layer's channels
+    times the cube's area, what that stage's PCA codebook takes."""
+    return {
+        "stage1": LAYER_CHANNELS[config.backbone.stage1_layer] * config.filtering.cubes.cube_size**2,
+        "stage2": LAYER_CHANNELS[config.backbone.stage2_layer] * config.spatial.cubes.cube_size**2,
+    }
+
 
 _TORCHVISION_MEAN = (0.485, 0.456, 0.406)
 _TORCHVISION_STD = (0.229, 0.224, 0.225)

@@ -21,7 +21,7 @@ from typing import Literal
 
 import numpy as np
 
-from loopclosure.backbone import LAYER_CHANNELS
+from loopclosure.backbone import cube_dims
 from loopclosure.blas import one_blas_thread
 from loopclosure.config import DetectorConfig, VPRConfig, feature_side, grid_side
 from loopclosure.database import PlaceDatabase, PlaceInfo
@@ -106,11 +106,11 @@ class LoopDetector:
             books = Codebooks.load(path)
         except LoopClosureInputError as exc:
             raise LoopClosureInputError(f"detector.codebooks: {exc}") from None
-        backbone = self.vpr.backbone
+        backbone, made_by = self.vpr.backbone, cube_dims(self.vpr)
         stages = (("stage1", books.stage1, backbone.stage1_layer, self.vpr.filtering.cubes),
                   ("stage2", books.stage2, backbone.stage2_layer, self.vpr.spatial.cubes))  # fmt: skip
         for name, book, layer, cubes in stages:
-            made = LAYER_CHANNELS[layer] * cubes.cube_size**2
+            made = made_by[name]
             if book.input_dim != made:
                 raise LoopClosureInputError(
                     f"detector.codebooks: {path}: the {name} codebook takes {book.input_dim}-dim cube vectors, "

@@ -301,7 +301,7 @@ def load_images(folder: Path, limit: int, size: int) -> tuple[list[np.ndarray], 
 def bench_encode(args, config: VPRConfig, repeats: dict[int, int]) -> dict:
     import torch
 
-    from loopclosure.backbone import CONV_INDEX, Backbone
+    from loopclosure.backbone import Backbone, cube_dims
     from loopclosure.cubes import extract_cubes
     from loopclosure.encoder import Encoder, RawCubes
 
@@ -312,15 +312,9 @@ def bench_encode(args, config: VPRConfig, repeats: dict[int, int]) -> dict:
     backbone = Backbone(backbone_cfg, state, calibration_images=calibration)
     del state
 
-    # Codebook shapes from the net; values are random (projection cost is value-independent).
-    cube_dims = {
-        stage: backbone.net.features[CONV_INDEX[layer]].out_channels * cubes.cube_size**2
-        for stage, layer, cubes in (
-            ("stage1", config.backbone.stage1_layer, config.filtering.cubes),
-            ("stage2", config.backbone.stage2_layer, config.spatial.cubes),
-        )
-    }
-    codebooks = random_codebooks(config, cube_dims["stage1"], cube_dims["stage2"])
+    # Codebook shapes as the net makes them; values are random (projection cost is value-independent).
+    dims = cube_dims(config)
+    codebooks = random_codebooks(config, dims["stage1"], dims["stage2"])
     encoder = Encoder(config, backbone, codebooks)
 
     def encode_parts(batch: list[np.ndarray]) -> tuple[PlaceCodes, float, float, float]:
@@ -347,7 +341,7 @@ def bench_encode(args, config: VPRConfig, repeats: dict[int, int]) -> dict:
         "input_size": config.backbone.input_size,
         "layers": [config.backbone.stage1_layer, config.backbone.stage2_layer],
         "code_shapes": {"stage1": list(ref.stage1.shape[1:]), "stage2": list(ref.stage2.shape[1:])},
-        "cube_dims": cube_dims,
+        "cube_dims": dims,
         "matches_encoder_encode": same,
         **images_info,
     }
