@@ -32,13 +32,13 @@ def test_the_first_claim_sets_the_cap_and_a_different_one_is_reported(
         assert claim_kiss_icp_threads(1, "first.setting") == 1
         assert claim_kiss_icp_threads(1, "same.value") == 1
         assert _warnings(caplog) == []
-        assert claim_kiss_icp_threads(0, "other.setting") == 1  # 0 asks for every core, and gets one
+        assert claim_kiss_icp_threads(2, "other.setting") == 1  # asks for two, and gets one
     [warning] = _warnings(caplog)
-    assert "other.setting=0 has no effect" in warning and "1 thread(s)" in warning and "first.setting" in warning
+    assert "other.setting=2 has no effect" in warning and "1 thread(s)" in warning and "first.setting" in warning
 
 
 def test_all_cores_spelled_two_ways_is_the_same_cap(fresh_process: None, caplog: pytest.LogCaptureFixture) -> None:
-    cores = os.cpu_count() or 1
+    cores = len(os.sched_getaffinity(0))  # the CPUs this process may use, as TBB counts them
     with caplog.at_level(logging.WARNING):
         assert claim_kiss_icp_threads(0, "a") == thread_cap(0) == cores
         assert claim_kiss_icp_threads(cores, "b") == cores
@@ -51,7 +51,7 @@ def test_odometry_then_loop_registration_with_other_caps_is_reported(
     """As a sequential run builds them: kiss-icp odometry first, then the loop registration. The
     odometry asks for every core, the default, so that if this test were the first to build a
     registration in the test process it would cap later tests as they would be anyway."""
-    more = (os.cpu_count() or 1) + 1
+    more = thread_cap(0) + 1
     with caplog.at_level(logging.WARNING):
         KissIcpOdometry(KissIcpConfig(max_num_threads=0))
         SeededIcp(LidarRegistrationConfig(max_threads=more))
