@@ -31,6 +31,7 @@ sequence once found is followed even where stage I misses the next place.
 
 from __future__ import annotations
 
+import math
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -45,6 +46,8 @@ from loopclosure.saved_state import saved_finite, saved_ints
 Direction = Literal["forward", "reverse"]
 Scorer = Callable[[Any, np.ndarray], np.ndarray]
 """(token of an earlier query, place indices) -> stage-II scores of that query against them."""
+Segments = Callable[[np.ndarray], np.ndarray]
+"""place indices -> the id of the stretch of places each lies on (see `SequenceMatcher`)."""
 
 _SIGN: dict[str, int] = {"forward": -1, "reverse": +1}
 
@@ -165,16 +168,23 @@ def _decide(
 
 
 def sequence_score_matrix(
-    scores: np.ndarray, config: SequenceMatchConfig, limits: np.ndarray | None = None
+    scores: np.ndarray,
+    config: SequenceMatchConfig,
+    limits: np.ndarray | None = None,
+    place_segments: np.ndarray | None = None,
+    query_segments: np.ndarray | None = None,
 ) -> dict[tuple[str, int], tuple[np.ndarray, np.ndarray]]:
     """Every (query, place) sequence score of a dense (Q, R) stage-II score matrix.
 
-    limits[q]: query q may match places [0, limits[q]) only (default R). Returns, per line
-    (direction, speed index), the (Q, R) scores and the (Q, R) count of existing terms; a pair
-    whose own term is missing (r >= limits[q]) scores -inf."""
+    limits[q]: query q may match places [0, limits[q]) only (default R). place_segments (R,) /
+    query_segments (Q,): stretch ids; a line never crosses from one stretch to another (the
+    term is missing). Returns, per line (direction, speed index), the (Q, R) scores and the
+    (Q, R) count of existing terms; a pair whose own term is missing (r >= limits[q]) scores -inf."""
     s = np.asarray(scores, dtype=np.float64)
     n_query, n_places = s.shape
     limits = np.full(n_query, n_places, np.int64) if limits is None else np.asarray(limits, np.int64)
+    p_seg = np.zeros(n_places, np.int64) if place_segments is None else np.asarray(place_segments, np.int64)
+    q_seg = np.zeros(n_query, np.int64) if query_segments is None else np.asarray(query_segments, np.int64)
     valid = np.arange(n_places)[None, :] < limits[:, None]
     out: dict[tuple[str, int], tuple[np.ndarray, np.ndarray]] = {}
     for direction in directions(config):
@@ -189,6 +199,8 @@ def sequence_score_matrix(
                 rows = earlier[ok_q]
                 sub = s[np.ix_(rows, x[ok_x])]
                 sub[~valid[np.ix_(rows, x[ok_x])]] = np.nan  # the earlier query could not match that place
+                sub[:, p_seg[x[ok_x]] != p_seg[np.flatnonzero(ok_x)]] = np.nan  # the line left the place's stretch
+                sub[q_seg[rows] != q_seg[np.flatnonzero(ok_q)]] = np.nan  # the query's stretch began after it
                 block[np.ix_(np.flatnonzero(ok_q), np.flatnonzero(ok_x))] = sub
                 terms[k] = block
             agg = aggregate(terms, config)
@@ -202,24 +214,33 @@ def match_sequences(
     config: SequenceMatchConfig,
     candidates: Sequence[np.ndarray] | None = None,
     limits: np.ndarray | None = None,
+    centres: np.ndarray | None = None,
+    place_segments: np.ndarray | None = None,
+    query_segments: np.ndarray | None = None,
 ) -> list[SequenceMatch]:
     """Batch sequence matching over a dense (Q, R) score matrix.
 
     candidates[q]: the stage-II candidates of query q (default: every place it may match);
-    the same selection as the streaming matcher (best K, then the continued sequences)."""
+    the same selection as the streaming matcher (best K, then the continued sequences).
+    centres[q]: subtracted from query q's scores before they are aggregated (the streaming
+    matcher's `centre`). place_segments / query_segments: see `sequence_score_matrix`."""
     s = np.asarray(scores)
     if s.ndim != 2:
         raise LoopClosureInputError(f"scores must be a (queries, places) matrix, got shape {s.shape}")
     n_query, n_places = s.shape
+    if centres is not None:
+        s = s.astype(np.float64) - np.asarray(centres, np.float64).reshape(n_query, 1)
     limits = np.full(n_query, n_places, np.int64) if limits is None else np.asarray(limits, np.int64)
     if limits.shape != (n_query,) or (limits < 0).any() or (limits > n_places).any():
         raise LoopClosureInputError(
             f"limits must be {n_query} place counts in 0..{n_places} (one per query), got {limits.tolist()}"
         )
-    lines = sequence_score_matrix(s, config, limits)
+    lines = sequence_score_matrix(s, config, limits, place_segments, query_segments)
     out: list[SequenceMatch] = []
     previous: dict[str, np.ndarray] | None = None
     for q in range(n_query):
+        if query_segments is not None and q and query_segments[q] != query_segments[q - 1]:
+            previous = None  # a new stretch of queries continues nothing (the streaming matcher's reset)
         given = np.arange(limits[q]) if candidates is None else np.asarray(candidates[q], np.int64)
         given = given[(given >= 0) & (given < limits[q])]
         chosen = _top_k(given, s[q, given], config.sequence_candidates)
@@ -238,7 +259,8 @@ def match_sequences(
 class _Query:
     token: Any
     limit: int
-    cache: dict[int, float]
+    cache: dict[int, float]  # place -> score minus centre
+    centre: float = 0.0
 
 
 class SequenceMatcher:
@@ -246,11 +268,17 @@ class SequenceMatcher:
 
     Call :meth:`continuations` before scoring a query's candidates (so the continued places are
     scored with them), then :meth:`step` with those scores. The earlier queries' terms are scored
-    on demand through `scorer`, each (query, place) pair at most once."""
+    on demand through `scorer`, each (query, place) pair at most once.
 
-    def __init__(self, config: SequenceMatchConfig, scorer: Scorer) -> None:
+    segments (optional): the stretch id of each place. The database of a stream is not always one
+    continuous path: a prior map's places end where the session's begin, and two traverses
+    streamed one after the other (`loop-eval`) meet where the first ends. A line never runs
+    across such a seam: its terms beyond it are missing, as beyond the database's ends."""
+
+    def __init__(self, config: SequenceMatchConfig, scorer: Scorer, segments: Segments | None = None) -> None:
         self.config = config
         self.scorer = scorer
+        self.segments = segments
         self._recent: deque[_Query] = deque(maxlen=config.length)
         self._previous: dict[str, np.ndarray] | None = None
         self.scored_last_step = 0  # spatial scores computed by the last step (past and current query)
@@ -267,21 +295,28 @@ class SequenceMatcher:
         limit: int,
         extra_places: np.ndarray | None = None,
         extra_scores: np.ndarray | None = None,
+        centre: float = 0.0,
     ) -> SequenceMatch:
         """Match the next query, given its stage-II `scores` against its candidate `places`.
 
         limit: the query may match places [0, limit) only (the database size minus the
         exclusion window); later queries' terms respect it too. extra_places/extra_scores:
         other places already scored against this query (the continuations, scored together
-        with the candidates); they only spare scorer calls and do not change the result."""
+        with the candidates); they only spare scorer calls and do not change the result.
+        centre: subtracted from every score of this query, now and as a later query's term
+        (the detector passes the query's typical candidate score: sequences then add up how
+        far each keyframe's match stands above its own field, whatever the world's level)."""
         places = np.asarray(places, np.int64).reshape(-1)
         scores = np.asarray(scores, np.float32).reshape(-1)
         if places.shape != scores.shape:
             raise ValueError(f"{len(places)} places but {len(scores)} scores")
+        if not math.isfinite(centre):
+            raise ValueError(f"centre must be finite, got {centre}")
         cache = {} if extra_places is None else dict(zip(np.asarray(extra_places, np.int64).tolist(),
                                                           np.asarray(extra_scores, np.float32).tolist()))  # fmt: skip
         cache.update(zip(places.tolist(), scores.tolist()))
-        current = _Query(token, int(limit), cache)
+        cache = {p: float(v) - centre for p, v in cache.items()}
+        current = _Query(token, int(limit), cache, float(centre))
         self._recent.append(current)
         self.scored_last_step = 0
 
@@ -300,7 +335,7 @@ class SequenceMatcher:
                 lines_terms[(direction, si)] = xs
                 for k in range(1, min(self.config.length, len(history))):
                     row = xs[k]
-                    needed.setdefault(k, set()).update(row[(row >= 0) & (row < history[k].limit)].tolist())
+                    needed.setdefault(k, set()).update(row[self._exists(row, cand, history[k].limit)].tolist())
         for k, xs_needed in needed.items():
             self._fill(history[k], np.fromiter(sorted(xs_needed), np.int64, len(xs_needed)))
 
@@ -312,12 +347,20 @@ class SequenceMatcher:
                     break
                 record = history[k]
                 row = xs[k]
-                ok = (row >= 0) & (row < record.limit)
+                ok = self._exists(row, cand, record.limit)
                 terms[k, ok] = [record.cache[int(x)] for x in row[ok]]
             by_line[line] = (aggregate(terms, self.config), (~np.isnan(terms)).sum(axis=0))
         match = _decide(self.config, cand, by_line, single)
         self._previous = match.ranked
         return match
+
+    def _exists(self, row: np.ndarray, cand: np.ndarray, limit: int) -> np.ndarray:
+        """Which terms of a line exist: inside the places the earlier query could match, and on
+        the same stretch of places as the candidate the line ends at."""
+        ok = (row >= 0) & (row < limit)
+        if self.segments is not None and ok.any():
+            ok[ok] = np.asarray(self.segments(row[ok])) == np.asarray(self.segments(cand[ok]))
+        return ok
 
     def _fill(self, record: _Query, places: np.ndarray) -> None:
         """Score the places this query has no score for yet (one batched call)."""
@@ -326,7 +369,7 @@ class SequenceMatcher:
             return
         values = np.asarray(self.scorer(record.token, missing), np.float32)
         self.scored_last_step += len(missing)
-        record.cache.update(zip(missing.tolist(), values.tolist()))
+        record.cache.update(zip(missing.tolist(), (float(v) - record.centre for v in values.tolist())))
 
     def reset(self) -> None:
         """Forget the recent queries: the next one starts a new sequence."""
@@ -344,6 +387,7 @@ class SequenceMatcher:
             out[f"{prefix}q{i}_limit"] = np.array(query.limit, np.int64)
             out[f"{prefix}q{i}_places"] = places
             out[f"{prefix}q{i}_scores"] = np.array([query.cache[p] for p in places.tolist()], np.float64)
+            out[f"{prefix}q{i}_centre"] = np.array(query.centre, np.float64)
         if self._previous is not None:
             for direction, ranked in self._previous.items():
                 out[f"{prefix}previous_{direction}"] = np.asarray(ranked, np.int64)
@@ -358,6 +402,8 @@ class SequenceMatcher:
             saved_ints(arrays, f"{prefix}q{i}_limit", 0, n_places + 1)
             saved_ints(arrays, f"{prefix}q{i}_places", 0, max(n_places, 1))
             saved_finite(arrays, f"{prefix}q{i}_scores")
+            if f"{prefix}q{i}_centre" in arrays:  # absent from states saved before centring: 0
+                saved_finite(arrays, f"{prefix}q{i}_centre")
         for name in [n for n in arrays if n.startswith(f"{prefix}previous_")]:
             saved_ints(arrays, name, 0, n_places)
 
@@ -368,8 +414,9 @@ class SequenceMatcher:
             places = arrays[f"{prefix}q{i}_places"].tolist()
             cache = dict(zip(places, arrays[f"{prefix}q{i}_scores"].tolist()))
             self._recent.append(
-                _Query(np.array(arrays[f"{prefix}q{i}_token"]), int(arrays[f"{prefix}q{i}_limit"]), cache)
-            )
+                _Query(np.array(arrays[f"{prefix}q{i}_token"]), int(arrays[f"{prefix}q{i}_limit"]), cache,
+                       float(arrays.get(f"{prefix}q{i}_centre", 0.0)))
+            )  # fmt: skip
         previous = {name.removeprefix(f"{prefix}previous_"): np.array(value, np.int64)
                     for name, value in arrays.items() if name.startswith(f"{prefix}previous_")}  # fmt: skip
         self._previous = previous or None

@@ -323,3 +323,75 @@ def test_sequence_auc_is_not_below_single_frame_auc(seed: int, length: int) -> N
     single = auc(single_places, s.max(axis=1), truth)
     sequence = auc(match_sequences(s, cfg(length=length)), None, truth)
     assert sequence >= single, (single, sequence)
+
+
+# --------------------------------------------------------------------- centres and seams
+
+
+def stream_with_seams(
+    s: np.ndarray,
+    config: SequenceMatchConfig,
+    candidates: list[np.ndarray],
+    limits: np.ndarray,
+    centres: np.ndarray,
+    place_segments: np.ndarray,
+    query_segments: np.ndarray,
+) -> list[SequenceMatch]:
+    """The streaming matcher as the detector drives it across seams: reset where a new stretch
+    of queries begins, places told their stretch, every query's scores centred."""
+    matcher = SequenceMatcher(config, MatrixScorer(s), lambda places: place_segments[places])
+    out = []
+    for q in range(s.shape[0]):
+        if q and query_segments[q] != query_segments[q - 1]:
+            matcher.reset()
+        limit, places = int(limits[q]), candidates[q]
+        extra = matcher.continuations(limit)
+        out.append(matcher.step(q, places, s[q, places], limit, extra, s[q, extra], float(centres[q])))
+    return out
+
+
+@pytest.mark.parametrize("config", CONFIGS[:8], ids=lambda c: f"L{c.length}-{c.direction}-{len(c.speeds)}v")
+@pytest.mark.parametrize("seed", [0, 1])
+def test_streaming_equals_batch_with_centres_and_seams(config: SequenceMatchConfig, seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    n_query, n_places = 60, 80
+    s = noise(n_query, n_places, seed)
+    plant(s, range(10, 30), list(range(20, 40)), 0.7)
+    plant(s, range(35, 50), list(range(70, 55, -1)), 0.7)
+    cands = [rng.choice(n_places, 12, replace=False) for _ in range(n_query)]
+    limits = np.minimum(n_places, 40 + np.arange(n_query) // 2)
+    centres = rng.uniform(0.0, 0.2, n_query)
+    place_segments = (np.arange(n_places) >= 30).astype(np.int64) + (np.arange(n_places) >= 62)
+    query_segments = (np.arange(n_query) >= 25).astype(np.int64)
+    batch = match_sequences(s, config, cands, limits, centres, place_segments, query_segments)
+    streamed = stream_with_seams(s, config, cands, limits, centres, place_segments, query_segments)
+    for a, b in zip(streamed, batch):
+        assert_same(a, b)
+
+
+def test_a_sequence_does_not_run_across_a_seam_between_stretches_of_places() -> None:
+    # queries 0..9 match places 10..19 on a line; places 14 and 15 lie on different stretches
+    # (say the end of a first traverse and the start of a second), so the line to place 17
+    # counts only the terms from 15 on
+    s = plant(noise(10, 30, high=0.0), range(10), list(range(10, 20)), 0.9)
+    config = cfg(length=5, sequence_candidates=None, continuations=0)
+    whole = match_sequences(s, config)
+    seams = match_sequences(s, config, place_segments=(np.arange(30) >= 15).astype(np.int64))
+    assert whole[7].place == 17 and whole[7].terms == 5 and whole[7].score == pytest.approx(0.9)
+    assert seams[7].place == 17 and seams[7].terms == 3 and seams[7].score == pytest.approx(0.9 * 3 / 5)
+
+
+def test_centring_subtracts_each_query_s_own_level_from_its_terms() -> None:
+    s = plant(noise(6, 20, high=0.0), range(6), list(range(6)), 0.5)
+    centres = np.array([0.1, 0.2, 0.3, 0.0, 0.0, 0.4])
+    config = cfg(length=3, sequence_candidates=None, continuations=0)
+    out = match_sequences(s, config, centres=centres)
+    # query 5 -> place 5: terms (0.5 - 0.4) + (0.5 - 0) + (0.5 - 0), over L = 3
+    assert out[5].place == 5 and out[5].score == pytest.approx((0.1 + 0.5 + 0.5) / 3)
+    assert out[5].single_score == pytest.approx(0.1)
+
+
+def test_a_centre_that_is_not_finite_is_refused() -> None:
+    matcher = SequenceMatcher(cfg(length=2), MatrixScorer(noise(3, 3)))
+    with pytest.raises(ValueError, match="centre"):
+        matcher.step(0, np.arange(3), np.zeros(3), 3, centre=float("nan"))
