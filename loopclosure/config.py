@@ -287,23 +287,83 @@ class SequenceGateConfig(_Strict):
     allow_reverse: bool = Field(default=True, description="Accept revisits travelled in the opposite direction.")
 
 
+class CalibratedDecisionConfig(_Strict):
+    """The decision score that transfers between worlds (detector.decision: calibrated).
+
+    A keyframe's scores are centred on its own field (the mean stage-II score of its stage-I
+    candidates) before they are added up along a sequence. The winner's centred sequence score
+    is then compared with what wrong matches score *in this stream*: the runner-ups (each
+    query's best sequence away from its winner and from places already joined to it by an
+    accepted loop). z = (winner - median of the last `history` runner-ups) / their
+    interquartile range. Absolute stage-II levels differ by texture, camera and light (a night
+    walk's right matches score like a simulated city's aliases); a lead over the stream's own
+    runner-ups does not (README, "Loop decisions on real data")."""
+
+    accept: float = Field(
+        default=6.0, description="z from which a proposal is accepted (chosen on Gardens Point, Nordland, Corridor "
+        "and the simulated demo together)."
+    )  # fmt: skip
+    propose: float = Field(default=3.0, description="z below which nothing is proposed (no row in loop_closures.csv).")
+    min_single: float = Field(
+        default=0.0,
+        description="The keyframe's own centred score against the place, in runner-up spreads, needed to accept: "
+        "a sequence that has just ended must not carry a loop onto a keyframe that no longer looks like the place.",
+    )
+    history: int = Field(default=300, ge=5, description="Runner-ups the stream's wrong-match model keeps (newest).")
+    min_history: int = Field(
+        default=40, ge=5, description="Runner-ups needed before anything is accepted (the model's warm-up)."
+    )
+    runner_up_window: int = Field(
+        default=3, ge=0, description="Places within this many of the winner (or of a place joined to it) are not "
+        "its runner-up: neighbours of the right place score like it."
+    )  # fmt: skip
+    link_accepted: bool = Field(
+        default=True,
+        description="An accepted loop joins its two places: a third visit's match to the second is not measured "
+        "against the first (the same place), only against other places.",
+    )
+
+    @model_validator(mode="after")
+    def _order(self) -> CalibratedDecisionConfig:
+        if self.propose > self.accept:
+            raise ValueError(f"propose ({self.propose}) must not exceed accept ({self.accept})")
+        if self.min_history > self.history:
+            raise ValueError(f"min_history ({self.min_history}) must not exceed history ({self.history})")
+        return self
+
+
 class RearCameraConfig(_Strict):
     """A backward-looking camera, queried against the forward camera's places (never added).
 
     At a street driven the other way it looks where the forward camera looked on the earlier
-    visit, but from the other lane and with the near facades at other angles, so its stage-II
-    scores against the right places run lower than a forward revisit's: it has thresholds of its
-    own (chosen on the simulator's demo traverse, tools/bench_sequence_sim.py)."""
+    visit, so its sequences run the other way along the places (`direction: reverse`). Its
+    calibrated decision has a runner-up model of its own (its scores run lower: the other lane).
+    The absolute thresholds apply with `detector.decision: absolute` only (chosen on the
+    simulator's demo traverse)."""
 
     enabled: bool = Field(default=True, description="Query with the rear image when a keyframe has one.")
+    direction: Literal["forward", "reverse", "both"] = Field(
+        default="reverse", description="Sequence direction of the rear camera's matches (reverse: the street "
+        "driven the other way)."
+    )  # fmt: skip
+    accept: float | None = Field(default=None, description="Calibrated accept z; None: the forward camera's.")
     min_score: float = Field(
-        default=0.2, ge=0.0, le=1.0, description="Rear sequence score below which nothing is proposed."
+        default=0.2,
+        ge=0.0,
+        le=1.0,
+        description="decision absolute: rear sequence score below which nothing is proposed.",
     )
     accept_score: float = Field(
-        default=0.27, ge=0.0, le=1.0, description="Rear sequence score from which a proposal is accepted."
+        default=0.27,
+        ge=0.0,
+        le=1.0,
+        description="decision absolute: rear sequence score from which a proposal is accepted.",
     )
     min_single_score: float = Field(
-        default=0.2, ge=0.0, le=1.0, description="The rear image's own stage-II score needed to accept."
+        default=0.2,
+        ge=0.0,
+        le=1.0,
+        description="decision absolute: the rear image's own stage-II score needed to accept.",
     )
 
 
@@ -316,23 +376,28 @@ class DetectorConfig(_Strict):
         ge=0.0,
         description="Keyframes within this travelled distance (m) of the query are never candidates.",
     )
+    decision: Literal["calibrated", "absolute"] = Field(
+        default="calibrated",
+        description="calibrated: accept on the winner's lead over this stream's runner-ups (`calibrated`), which "
+        "holds on real and simulated streams alike; absolute: on raw sequence scores against min_score, "
+        "accept_score and min_single_score (thresholds of the simulator, kept to reproduce earlier runs).",
+    )
+    calibrated: CalibratedDecisionConfig = CalibratedDecisionConfig()
     min_score: float = Field(
         default=0.3, ge=0.0, le=1.0,
-        description="Sequence score (the stage-II score when sequence.length is 1) below which nothing is proposed.",
+        description="decision absolute: sequence score below which nothing is proposed.",
     )  # fmt: skip
     accept_score: float | None = Field(
         default=0.45,
         ge=0.0,
         le=1.0,
-        description="Sequence score from which a proposal is accepted (None: min_score). Demo stream, L=3: wrong "
-        "sequences <= 0.39, right ones median 0.62.",
+        description="decision absolute: sequence score from which a proposal is accepted (None: min_score).",
     )
     min_single_score: float = Field(
         default=0.25, ge=0.0, le=1.0,
-        description="The keyframe's own stage-II score against the match needed to accept: a sequence that "
-        "has just ended must not carry a loop onto a keyframe that no longer looks like the place.",
+        description="decision absolute: the keyframe's own stage-II score against the match needed to accept.",
     )  # fmt: skip
-    sequence: SequenceMatchConfig = SequenceMatchConfig(length=3, direction="both")
+    sequence: SequenceMatchConfig = SequenceMatchConfig(length=8, direction="forward", sequence_candidates=20)
     gate: SequenceGateConfig = SequenceGateConfig()
     pca_warmup_keyframes: int = Field(
         default=40, ge=2, description="Without codebooks, fit PCA on the first keyframes, then start querying."
@@ -348,3 +413,8 @@ class DetectorConfig(_Strict):
     @property
     def accept_threshold(self) -> float:
         return self.min_score if self.accept_score is None else self.accept_score
+
+    @property
+    def rear_accept(self) -> float:
+        """The rear camera's calibrated accept z."""
+        return self.calibrated.accept if self.rear.accept is None else self.rear.accept

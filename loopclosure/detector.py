@@ -23,6 +23,7 @@ import numpy as np
 
 from loopclosure.backbone import cube_dims
 from loopclosure.blas import one_blas_thread
+from loopclosure.calibration import CalibratedDecision, PlaceLinks, RunnerUpModel
 from loopclosure.config import DetectorConfig, VPRConfig, feature_side, grid_side
 from loopclosure.database import PlaceDatabase, PlaceInfo
 from loopclosure.device_search import check_search_device
@@ -54,9 +55,13 @@ class LoopProposal:
     reason: str
     direction: Literal["forward", "reverse"] | None = None  # of the winning sequence
     prior_map: bool = False  # the match comes from a database loaded from an earlier session
-    sequence_score: float | None = None  # the decision score: stage-II scores averaged along the sequence
+    sequence_score: float | None = (
+        None  # stage-II scores along the sequence (centred on each keyframe's field when calibrated)
+    )
     sequence_terms: int = 0  # keyframes of the sequence that could be compared (at most L)
     camera: Literal["front", "rear"] = "front"  # which of the keyframe's images matched the place
+    decision_score: float | None = None  # calibrated decision: the winner's lead over the stream's runner-ups (z)
+    runner_up_score: float | None = None  # calibrated decision: the best sequence away from the winner
 
 
 @dataclass
@@ -84,13 +89,21 @@ class LoopDetector:
         self.prior_places = len(database) if database is not None else 0
         self._recognizer = Recognizer(vpr, database) if database is not None else None
         self.gate = SequenceGate(config.gate)
-        self.sequence = SequenceMatcher(config.sequence, self._score_places)
-        self.rear_sequence = SequenceMatcher(config.sequence, self._score_places)  # the rear images' own stream
+        # places [start_i, start_i+1) lie on one stretch of path: a sequence never runs across a seam
+        # (a prior map's last place and the session's first; two traverses streamed one after the other)
+        self._segment_starts: list[int] = [0] if self.prior_places == 0 else [0, self.prior_places]
+        self._break_pending = False
+        self.sequence = SequenceMatcher(config.sequence, self._score_places, self._segment_of)
+        rear_sequence = config.sequence.model_copy(update={"direction": config.rear.direction})
+        self.rear_sequence = SequenceMatcher(rear_sequence, self._score_places, self._segment_of)  # its own stream
+        self.decision = CalibratedDecision(config.calibrated, config.calibrated.accept)  # the forward camera's
+        self.rear_decision = CalibratedDecision(config.calibrated, config.rear_accept)
+        self.links = PlaceLinks()
         self.timings = DetectorTimings()
         # distance travelled when each session place was added, in order; it never decreases,
         # so the places too near to the query are always a suffix of the session
         self._session_travelled: list[float] = []
-        self._warmup: list[tuple[RawCubes, PlaceInfo, float]] = []
+        self._warmup: list[tuple[RawCubes, PlaceInfo, float, bool]] = []
         self._travelled = 0.0
         self._last_position: np.ndarray | None = None
         gw = grid_side(feature_side(vpr.backbone.stage2_layer, vpr.backbone.input_size), vpr.spatial.cubes)
@@ -122,6 +135,17 @@ class LoopDetector:
     def ready(self) -> bool:
         """Codebooks exist and places are being matched (the PCA warm-up is over)."""
         return self.database is not None
+
+    def break_sequence(self) -> None:
+        """The next keyframe does not follow the last one along a path (a gap in the traverse, a
+        second traverse streamed after the first): sequences start again from it, on both sides:
+        no query's sequence reaches back across the gap, and no line runs along the places across it."""
+        self.sequence.reset()
+        self.rear_sequence.reset()
+        self._break_pending = True
+
+    def _segment_of(self, places: np.ndarray) -> np.ndarray:
+        return np.searchsorted(np.asarray(self._segment_starts, np.int64), places, side="right")
 
     def process(
         self,
@@ -177,6 +201,11 @@ class LoopDetector:
             **self.gate.state_arrays(),
             **self.sequence.state_arrays("sequence_"),
             **self.rear_sequence.state_arrays("rear_sequence_"),
+            **self.decision.model.state_arrays("model_"),
+            **self.rear_decision.model.state_arrays("rear_model_"),
+            **self.links.state_arrays(),
+            "segment_starts": np.array(self._segment_starts, np.int64),
+            "break_pending": np.array(self._break_pending),
         }
         calibration = self.encoder.backbone.stream_calibration()
         if calibration is not None:
@@ -214,6 +243,11 @@ class LoopDetector:
         self.gate.load_state_arrays(arrays)
         self.sequence.load_state_arrays(arrays, "sequence_")
         self.rear_sequence.load_state_arrays(arrays, "rear_sequence_")
+        self.decision.model.load_state_arrays(arrays, "model_")
+        self.rear_decision.model.load_state_arrays(arrays, "rear_model_")
+        self.links.load_state_arrays(arrays)
+        self._segment_starts = np.asarray(arrays["segment_starts"], np.int64).tolist()
+        self._break_pending = bool(arrays["break_pending"])
 
     def _advance(self, position: np.ndarray | None) -> None:
         if position is None:
@@ -240,20 +274,25 @@ class LoopDetector:
         """Buffer cubes until PCA can be fitted (or use configured codebooks at once)."""
         if self._configured_codebooks is not None:
             self.encoder.codebooks = self._configured_codebooks
-        self._warmup.append((raw, info, self._travelled))
+        self._warmup.append((raw, info, self._travelled, self._break_pending))
+        self._break_pending = False
         if self.encoder.codebooks is None and len(self._warmup) < self.config.pca_warmup_keyframes:
             return
         if self.encoder.codebooks is None:
-            self.encoder.codebooks = self.encoder.fit_codebooks_from_raw([r for r, _, _ in self._warmup])
+            self.encoder.codebooks = self.encoder.fit_codebooks_from_raw([r for r, _, _, _ in self._warmup])
         self.database = PlaceDatabase(self.encoder.codebooks, self.vpr.database)
         self._recognizer = Recognizer(self.vpr, self.database)
-        for raw_i, info_i, travelled in self._warmup:
+        for raw_i, info_i, travelled, starts in self._warmup:
+            self._break_pending = starts
             place = self._add(self.encoder.project(raw_i), info_i, travelled)
             self.gate.observe(place, None)
         self._warmup.clear()
 
     def _add(self, codes: PlaceCodes, info: PlaceInfo, travelled: float | None = None) -> int:
         assert self.database is not None
+        if self._break_pending and len(self.database) > self._segment_starts[-1]:
+            self._segment_starts.append(len(self.database))
+        self._break_pending = False
         place = self.database.add(codes, info)[0]
         self._session_travelled.append(self._travelled if travelled is None else travelled)
         return place
@@ -294,23 +333,39 @@ class LoopDetector:
 
             start = time.perf_counter()
             spatial = dict(zip(recognition.ranked_places.tolist(), recognition.spatial_scores.tolist()))
+            field = np.array([spatial[p] for p in candidates.places.tolist()], np.float32)
+            # calibrated: every score of this keyframe counts from its own field's level
+            centre = float(field.mean(dtype=np.float64)) if self._calibrated and len(field) else 0.0
             match = sequence.step(
-                codes.stage2[0], candidates.places, np.array([spatial[p] for p in candidates.places.tolist()], np.float32),
-                limit, continued, np.array([spatial[p] for p in continued.tolist()], np.float32),
+                codes.stage2[0], candidates.places, field, limit, continued,
+                np.array([spatial[p] for p in continued.tolist()], np.float32), centre,
             )  # fmt: skip
             timings.sequence_matching += time.perf_counter() - start
-        if rear:
-            return self._rear_proposal(match, recognition, candidates, keyframe_id)
 
         start = time.perf_counter()
-        query_place = len(self.database)  # the gate works in place indices: unique across sessions
-        top1 = recognition.best_place if recognition.best_score >= self.config.min_score else None
-        if match.place is None or match.score < self.config.min_score:
+        query_place = len(self.database)  # the gate and the links work in place indices: unique across sessions
+        if rear:
+            decided = self._decide(match, centre, rear=True)
+            proposal = None
+            if decided is not None:
+                accepted, reason, z, second = decided
+                proposal = self._proposal(match, recognition, candidates, keyframe_id, accepted,
+                                          f"rear camera {reason}", "rear", z, second, centre)  # fmt: skip
+                self._link(proposal, query_place)
+            timings.gate += time.perf_counter() - start
+            return proposal
+
+        top1 = recognition.best_place
+        if not self._calibrated and recognition.best_score < self.config.min_score:
+            top1 = None
+        decided = self._decide(match, centre)
+        if decided is None:
             self.gate.observe(query_place, top1)
-            timings.gate = time.perf_counter() - start
+            timings.gate += time.perf_counter() - start
             return None
-        accepted, reason = self._decide(match, self.config.accept_threshold, self.config.min_single_score)
+        accepted, reason, z, second = decided
         if accepted and self.config.gate.enabled:  # the top-1 consistency check, on request
+            assert match.place is not None  # a decision was made on it
             decision = self.gate.decide(query_place, match.place)
             accepted = decision.accepted
             reason = (
@@ -319,21 +374,66 @@ class LoopDetector:
                 else f"top-1 gate rejects: {decision.reason}; {reason}"
             )
         self.gate.observe(query_place, top1)  # the gate judges each keyframe's own top-1 recognition
-        timings.gate = time.perf_counter() - start
-        return self._proposal(match, recognition, candidates, keyframe_id, accepted, reason)
+        proposal = self._proposal(match, recognition, candidates, keyframe_id, accepted, reason, "front", z, second,
+                                  centre)  # fmt: skip
+        self._link(proposal, query_place)
+        timings.gate += time.perf_counter() - start
+        return proposal
 
-    def _rear_proposal(
-        self, match: SequenceMatch, recognition: Recognition, candidates: Candidates, keyframe_id: int
-    ) -> LoopProposal | None:
-        rear = self.config.rear
-        if match.place is None or match.score < rear.min_score:
+    @property
+    def _calibrated(self) -> bool:
+        return self.config.decision == "calibrated"
+
+    def _link(self, proposal: LoopProposal, query_place: int) -> None:
+        """An accepted loop makes its two places one (see `CalibratedDecisionConfig.link_accepted`)."""
+        if proposal.accepted and self._calibrated and self.config.calibrated.link_accepted:
+            self.links.join(query_place, proposal.match_place)
+
+    def _decide(
+        self, match: SequenceMatch, centre: float, rear: bool = False
+    ) -> tuple[bool, str, float | None, float | None] | None:
+        """(accepted, reason, calibrated z, runner-up) of the winning sequence, or None when it is not
+        worth a proposal."""
+        if self._calibrated:
+            return self._decide_calibrated(match, centre, rear)
+        threshold, min_single, floor = (
+            (self.config.rear.accept_score, self.config.rear.min_single_score, self.config.rear.min_score)
+            if rear
+            else (self.config.accept_threshold, self.config.min_single_score, self.config.min_score)
+        )
+        if match.place is None or match.score < floor:
             return None
-        accepted, reason = self._decide(match, rear.accept_score, rear.min_single_score)
-        return self._proposal(match, recognition, candidates, keyframe_id, accepted, f"rear camera {reason}", "rear")
+        accepted, reason = self._decide_absolute(match, threshold, min_single)
+        return accepted, reason, None, None
+
+    def _decide_calibrated(
+        self, match: SequenceMatch, centre: float, rear: bool
+    ) -> tuple[bool, str, float | None, float | None] | None:
+        """The winner's lead over this camera's runner-ups (`CalibratedDecision`)."""
+        if match.place is None:
+            return None
+        joined = self.links.joined(match.place) if self.config.calibrated.link_accepted else set()
+        verdict = (self.rear_decision if rear else self.decision).decide(match, joined)
+        if verdict is None:
+            return None
+        detail = self._detail(match, centre)
+        if verdict.accepted:
+            accept = self.config.rear_accept if rear else self.config.calibrated.accept
+            reason = f"accepted: calibrated score {verdict.z:.2f} >= {accept:g} {detail}"
+        else:
+            reason = f"{verdict.why}: calibrated score {verdict.z:.2f} {detail}"
+        return verdict.accepted, reason, verdict.z, verdict.runner_up
+
+    def _detail(self, match: SequenceMatch, centre: float = 0.0) -> str:
+        """What the decision looked at; the single-frame score as stage II gave it (not centred)."""
+        speed = f", speed {match.speed:g}" if len(self.config.sequence.speeds) > 1 else ""
+        return (f"({match.terms}/{self.config.sequence.length} keyframes, {match.direction}{speed}); "
+                f"single frame {match.single_score + centre:.3f}")  # fmt: skip
 
     def _proposal(
         self, match: SequenceMatch, recognition: Recognition, candidates: Candidates, keyframe_id: int,
-        accepted: bool, reason: str, camera: Literal["front", "rear"] = "front",
+        accepted: bool, reason: str, camera: Literal["front", "rear"] = "front", z: float | None = None,
+        second: float | None = None, centre: float = 0.0,
     ) -> LoopProposal:  # fmt: skip
         assert self.database is not None and match.place is not None
         best = match.place
@@ -347,7 +447,7 @@ class LoopDetector:
             query_id=keyframe_id,
             match_id=self.database.places[best].frame_id,
             match_place=best,
-            score=match.single_score,
+            score=match.single_score + centre,  # the raw stage-II score, whatever the decision centred
             stage1_score=float(candidates.scores[in_stage1][0]) if np.any(in_stage1) else 0.0,
             column_shift=shift,
             yaw_guess=yaw,
@@ -358,13 +458,13 @@ class LoopDetector:
             sequence_score=match.score,
             sequence_terms=match.terms,
             camera=camera,
+            decision_score=z,
+            runner_up_score=second,
         )
 
-    def _decide(self, match: SequenceMatch, threshold: float, min_single: float) -> tuple[bool, str]:
-        """Accept on the sequence score; the reason says what was compared."""
-        speed = f", speed {match.speed:g}" if len(self.config.sequence.speeds) > 1 else ""
-        detail = (f"({match.terms}/{self.config.sequence.length} keyframes, {match.direction}{speed}); "
-                  f"single frame {match.single_score:.3f}")  # fmt: skip
+    def _decide_absolute(self, match: SequenceMatch, threshold: float, min_single: float) -> tuple[bool, str]:
+        """Accept on the raw sequence score; the reason says what was compared."""
+        detail = self._detail(match)
         if match.score < threshold:
             return False, f"sequence score {match.score:.3f} < {threshold:.3f} {detail}"
         if match.single_score < min_single:
@@ -400,3 +500,14 @@ def _check_state(arrays: dict[str, np.ndarray], n_places: int) -> None:
     for prefix in ("sequence_", "rear_sequence_"):
         SequenceMatcher.check_state_arrays(arrays, prefix, n_places)
     SequenceGate.check_state_arrays(arrays, n_places)
+    for prefix in ("model_", "rear_model_"):
+        RunnerUpModel.check_state_arrays(arrays, prefix)
+    PlaceLinks.check_state_arrays(arrays, n_places)
+    if "segment_starts" not in arrays or "break_pending" not in arrays:
+        raise LoopClosureInputError("detector state has no segment_starts: it was saved before sequences knew "
+                                    "seams (resume it with the version that wrote it)")  # fmt: skip
+    starts = saved_ints(arrays, "segment_starts", 0, n_places + 1)
+    if starts.ndim != 1 or not len(starts) or starts[0] != 0 or np.any(np.diff(starts) <= 0):
+        raise LoopClosureInputError("detector state segment_starts: expected increasing place indices from 0")
+    if np.asarray(arrays["break_pending"]).dtype != bool:
+        raise LoopClosureInputError("detector state break_pending: expected true or false")

@@ -18,7 +18,14 @@ import numpy as np
 import pytest
 from threadpoolctl import threadpool_limits
 
-from loopclosure.config import DetectorConfig, RearCameraConfig, SequenceGateConfig, SequenceMatchConfig, VPRConfig
+from loopclosure.config import (
+    CalibratedDecisionConfig,
+    DetectorConfig,
+    RearCameraConfig,
+    SequenceGateConfig,
+    SequenceMatchConfig,
+    VPRConfig,
+)
 from loopclosure.database import PlaceDatabase
 from loopclosure.detector import LoopDetector, LoopProposal
 from loopclosure.encoder import Encoder
@@ -79,6 +86,7 @@ def detector(
     direction: str = "both",
     accept: float = 0.9,
     rear: bool = True,
+    decision: str = "absolute",
     **gate: object,
 ) -> LoopDetector:
     # identical images score 1 and unrelated ones about 0: a sequence of L = 3 scores about
@@ -86,6 +94,8 @@ def detector(
     config = DetectorConfig(
         exclusion_keyframes=keyframes,
         exclusion_distance=distance,
+        decision=decision,  # most tests plant exact scores for the absolute rule; calibrated ones say so
+        calibrated=CalibratedDecisionConfig(min_history=5, history=50),
         min_score=0.2,
         accept_score=accept,
         min_single_score=0.5,
@@ -93,7 +103,9 @@ def detector(
         codebooks=codebooks,
         sequence=SequenceMatchConfig(length=3, direction=direction),
         gate=SequenceGateConfig(**{"length": 3, "tolerance": 1, **gate}),
-        rear=RearCameraConfig(enabled=rear, min_score=0.2, accept_score=accept, min_single_score=0.5),
+        rear=RearCameraConfig(
+            enabled=rear, direction=direction, min_score=0.2, accept_score=accept, min_single_score=0.5
+        ),
     )
     return LoopDetector(VPR, config, Encoder(VPR, FakeBackbone()), database)  # type: ignore[arg-type]
 
@@ -497,6 +509,10 @@ def test_a_detector_restored_from_its_state_continues_exactly(tmp_path: Path, co
         (lambda a: a.__setitem__("travelled", np.array(np.nan)), "travelled: expected finite"),
         (lambda a: a.__setitem__("last_position", np.zeros(2)), "last_position: expected 3 numbers"),
         (lambda a: a.__setitem__("sequence_previous_forward", np.array([99_999])), "sequence_previous_forward"),
+        (lambda a: a.__setitem__("model_runner_ups", np.array([0.1, np.inf])), "model_runner_ups: expected finite"),
+        (lambda a: a.pop("rear_model_runner_ups"), "saved before calibrated decisions"),
+        (lambda a: a.__setitem__("segment_starts", np.array([0, 5, 5])), "segment_starts: expected increasing"),
+        (lambda a: a.__setitem__("place_links", np.array([[0, 99_999]])), "place_links"),
     ],
 )
 def test_a_damaged_state_is_refused_and_leaves_the_detector_as_it_was(damage, fragment: str, codebooks: str) -> None:  # noqa: ANN001
@@ -528,3 +544,74 @@ def test_rear_images_are_not_encoded_during_the_pca_warmup() -> None:
     assert det.ready and det.encoder.backbone.images == WARMUP  # nothing to match them against yet
     det.process(scene(50), WARMUP, rear_image=scene(2))
     assert det.encoder.backbone.images == WARMUP + 2
+
+
+# ------------------------------------------------------------------------- calibrated decision
+
+
+def test_calibrated_revisit_is_accepted_and_unrelated_keyframes_are_not(codebooks: str) -> None:
+    det = detector(keyframes=5, codebooks=codebooks, decision="calibrated", direction="forward")
+    first = feed(det, list(range(40)), 0)
+    assert not any(p is not None and p.accepted for p in first)  # no place seen twice
+    assert len(det.decision.model) >= 5  # every query's runner-up taught the model
+    revisit = feed(det, list(range(10, 20)), 40)
+    accepted = [p for p in revisit if p is not None and p.accepted]
+    assert len(accepted) >= 7
+    for p in accepted:
+        assert p.match_id == p.query_id - 30 and p.decision_score is not None and p.decision_score >= 6.0
+        assert p.reason.startswith(f"accepted: calibrated score {p.decision_score:.2f} >= 6 ")
+        assert p.score == pytest.approx(1.0, abs=1e-5)  # the raw single-frame score, not the centred one
+        assert p.runner_up_score is not None and p.runner_up_score < p.sequence_score
+    # the accepted loops joined their places
+    assert det.links.joined(accepted[0].match_place) == {accepted[0].query_id}
+
+
+def test_calibrated_single_frame_check_stops_a_sequence_carried_onto_a_new_place(codebooks: str) -> None:
+    det = detector(keyframes=5, codebooks=codebooks, decision="calibrated", direction="forward")
+    feed(det, list(range(40)), 0)
+    proposals = feed(det, [10, 11, 12, 13, 14, 15, 300], 40)
+    assert proposals[5] is not None and proposals[5].accepted
+    tail = proposals[6]  # the line runs on to place 16, but keyframe 46 shows a new place
+    assert tail is None or not tail.accepted
+
+
+def test_a_break_starts_sequences_again_on_both_sides_of_the_seam(codebooks: str) -> None:
+    """Two traverses of one route streamed one after the other: without the break, the first
+    keyframes of the second would continue the first's last sequence, and lines would run from
+    its places onto the first traverse's last ones."""
+    det = detector(keyframes=5, codebooks=codebooks, decision="calibrated", direction="forward")
+    feed(det, list(range(30)), 0)
+    det.break_sequence()
+    second = feed(det, list(range(30)), 30)
+    assert det._segment_of(np.array([0, 29, 30, 59])).tolist() == [1, 1, 2, 2]
+    for k, p in enumerate(second[:8]):
+        if p is not None:
+            assert p.sequence_terms <= k + 1  # nothing from before the break
+    accepted = [p for p in second if p is not None and p.accepted]
+    assert accepted and all(p.match_id == p.query_id - 30 for p in accepted)
+
+
+@pytest.mark.parametrize("decision", ["absolute", "calibrated"])
+def test_a_calibrated_detector_restored_from_its_state_continues_exactly(
+    tmp_path: Path, codebooks: str, decision: str
+) -> None:
+    import io
+
+    scenes = list(range(30)) + list(range(8, 20)) + [300, 301]
+    det = lambda: detector(codebooks=codebooks, keyframes=5, decision=decision, direction="forward")  # noqa: E731
+    uncut = det()
+    whole = feed(uncut, scenes, 0)
+    assert any(p is not None and p.accepted for p in whole)
+    cut = 36
+    first = det()
+    assert feed(first, scenes[:cut], 0) == whole[:cut]
+    buffer = io.BytesIO()
+    np.savez(buffer, **first.state_arrays())
+    first.database.save(tmp_path / "db")
+    buffer.seek(0)
+    with np.load(buffer, allow_pickle=False) as data:
+        state = {name: data[name] for name in data.files}
+    second = detector(keyframes=5, decision=decision, direction="forward")
+    second.load_state_arrays(state, PlaceDatabase.load(tmp_path / "db"))
+    assert feed(second, scenes[cut:], cut) == whole[cut:]
+    assert second.links.pairs == uncut.links.pairs

@@ -41,8 +41,11 @@ def test_no_argument_loads_the_default_preset() -> None:
     assert (gate.length, gate.tolerance, gate.allow_reverse) == (3, 2, True)
     assert not gate.enabled  # loops are decided on sequence scores; the top-1 gate is optional
     sequence = cfg.detector.sequence
-    assert (sequence.length, sequence.direction, sequence.sequence_candidates) == (3, "both", 10)
-    assert cfg.detector.min_score == 0.3 and cfg.detector.accept_threshold == 0.45
+    assert (sequence.length, sequence.direction, sequence.sequence_candidates) == (8, "forward", 20)
+    assert cfg.detector.rear.direction == "reverse"  # a street driven the other way
+    assert cfg.detector.decision == "calibrated"
+    assert (cfg.detector.calibrated.accept, cfg.detector.calibrated.min_history) == (6.0, 40)
+    assert cfg.detector.min_score == 0.3 and cfg.detector.accept_threshold == 0.45  # decision: absolute
     assert cfg.backend.registration.lidar.min_inlier_ratio == 0.8
 
 
