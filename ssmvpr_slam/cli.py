@@ -204,6 +204,63 @@ def vpr_eval(
         run_vpr_eval(ref, query, cfg, gt, sequential, pca, console)
 
 
+@app.command("loop-eval")
+@friendly_errors
+def loop_eval(
+    sequences: Annotated[
+        list[Path],
+        typer.Argument(
+            help="FIRST SECOND: two passes of one route, streamed one after the other (every SECOND frame i "
+            "revisits FIRST frame i); or one SEQUENCE with --gt-poses or --gt-matrix.",
+            show_default=False,
+        ),
+    ],
+    gt: Annotated[
+        Path | None,
+        typer.Option(
+            help="Two passes: a vpr-eval ground-truth file (.npy VPR-Bench, .csv) instead of frame-aligned names."
+        ),
+    ] = None,
+    gt_poses: Annotated[
+        Path | None,
+        typer.Option(
+            "--gt-poses",
+            help="One sequence: ground-truth poses (TUM or KITTI, one per image); a revisit is "
+            "an earlier frame within --radius outside the exclusion window.",
+        ),
+    ] = None,  # fmt: skip
+    gt_matrix: Annotated[
+        Path | None,
+        typer.Option(
+            "--gt-matrix",
+            help="One sequence: a square 0/1 loop matrix (.npy, .csv or MATLAB .mat), as "
+            "published for KITTI 00/05/06, City Centre, New College, Lip6, Malaga.",
+        ),
+    ] = None,  # fmt: skip
+    tolerance: Annotated[int, typer.Option(help="± frames around a true place that count as correct.")] = 2,
+    radius: Annotated[float, typer.Option(help="--gt-poses: metres within which a frame revisits another.")] = 10.0,
+    spacing: Annotated[
+        float, typer.Option(help="Metres per frame for the exclusion window, without --gt-poses.")
+    ] = 1.0,
+    rear: Annotated[
+        list[Path] | None, typer.Option(help="A rear camera's image folder per sequence (repeat, in order).")
+    ] = None,
+    config: ConfigOpt = None,
+    weights: WeightsOpt = None,
+    device: DeviceOpt = None,
+    out: OutOpt = None,
+) -> None:
+    """Loop-closure detection benchmark through the detector `run` builds: precision and recall at its
+    decision, maximum recall at 100% precision, PR curve (metrics.json, loops.csv, pr.png)."""
+    from ssmvpr_slam.loop_eval.runner import LoopEvalInputs, run_loop_eval
+    from ssmvpr_slam.results import output_dir
+
+    cfg = _config(config, weights, device, out)
+    inputs = LoopEvalInputs(tuple(sequences), gt, gt_poses, gt_matrix, tolerance, radius, spacing, tuple(rear or ()))
+    with output_dir(cfg.results.out_dir, _out_option(out)):
+        run_loop_eval(inputs, cfg, console)
+
+
 @app.command("simulate")
 @friendly_errors
 def simulate(

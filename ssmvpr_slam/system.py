@@ -30,6 +30,7 @@ from frontend.frame import Frame
 from frontend.keyframes import KeyframeSelector
 from frontend.odometry.base import Odometry
 from loopclosure.backbone import Backbone
+from loopclosure.database import PlaceDatabase
 from loopclosure.detector import LoopDetector, LoopProposal
 from loopclosure.encoder import Encoder
 from ssmvpr_slam.backend.g2o_io import from_pose_graph
@@ -113,7 +114,7 @@ class SlamSystem:
         self.prior_map = prior_map
         # the session grows its own copy: the prior map stays as it was loaded
         database = prior_map.database.copy() if prior_map is not None else None
-        self.detector = LoopDetector(config.vpr, config.detector, Encoder(config.vpr, backbone), database)
+        self.detector = build_detector(config, backbone, database)
         self.registrar = LoopRegistrar(config.backend.registration)
         self.graph = (
             graph
@@ -504,6 +505,11 @@ class SlamSystem:
             self.selector.select(last.odom_pose, last.timestamp)
             self.selector.count = len(self.state.keyframes)
         self._front.keyframes = len(self.state.keyframes)
+
+
+def build_detector(config: SlamConfig, backbone: Backbone, database: PlaceDatabase | None = None) -> LoopDetector:
+    """The loop detector a run uses (`loop-eval` benchmarks this same one)."""
+    return LoopDetector(config.vpr, config.detector, Encoder(config.vpr, backbone), database)
 
 
 def _has_pixels(image: np.ndarray) -> bool:

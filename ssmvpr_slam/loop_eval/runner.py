@@ -1,0 +1,217 @@
+"""`ssmvpr-slam loop-eval`: inputs checked, the stream run with a progress bar, results written."""
+
+from __future__ import annotations
+
+import csv
+import io
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from rich.console import Console
+from rich.markup import escape
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
+from rich.table import Table
+
+from frontend.poses_io import read_poses
+from loopclosure.backbone import load_backbone
+from loopclosure.images import list_images
+from ssmvpr_common.atomic import atomic_write_text
+from ssmvpr_slam.config import SlamConfig, dump_config
+from ssmvpr_slam.loop_eval import score, truth
+from ssmvpr_slam.loop_eval.stream import StreamOutcome, path_positions, stream, travelled
+from ssmvpr_slam.loop_eval.truth import LoopTruth, LoopTruthError
+from ssmvpr_slam.results import staged_results_dir, write_json
+
+
+@dataclass(frozen=True)
+class LoopEvalInputs:
+    """What the command line named: one or two image folders and one kind of ground truth."""
+
+    sequences: tuple[Path, ...]
+    ground_truth: Path | None = None  # two passes: a vpr-eval pairs file (default: frame-aligned)
+    gt_poses: Path | None = None  # one sequence: TUM / KITTI poses, one per image
+    gt_matrix: Path | None = None  # one sequence: a square 0/1 loop matrix
+    tolerance: int = 2
+    radius: float = 10.0
+    spacing: float = 1.0
+    rear: tuple[Path, ...] = ()  # a rear camera's folder per sequence, in the same order
+
+
+def _images(folder: Path, what: str) -> list[Path]:
+    if not folder.is_dir():
+        raise LoopTruthError(f"{folder}: no such {what} folder")
+    return list_images(folder)  # an empty folder is an error naming it
+
+
+def prepare(
+    inputs: LoopEvalInputs, config: SlamConfig
+) -> tuple[list[list[Path]], list[list[Path]] | None, np.ndarray, LoopTruth]:
+    """The image lists, positions (metres, for the exclusion window) and ground truth, checked
+    before the backbone loads: a wrong count or a missing file is one line, at once."""
+    if not 1 <= len(inputs.sequences) <= 2:
+        raise LoopTruthError(f"loop-eval takes one sequence or two passes, got {len(inputs.sequences)} folders")
+    if inputs.tolerance < 0:
+        raise LoopTruthError(f"--tolerance must be 0 or more frames, got {inputs.tolerance}")
+    if not inputs.spacing > 0:
+        raise LoopTruthError(f"--spacing must be positive metres per frame, got {inputs.spacing}")
+    passes = [_images(folder, "image") for folder in inputs.sequences]
+    rear = None
+    if inputs.rear:
+        if len(inputs.rear) != len(passes):
+            raise LoopTruthError(f"--rear: one rear-camera folder per sequence ({len(passes)}), got {len(inputs.rear)}")
+        rear = [_images(folder, "rear camera") for folder in inputs.rear]
+        for front, back, folder in zip(passes, rear, inputs.rear):
+            if len(front) != len(back):
+                raise LoopTruthError(f"{folder}: {len(back)} rear images for {len(front)} forward images")
+    n = sum(len(p) for p in passes)
+    det = config.detector
+    if len(passes) == 2:
+        if inputs.gt_poses is not None or inputs.gt_matrix is not None:
+            raise LoopTruthError("two passes are judged frame by frame (or by --gt); --gt-poses and --gt-matrix "
+                                 "are for one sequence")  # fmt: skip
+        loop_truth, _ = truth.two_passes(passes[0], passes[1], inputs.ground_truth, inputs.tolerance)
+        return passes, rear, path_positions(n, inputs.spacing), loop_truth
+    if inputs.ground_truth is not None:
+        raise LoopTruthError("--gt pairs a second pass with the first; one sequence needs --gt-poses or --gt-matrix")
+    if (inputs.gt_poses is None) == (inputs.gt_matrix is None):
+        raise LoopTruthError("one sequence needs its ground truth: --gt-poses POSES or --gt-matrix FILE (one of them)")
+    if inputs.gt_poses is not None:
+        poses = read_poses(inputs.gt_poses).poses
+        if len(poses) != n:
+            raise LoopTruthError(f"{inputs.gt_poses}: {len(poses)} poses for {n} images")
+        positions = poses[:, :3, 3]
+        loop_truth = truth.from_poses(positions, inputs.radius, travelled(positions), det.exclusion_keyframes,
+                                      det.exclusion_distance)  # fmt: skip
+        return passes, rear, positions, loop_truth
+    assert inputs.gt_matrix is not None
+    positions = path_positions(n, inputs.spacing)
+    loop_truth = truth.from_matrix(inputs.gt_matrix, n, inputs.tolerance, travelled(positions),
+                                   det.exclusion_keyframes, det.exclusion_distance)  # fmt: skip
+    return passes, rear, positions, loop_truth
+
+
+def compute_metrics(outcome: StreamOutcome, loop_truth: LoopTruth, config: SlamConfig, n_passes: int) -> dict[str, Any]:
+    judged = score.judge(outcome.proposals, loop_truth)
+    det = config.detector
+    metrics: dict[str, Any] = {
+        "decision": det.decision,
+        "accept": det.calibrated.accept if det.decision == "calibrated" else det.accept_threshold,
+        "loops": score.loop_metrics(judged, n_passes),
+    }
+    if n_passes > 1:
+        metrics["loops_across_passes"] = score.loop_metrics(score.only_across(judged), passes=1)  # none within
+    metrics["timing"] = {
+        "s_per_frame_median": float(np.median(outcome.seconds)) if len(outcome.seconds) else None,
+        "s_per_frame_mean": float(np.mean(outcome.seconds)) if len(outcome.seconds) else None,
+    }
+    return metrics
+
+
+LOOP_COLUMNS = ["frame", "pass", "image", "match_frame", "match_image", "decision_score", "sequence_score",
+                "single_score", "runner_up", "direction", "camera", "accepted", "correct", "true_frame", "reason"]  # fmt: skip
+
+
+def write_loops_csv(path: Path, outcome: StreamOutcome, loop_truth: LoopTruth, files: Sequence[Path]) -> None:
+    """One row per frame that had a winner."""
+    buffer = io.StringIO()
+    writer = csv.writer(buffer)
+    writer.writerow(LOOP_COLUMNS)
+    for q, p in enumerate(outcome.proposals):
+        if p is None:
+            continue
+        true = loop_truth.matches[q]
+        writer.writerow([
+            q, int(loop_truth.passes[q]), files[q].name, p.match_id, files[p.match_id].name,
+            f"{score.decision_score(p):.4f}", "" if p.sequence_score is None else f"{p.sequence_score:.4f}",
+            f"{p.score:.4f}", "" if p.runner_up_score is None else f"{p.runner_up_score:.4f}", p.direction or "",
+            p.camera, int(p.accepted), int(bool(loop_truth.has_truth[q]) and loop_truth.correct(q, p.match_id)),
+            "" if not len(true) else int(true[np.argmin(np.abs(true - p.match_id))]), p.reason,
+        ])  # fmt: skip
+    atomic_write_text(path, buffer.getvalue())
+
+
+def write_pr_plot(path: Path, outcome: StreamOutcome, loop_truth: LoopTruth, n_passes: int, title: str) -> None:
+    from matplotlib.figure import Figure
+
+    from ssmvpr_slam.evaluation.plots import save_figure
+
+    judged = score.judge(outcome.proposals, loop_truth)
+    views = {"all decisions": judged}
+    if n_passes > 1:
+        views["across passes only"] = score.only_across(judged)
+    fig = Figure(figsize=(6.0, 5.0))
+    ax = fig.add_subplot()
+    for label, view in views.items():
+        pr = score.curve(view)
+        if pr is None:
+            continue
+        ax.plot(pr.recall, pr.precision, linewidth=2, label=f"{label} (AUC {score.pr_auc(pr):.3f})")
+        accepted = int(view.accepted.sum())
+        if accepted:
+            right = int((view.accepted & view.correct).sum())
+            ax.plot([right / int(view.has_truth.sum())], [right / accepted], "o", markersize=8,
+                    label=f"{label}: the detector's decision")  # fmt: skip
+    ax.set(xlim=(0.0, 1.02), ylim=(0.0, 1.02), xlabel="Recall", ylabel="Precision", title=title)
+    ax.grid(True, linestyle=":")
+    ax.legend(loc="lower left", fontsize=8)
+    save_figure(fig, path)
+
+
+def summary_table(metrics: dict[str, Any]) -> Table:
+    table = Table(title="loop-eval", show_header=True)
+    table.add_column("judged on")
+    for name in ("accepted", "precision", "recall", "max recall @ P=1", "PR-AUC"):
+        table.add_column(name, justify="right")
+    views = [("all decisions", metrics["loops"])]
+    if "loops_across_passes" in metrics:
+        views.append(("across passes only", metrics["loops_across_passes"]))
+
+    def num(v: float | None) -> str:
+        return "n/a" if v is None else f"{v:.3f}"
+
+    for label, m in views:
+        table.add_row(label, str(m["accepted"]), num(m["precision"]), num(m["recall"]),
+                      num(m["max_recall_at_full_precision"]), num(m["pr_auc"]))  # fmt: skip
+    return table
+
+
+def run_loop_eval(
+    inputs: LoopEvalInputs, config: SlamConfig, console: Console | None = None
+) -> tuple[Path, dict[str, Any]]:
+    """Stream, judge, write metrics.json, loops.csv, pr.png and config.yaml; returns (folder, metrics)."""
+    console = console or Console()
+    passes, rear, positions, loop_truth = prepare(inputs, config)
+    if not loop_truth.has_truth.any():
+        console.print("[bold yellow]warning:[/bold yellow] no frame has a true revisit under this ground truth: "
+                      "recall and the PR curve are undefined", highlight=False)  # fmt: skip
+    backbone = load_backbone(config.vpr.backbone, progress=True)
+    files = [f for p in passes for f in p]
+    with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                  TimeRemainingColumn(), console=console, transient=False) as progress:  # fmt: skip
+        task = progress.add_task("streaming", total=len(files))
+        outcome = stream(config, backbone, passes, positions, rear, lambda: progress.advance(task))
+    metrics = compute_metrics(outcome, loop_truth, config, len(passes))
+    metrics["inputs"] = {
+        "sequences": [str(s) for s in inputs.sequences],
+        "frames": [len(p) for p in passes],
+        "ground_truth": str(inputs.gt_poses or inputs.gt_matrix or inputs.ground_truth or "frame-aligned"),
+        "tolerance": inputs.tolerance,
+        "radius_m": inputs.radius if inputs.gt_poses is not None else None,
+        "spacing_m": inputs.spacing if inputs.gt_poses is None else None,
+        "rear": [str(r) for r in inputs.rear],
+    }
+    with staged_results_dir(config.results.out_dir, "loop_eval") as staged:
+        folder = staged.path
+        write_json(folder / "metrics.json", metrics)
+        write_loops_csv(folder / "loops.csv", outcome, loop_truth, files)
+        atomic_write_text(folder / "config.yaml", dump_config(config))
+        if config.results.plots and loop_truth.has_truth.any():
+            name = " then ".join(s.name for s in inputs.sequences)
+            write_pr_plot(folder / "pr.png", outcome, loop_truth, len(passes), f"Loop closures: {name}")
+    assert staged.final is not None
+    console.print(summary_table(metrics))
+    console.print(f"results in [bold]{escape(str(staged.final))}[/bold]")
+    return staged.final, metrics
