@@ -263,6 +263,12 @@ class LoopDetector:
             self._travelled += float(np.linalg.norm(position - self._last_position))
         self._last_position = position
 
+    def travelled_at(self, place: int) -> float:
+        """Metres driven, keyframe position to keyframe position, when session place `place` was added."""
+        if not self.prior_places <= place < self.prior_places + len(self._session_travelled):
+            raise ValueError(f"place {place} is not one of this session's places")
+        return self._session_travelled[place - self.prior_places]
+
     def travelled_since(self, place: int) -> float:
         """Metres driven, keyframe position to keyframe position, from session place `place` to
         the latest keyframe: the path a loop to that place spans."""

@@ -35,6 +35,7 @@ from loopclosure.detector import LoopDetector, LoopProposal
 from loopclosure.encoder import Encoder
 from ssmvpr_slam.backend.g2o_io import from_pose_graph
 from ssmvpr_slam.backend.kept_scan import KeptScan, keep_scan
+from ssmvpr_slam.backend.loop_consistency import LoopPose, support
 from ssmvpr_slam.backend.loop_registration import LoopRegistrar, LoopRegistration, build_local_map, carry_loop
 from ssmvpr_slam.backend.pose_graph import PoseGraph, PoseGraphError
 from ssmvpr_slam.backend.two_view import reduce_image
@@ -328,6 +329,9 @@ class SlamSystem:
             return self.registrar.register_scans(
                 kf.scan.points, local_map, proposal.yaw_guess, None if seed is None else seed[1]
             )
+        return self._checked(kf, proposal, self._register_images(kf, match, proposal))
+
+    def _register_images(self, kf: Keyframe, match: Keyframe, proposal: LoopProposal) -> LoopRegistration:
         if proposal.camera == "rear":  # the rear image saw what the match's forward camera saw
             if kf.rear_image is None:
                 return self.registrar.yaw_prior(proposal.yaw_guess, "rear camera match: no rear image kept")
@@ -339,6 +343,47 @@ class SlamSystem:
         if kf.image is None or match.image is None:
             return self.registrar.yaw_prior(proposal.yaw_guess, "a keyframe kept no image")
         return self.registrar.register_images(kf.image, match.image, proposal.yaw_guess)
+
+    def _checked(self, kf: Keyframe, proposal: LoopProposal, registration: LoopRegistration) -> LoopRegistration:
+        """A loop no geometry verified (a yaw prior) becomes a factor only as
+        `two_view.on_geometry_failure` says: with `consistent`, once enough earlier loops of its
+        revisit agree with it under odometry (`loop_consistency`), else it is refused."""
+        registration_config = self.config.backend.registration
+        if registration.method != "yaw_prior" or registration_config.two_view.on_geometry_failure != "consistent":
+            return registration
+        loop = self._loop_pose(proposal, registration.T_mq)
+        if loop is None:
+            return self.registrar.unverified(registration, 0)
+        earlier = [
+            e
+            for r in self.state.loops
+            if r.proposal.accepted
+            and r.proposal.prior_map == proposal.prior_map
+            and r.registration is not None
+            and r.registration.method in _POSED_METHODS
+            and (e := self._loop_pose(r.proposal, r.registration.T_mq)) is not None
+        ]
+        agreeing = support(loop, earlier, registration_config.consistency)
+        if agreeing < registration_config.consistency.min_support:
+            return self.registrar.unverified(registration, agreeing)
+        return self.registrar.confirmed(registration, agreeing)
+
+    def _loop_pose(self, proposal: LoopProposal, T_mq: np.ndarray) -> LoopPose | None:
+        """The loop's ends for the consistency check (None: a prior-map place without a pose)."""
+        kfs, detector = self.state.keyframes, self.detector
+        if proposal.prior_map:
+            pose = self.prior_map.pose(proposal.match_place) if self.prior_map is not None else None
+            if pose is None:
+                return None
+            match_pose, match_travelled = pose, math.nan
+        else:
+            match_pose = kfs[proposal.match_id].odom_pose
+            match_travelled = detector.travelled_at(detector.prior_places + proposal.match_id)
+        return LoopPose(
+            proposal.query_id, proposal.match_place if proposal.prior_map else proposal.match_id,
+            kfs[proposal.query_id].odom_pose, match_pose, T_mq,
+            detector.travelled_at(detector.prior_places + proposal.query_id), match_travelled,
+        )  # fmt: skip
 
     def _carried(self, kf: Keyframe, match: Keyframe, reach: int) -> tuple[LoopRecord, np.ndarray] | None:
         """A recent accepted ICP loop of this revisit (see `loop_to_carry`) and its T_mq moved
@@ -365,7 +410,9 @@ class SlamSystem:
             scans, poses = zip(*parts)
             local_map = build_local_map(scans, poses, pose, lidar.max_range)
             return self.registrar.register_scans(kf.scan.points, local_map, proposal.yaw_guess)
-        return self.registrar.yaw_prior(proposal.yaw_guess, "prior-map place: no scans to align")
+        return self._checked(
+            kf, proposal, self.registrar.yaw_prior(proposal.yaw_guess, "prior-map place: no scans to align")
+        )
 
     # ---- the end --------------------------------------------------------------------------
     @property
@@ -510,6 +557,11 @@ class SlamSystem:
 def build_detector(config: SlamConfig, backbone: Backbone, database: PlaceDatabase | None = None) -> LoopDetector:
     """The loop detector a run uses (`loop-eval` benchmarks this same one)."""
     return LoopDetector(config.vpr, config.detector, Encoder(config.vpr, backbone), database)
+
+
+# registrations whose T_mq says where the loop puts its two keyframes (a poor ICP alignment and an
+# implausible loop do not)
+_POSED_METHODS = frozenset({"icp", "two_view_essential", "two_view_homography", "yaw_prior", "unverified", "spaced"})
 
 
 def _has_pixels(image: np.ndarray) -> bool:

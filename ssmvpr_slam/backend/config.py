@@ -235,10 +235,12 @@ class TwoViewConfig(_Strict):
         2.0, gt=0, description="homography transfer error; 2-D, so looser than the epipolar one"
     )
     min_inliers: int = Field(30, ge=5, description="below this the geometry has failed (see on_geometry_failure)")
-    on_geometry_failure: Literal["yaw_prior", "reject"] = Field(
-        "yaw_prior",
-        description="when two images give no rotation: keep the loop on the yaw guess with loose sigmas, "
-        "or reject it (no factor), as ICP rejects a poor alignment",
+    on_geometry_failure: Literal["consistent", "yaw_prior", "reject"] = Field(
+        "consistent",
+        description="when two images give no rotation (and for a loop no image or scan can check): consistent: "
+        "a factor on the yaw guess only once earlier loops of the same revisit agree with it under odometry "
+        "(backend.registration.consistency), else none; yaw_prior: a factor on the yaw guess, unchecked; "
+        "reject: no factor, as ICP rejects a poor alignment",
     )
     homography_share: float = Field(0.8, gt=0, description="H inliers / E inliers above which pure rotation is tested")
     rotation_singular_tol: float = Field(
@@ -285,12 +287,32 @@ class OdometryGateConfig(_Strict):
         return self.base_m + self.per_m_travelled * travelled_m
 
 
+class LoopConsistencyConfig(_Strict):
+    """When a loop no geometry verified may still become a factor (two_view.on_geometry_failure:
+    consistent): earlier loops of the same revisit must agree with it. Loops q_j -> m_j and
+    q -> m agree when loop j, carried along both visits by odometry to (m, q), lands within these
+    bounds of loop q's own place prior: the two stretches of path have the same shape, as they do
+    where one street was driven twice, and an isolated wrong match does not."""
+
+    min_support: int = Field(2, ge=1, description="earlier loops of the revisit that must agree")
+    window_keyframes: int = Field(
+        10, ge=1, description="how far back (query keyframes) and apart (match keyframes) a supporting loop may lie"
+    )
+    max_translation_m: float = Field(4.0, gt=0, description="m of disagreement allowed whatever the path")
+    per_m_travelled: float = Field(
+        0.1, ge=0, description="m allowed per metre driven on the two stretches between the loops (a wheel "
+        "odometry's drift; the simulated one drifts up to 13 %)"
+    )  # fmt: skip
+    max_rotation_deg: float = Field(25.0, gt=0, le=180, description="deg of disagreement in rotation")
+
+
 class LoopRegistrationConfig(_Strict):
     """Both registration paths, and the odometry check before either."""
 
     lidar: LidarRegistrationConfig = LidarRegistrationConfig()
     two_view: TwoViewConfig = TwoViewConfig()
     odometry_gate: OdometryGateConfig = OdometryGateConfig()
+    consistency: LoopConsistencyConfig = LoopConsistencyConfig()
 
 
 class BackendConfig(_Strict):

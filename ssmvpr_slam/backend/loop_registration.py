@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -57,7 +57,8 @@ class LoopRegistration:
     """Loop factor sigmas (rx, ry, rz, tx, ty, tz) for `PoseGraph.add_loop`."""
     method: str = "icp"
     """'icp', 'two_view_essential', 'two_view_homography', 'two_view_failed' (rejected),
-    'yaw_prior', or, not registered, 'spaced' and 'implausible' (`LoopRegistrar.spaced`, `.implausible`)."""
+    'yaw_prior', 'unverified' (a yaw prior no earlier loop vouched for: rejected), or, not
+    registered, 'spaced' and 'implausible' (`LoopRegistrar.spaced`, `.implausible`)."""
     yaw_seed: float = float("nan")
     """ICP: the yaw seed (rad) that won."""
 
@@ -253,6 +254,23 @@ class LoopRegistrar:
             rmse=float("nan"),
             method="implausible",
         )
+
+    def unverified(self, prior: LoopRegistration, agreeing: int) -> LoopRegistration:
+        """No factor: nothing verified the loop's geometry and too few earlier loops of its revisit
+        agree with it (`consistency`). T_mq stays the place prior, for the loops after it to check against."""
+        need = self.config.consistency.min_support
+        return replace(
+            prior,
+            accepted=False,
+            reason=f"unverified: {agreeing} of the {need} earlier loops of the revisit needed agree "
+            f"(backend.registration.consistency); {prior.reason}",
+            sigmas=np.full(6, np.nan),
+            method="unverified",
+        )
+
+    def confirmed(self, prior: LoopRegistration, agreeing: int) -> LoopRegistration:
+        """The place prior as a factor: `agreeing` earlier loops of the revisit vouch for it."""
+        return replace(prior, reason=f"{prior.reason}; {agreeing} earlier loops of the revisit agree")
 
     def yaw_prior(self, yaw_guess: float, why: str, inlier_ratio: float = 0.0) -> LoopRegistration:
         """Place prior from the visual match alone: zero translation within the place radius,
