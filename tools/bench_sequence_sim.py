@@ -23,9 +23,11 @@ for each L. Scored like `metrics.json`'s stream PR-AUC: one best match per keyfr
 within `evaluation.loops.correct_radius` of a ground-truth revisit. Also reported: the same with
 the reverse revisits left out (a forward camera sees the other side of the street there), the
 recall at precision 1 of forward and reverse revisits apart, and the loops the detector's
-decision accepts at the configured thresholds (`accept_score`, `min_single_score`) and at others
-(`accept_score_sweep`), beside the decision before sequence matching (single frame >= 0.5 and
-the top-1 gate, L = 3, ±2).
+calibrated decision accepts (`calibrated_decision`: the detector's default, `decide_stream`, with
+the configured directions, the rear camera's reverse), the loops the absolute decision accepts at
+the configured thresholds (`absolute_decision`: `accept_score`, `min_single_score`) and at others
+(`absolute_accept_score_sweep`), beside the decision before sequence matching (single frame >= 0.5
+and the top-1 gate, L = 3, ±2).
 """
 
 from __future__ import annotations
@@ -169,6 +171,15 @@ def main(argv: list[str] | None = None) -> dict:
     )
     qs = np.arange(first, len(pos))
 
+    def calibrated(s: np.ndarray, c: list, lim: np.ndarray, direction: str, length: int) -> dict[int, int]:
+        """{query: place} the calibrated decision accepts (`decide_stream`: the detector's rule,
+        without the links of accepted loops between places)."""
+        from loopclosure.calibration import decide_stream
+
+        seq = det.sequence.model_copy(update={"length": length, "direction": direction})
+        return {int(q): m.place for q, (m, v) in zip(qs, decide_stream(s, c, lim, seq, det.calibrated))
+                if v is not None and v.accepted}  # fmt: skip
+
     def accepted(matches: list, threshold: float, min_single: float) -> dict[int, int]:
         """{query: place} of the sequence matches the detector's decision accepts at these thresholds."""
         return {int(q): m.place for q, m in zip(qs, matches)
@@ -221,8 +232,10 @@ def main(argv: list[str] | None = None) -> dict:
         values = np.array([-np.inf if m.place is None else m.score for m in matches])
         result = out["results"][str(length)] = evaluate(places, values)
         front = accepted(matches, det.accept_threshold, det.min_single_score)
-        result["detector_decision"] = decided(front)
-        result["accept_score_sweep"] = {
+        result["absolute_decision"] = decided(front)
+        calibrated_front = calibrated(scores, cands, limits, det.sequence.direction, length)
+        result["calibrated_decision"] = decided(calibrated_front)
+        result["absolute_accept_score_sweep"] = {
             f"{threshold:g}": decided(accepted(matches, threshold, det.min_single_score))
             for threshold in sorted({0.40, 0.45, 0.50, 0.55, 0.60, det.accept_threshold})
         }
@@ -231,13 +244,15 @@ def main(argv: list[str] | None = None) -> dict:
             r_places = np.array([-1 if m.place is None else m.place for m in rear_matches])
             r_values = np.array([-np.inf if m.place is None else m.score for m in rear_matches])
             result["rear"] = evaluate(r_places, r_values)
-            result["rear"]["accept_score_sweep"] = {
+            result["rear"]["absolute_accept_score_sweep"] = {
                 f"{threshold:g}": decided(accepted(rear_matches, threshold, det.rear.min_single_score))
                 for threshold in (0.24, 0.25, 0.26, 0.27, 0.28, 0.30, 0.32)
             }
             # forward first: the rear camera's loop only where the forward camera accepted none
             both = {**accepted(rear_matches, det.rear.accept_score, det.rear.min_single_score), **front}
-            result["detector_decision_front_and_rear"] = decided(both)
+            result["absolute_decision_front_and_rear"] = decided(both)
+            rear_calibrated = calibrated(rear[0], rear[2], rear[1], det.rear.direction, length)
+            result["calibrated_decision_front_and_rear"] = decided({**rear_calibrated, **calibrated_front})
         log(f"L={length}: {result}")
     # single frames as the recogniser alone ranks them (stage II over the stage-I candidates)
     single = np.array([c[np.argmax(scores[i, c])] if len(c) else -1 for i, c in enumerate(cands)])

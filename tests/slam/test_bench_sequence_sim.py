@@ -58,14 +58,17 @@ def test_second_lap_is_recalled_and_the_rear_camera_adds_nothing(tmp_path: Path)
     assert out["revisits"]["reverse"] == 0 and out["revisits"]["forward"] > 60
     for length in ("1", "3"):
         result = out["results"][length]
-        decision = result["detector_decision"]
+        decision = result["absolute_decision"]
         assert decision["precision"] == 1.0 and decision["recall_forward"] > 0.9
+        calibrated = result["calibrated_decision"]
+        assert calibrated["precision"] == 1.0 and calibrated["recall_forward"] > 0.8
         assert result["stream_pr_auc"] > 0.9
-        sweep = result["accept_score_sweep"]
+        sweep = result["absolute_accept_score_sweep"]
         assert sweep[f"{out['thresholds']['accept_score']:g}"] == decision  # the configured one is swept too
         # the rear codes are noise: its accepted loops, if any, only lower the precision
-        both = result["detector_decision_front_and_rear"]
+        both = result["absolute_decision_front_and_rear"]
         assert both["recall"] == decision["recall"]
+        assert result["calibrated_decision_front_and_rear"]["recall"] == calibrated["recall"]
         assert result["rear"]["recall_at_precision_1"]["forward"] == 0.0
     assert out["single_frame"]["detector_decision_before"]["precision"] == 1.0
 
