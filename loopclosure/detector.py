@@ -39,6 +39,14 @@ from loopclosure.spatial import spatial_scores
 
 log = logging.getLogger(__name__)
 
+MIN_CALIBRATED_CANDIDATES = 30
+"""Stage-I candidates below which the calibrated decision has too few to measure a winner against."""
+
+RUNNER_UPS_KEY = "runner_ups"
+"""PlaceDatabase.extra key of the runner-up models a database's session learnt."""
+PLACE_LINKS_KEY = "place_links"
+"""PlaceDatabase.extra key of the place pairs its session's accepted loops joined."""
+
 
 @dataclass
 class LoopProposal:
@@ -80,6 +88,12 @@ class LoopDetector:
         self, vpr: VPRConfig, config: DetectorConfig, encoder: Encoder, database: PlaceDatabase | None = None
     ) -> None:
         check_search_device(vpr.filtering)  # before the first frame, not after the PCA warm-up
+        if config.decision == "calibrated" and vpr.filtering.num_candidates < MIN_CALIBRATED_CANDIDATES:
+            log.warning(
+                "vpr.filtering.num_candidates is %d: the calibrated decision (detector.decision) measures a winner "
+                "against the other candidates, and below %d it has too few (recall 0.49 on the demo at N=15)",
+                vpr.filtering.num_candidates, MIN_CALIBRATED_CANDIDATES,
+            )  # fmt: skip
         self.vpr = vpr
         self.config = config
         self.encoder = encoder
@@ -99,6 +113,12 @@ class LoopDetector:
         self.decision = CalibratedDecision(config.calibrated, config.calibrated.accept)  # the forward camera's
         self.rear_decision = CalibratedDecision(config.calibrated, config.rear_accept)
         self.links = PlaceLinks()
+        # who joins the places of an accepted loop: the detector itself (used alone), or the caller
+        # once the loop is registered (`join`: a SLAM back end, which refuses some)
+        self.links_from_decisions = True
+        if database is not None:  # a prior map brings the wrong-match model its session learnt
+            self._seed_models(database.extra.get(RUNNER_UPS_KEY))
+            self._seed_links(database.extra.get(PLACE_LINKS_KEY), len(database))
         self.timings = DetectorTimings()
         # distance travelled when each session place was added, in order; it never decreases,
         # so the places too near to the query are always a suffix of the session
@@ -130,6 +150,60 @@ class LoopDetector:
                     f"but {layer} in {cubes.cube_size}x{cubes.cube_size} cubes makes {made} (fitted with other settings)"
                 )
         return books
+
+    def _seed_models(self, saved: object) -> None:
+        """Start the runner-up models from a prior map's (`annotate_database`): a session that
+        starts in a mapped world may accept loops from its first keyframes, judged by what wrong
+        matches scored there, instead of waiting `min_history` keyframes; its own runner-ups then
+        take over (the newest `history` count)."""
+        if saved is None:
+            return
+        if not isinstance(saved, dict):
+            raise LoopClosureInputError(f"prior map: extra.{RUNNER_UPS_KEY} must be an object, got {saved!r:.60}")
+        for camera, decision in (("front", self.decision), ("rear", self.rear_decision)):
+            values = np.asarray(saved.get(camera, []), dtype=object)
+            try:
+                numbers = values.astype(np.float64)
+            except (TypeError, ValueError):
+                numbers = np.array([np.nan])
+            if numbers.ndim != 1 or not np.isfinite(numbers).all():
+                raise LoopClosureInputError(f"prior map: extra.{RUNNER_UPS_KEY}.{camera} must be a list of numbers")
+            for value in numbers.tolist()[-self.config.calibrated.history :]:
+                decision.model.observe(value)
+
+    def _seed_links(self, saved: object, n_places: int) -> None:
+        """The prior map's places that its accepted loops made one (a place visited twice in the
+        map is one place to the next session too, not each other's runner-up)."""
+        if saved is None:
+            return
+        pairs = np.asarray(saved, dtype=object)
+        try:
+            pairs = pairs.astype(np.int64)
+        except (TypeError, ValueError):
+            pairs = np.array([[-1, -1]])
+        if pairs.size == 0:
+            return
+        if pairs.ndim != 2 or pairs.shape[1] != 2 or pairs.min() < 0 or pairs.max() >= n_places:
+            raise LoopClosureInputError(f"prior map: extra.{PLACE_LINKS_KEY} must be pairs of its place indices")
+        for a, b in pairs.tolist():
+            self.links.join(a, b)
+
+    def annotate_database(self) -> None:
+        """Keep the runner-up models and the joined places with the database, so a later session
+        that loads it as its prior map (`--map`) starts with them (see `_seed_models`)."""
+        if self.database is not None:
+            self.database.extra[RUNNER_UPS_KEY] = {
+                "front": self.decision.model.state_arrays("")["runner_ups"].tolist(),
+                "rear": self.rear_decision.model.state_arrays("")["runner_ups"].tolist(),
+            }
+            self.database.extra[PLACE_LINKS_KEY] = [list(pair) for pair in self.links.pairs]
+
+    def join(self, proposal: LoopProposal) -> None:
+        """Make the two places of a loop the caller accepted one (with `links_from_decisions`
+        off). The query's place is its keyframe's: keyframe ids must count places from 0, as a
+        SLAM run's do."""
+        if self._calibrated and self.config.calibrated.link_accepted:
+            self.links.join(self.prior_places + proposal.query_id, proposal.match_place)
 
     @property
     def ready(self) -> bool:
@@ -392,7 +466,12 @@ class LoopDetector:
 
     def _link(self, proposal: LoopProposal, query_place: int) -> None:
         """An accepted loop makes its two places one (see `CalibratedDecisionConfig.link_accepted`)."""
-        if proposal.accepted and self._calibrated and self.config.calibrated.link_accepted:
+        if (
+            proposal.accepted
+            and self.links_from_decisions
+            and self._calibrated
+            and self.config.calibrated.link_accepted
+        ):
             self.links.join(query_place, proposal.match_place)
 
     def _decide(

@@ -38,6 +38,7 @@ from ssmvpr_slam.backend.kept_scan import KeptScan, keep_scan
 from ssmvpr_slam.backend.loop_consistency import LoopPose, support
 from ssmvpr_slam.backend.loop_registration import LoopRegistrar, LoopRegistration, build_local_map, carry_loop
 from ssmvpr_slam.backend.pose_graph import PoseGraph, PoseGraphError
+from ssmvpr_slam.backend.se3 import yaw_of
 from ssmvpr_slam.backend.two_view import reduce_image
 from ssmvpr_slam.config import SlamConfig
 from ssmvpr_slam.mcap_output import thumbnail_jpeg
@@ -116,6 +117,7 @@ class SlamSystem:
         # the session grows its own copy: the prior map stays as it was loaded
         database = prior_map.database.copy() if prior_map is not None else None
         self.detector = build_detector(config, backbone, database)
+        self.detector.links_from_decisions = False  # a loop's places become one once it is registered (`back`)
         self.registrar = LoopRegistrar(config.backend.registration)
         self.graph = (
             graph
@@ -231,6 +233,8 @@ class SlamSystem:
                 registration = self._register(kf, proposal)
                 t_reg = time.perf_counter() - t1
                 self.state.loops[-1] = self._add_loop(LoopRecord(proposal, registration))
+                if registration.accepted or registration.method == "spaced":
+                    self.detector.join(proposal)
         t2 = time.perf_counter()
         self._update_graph(kf)
         t_graph = time.perf_counter() - t2
@@ -308,6 +312,11 @@ class SlamSystem:
             return self._register_to_map(kf, proposal)
         match = self.state.keyframes[proposal.match_id]
         gate = self.config.backend.registration.odometry_gate
+        if gate.max_heading_deg is not None:
+            odometry_yaw = yaw_of(np.linalg.inv(match.odom_pose)[:3, :3] @ kf.odom_pose[:3, :3])
+            off = abs(math.degrees(math.remainder(proposal.yaw_guess - odometry_yaw, 2.0 * math.pi)))
+            if off > gate.max_heading_deg:
+                return self.registrar.turned(proposal.yaw_guess, odometry_yaw)
         if self.config.frontend.odometry.kind in gate.sources:
             offset = float(np.linalg.norm(kf.odom_pose[:3, 3] - match.odom_pose[:3, 3]))
             travelled = self.detector.travelled_since(proposal.match_place)
@@ -463,6 +472,7 @@ class SlamSystem:
             replace(r, dropped=True) if r.factor_handle is not None and r.factor_handle not in final else r
             for r in state.loops
         )
+        self.detector.annotate_database()  # a map saved from this result seeds the next session's decisions
         return RunResult(
             keyframes=kfs,
             loops=loops,

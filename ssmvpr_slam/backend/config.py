@@ -281,6 +281,15 @@ class OdometryGateConfig(_Strict):
         description="m allowed per metre driven between the two keyframes (kiss-icp drifts 0.4-0.6 % of the "
         "distance on the simulated routes; its right loops there lie within 10.3 m)",
     )
+    max_heading_deg: float | None = Field(
+        90.0,
+        gt=0,
+        le=180,
+        description="deg: a loop (any odometry) whose heading, as the match claims it (the rear camera's turned "
+        "half round), differs from the odometry's by more than this is refused: a rear camera that matches "
+        "a street it drives the same way, a symmetric street seen backwards (the test city: wrong rear loops "
+        "11-49 m off). None: no heading check",
+    )
 
     def limit(self, travelled_m: float) -> float:
         """The largest odometry offset of a loop across `travelled_m` metres of driving."""
@@ -298,7 +307,10 @@ class LoopConsistencyConfig(_Strict):
     window_keyframes: int = Field(
         10, ge=1, description="how far back (query keyframes) and apart (match keyframes) a supporting loop may lie"
     )
-    max_translation_m: float = Field(4.0, gt=0, description="m of disagreement allowed whatever the path")
+    max_translation_m: float = Field(
+        1.5, gt=0, description="m of disagreement allowed whatever the path (right loops of one revisit agree "
+        "within their places' spread; a symmetric street seen backwards slides two keyframe spacings a keyframe)"
+    )  # fmt: skip
     per_m_travelled: float = Field(
         0.1, ge=0, description="m allowed per metre driven on the two stretches between the loops (a wheel "
         "odometry's drift; the simulated one drifts up to 13 %)"

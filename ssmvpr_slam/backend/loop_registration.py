@@ -255,6 +255,21 @@ class LoopRegistrar:
             method="implausible",
         )
 
+    def turned(self, claimed_yaw: float, odometry_yaw: float) -> LoopRegistration:
+        """No registration: the match says the query faces `claimed_yaw` relative to the place,
+        the odometry says `odometry_yaw`, more than `odometry_gate.max_heading_deg` apart."""
+        gate = self.config.odometry_gate
+        return LoopRegistration(
+            T_mq=np.eye(4),
+            accepted=False,
+            reason=f"implausible: the match puts the heading at {math.degrees(claimed_yaw):.0f} deg to the place, "
+            f"the odometry at {math.degrees(odometry_yaw):.0f} deg, more than {gate.max_heading_deg:g} deg apart "
+            "(backend.registration.odometry_gate.max_heading_deg)",
+            inlier_ratio=float("nan"),
+            rmse=float("nan"),
+            method="implausible",
+        )
+
     def unverified(self, prior: LoopRegistration, agreeing: int) -> LoopRegistration:
         """No factor: nothing verified the loop's geometry and too few earlier loops of its revisit
         agree with it (`consistency`). T_mq stays the place prior, for the loops after it to check against."""

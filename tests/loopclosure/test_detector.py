@@ -615,3 +615,60 @@ def test_a_calibrated_detector_restored_from_its_state_continues_exactly(
     second.load_state_arrays(state, PlaceDatabase.load(tmp_path / "db"))
     assert feed(second, scenes[cut:], cut) == whole[cut:]
     assert second.links.pairs == uncut.links.pairs
+
+
+def test_a_prior_map_seeds_the_runner_up_models_of_the_next_session(tmp_path: Path, codebooks: str) -> None:
+    first = detector(keyframes=5, codebooks=codebooks, decision="calibrated", direction="forward")
+    feed(first, list(range(30)), 0)
+    first.annotate_database()
+    first.database.save(tmp_path / "map")
+    learnt = first.decision.model.state_arrays("")["runner_ups"]
+    assert len(learnt) >= 5
+    first.links.join(3, 25)  # as if an accepted loop had made places 3 and 25 one
+    first.annotate_database()
+    first.database.save(tmp_path / "map")
+    second = detector(PlaceDatabase.load(tmp_path / "map"), keyframes=5, decision="calibrated", direction="forward")
+    assert second.decision.model.ready  # from its first keyframe
+    assert second.links.joined(25) == first.links.joined(25) and 3 in second.links.joined(25)
+    np.testing.assert_array_equal(second.decision.model.state_arrays("")["runner_ups"], learnt)
+    # a revisit of the map at once: accepted as soon as its sequence is long enough
+    proposals = feed(second, list(range(10, 20)), 0)
+    assert any(p is not None and p.accepted and p.prior_map for p in proposals[:6])
+
+
+@pytest.mark.parametrize(
+    ("key", "bad"),
+    [
+        ("runner_ups", {"front": [1.0, "x"]}),
+        ("runner_ups", "nothing"),
+        ("runner_ups", {"front": [float("nan")]}),
+        ("place_links", [[0, 1, 2]]),
+        ("place_links", [[0, 99]]),
+        ("place_links", [["a", 1]]),
+    ],
+)
+def test_a_prior_map_with_a_damaged_decision_record_is_refused(codebooks: str, key: str, bad: object) -> None:
+    first = detector(keyframes=5, codebooks=codebooks, decision="calibrated")
+    feed(first, list(range(12)), 0)
+    first.database.extra[key] = bad
+    with pytest.raises(LoopClosureInputError, match=f"prior map: extra.{key}"):
+        detector(first.database, decision="calibrated")
+
+
+def test_a_caller_that_registers_loops_joins_their_places_itself(codebooks: str) -> None:
+    det = detector(keyframes=5, codebooks=codebooks, decision="calibrated", direction="forward")
+    det.links_from_decisions = False  # as a SLAM run: places become one once the loop is registered
+    feed(det, list(range(30)), 0)
+    accepted = [p for p in feed(det, list(range(10, 20)), 30) if p is not None and p.accepted]
+    assert accepted and det.links.pairs == []
+    det.join(accepted[0])
+    assert det.links.joined(accepted[0].match_place) == {accepted[0].query_id}
+
+
+def test_too_few_candidates_for_the_calibrated_decision_is_one_warning(caplog: pytest.LogCaptureFixture) -> None:
+    few = VPR.model_copy(update={"filtering": VPR.filtering.model_copy(update={"num_candidates": 15})})
+    with caplog.at_level("WARNING", logger="loopclosure.detector"):
+        LoopDetector(few, DetectorConfig(), Encoder(few, FakeBackbone()))  # type: ignore[arg-type]
+        LoopDetector(few, DetectorConfig(decision="absolute"), Encoder(few, FakeBackbone()))  # type: ignore[arg-type]
+    warnings = [r.getMessage() for r in caplog.records if "num_candidates" in r.getMessage()]
+    assert len(warnings) == 1 and "vpr.filtering.num_candidates is 15" in warnings[0]

@@ -71,7 +71,7 @@ def test_ras2020_changes_cubes_and_inherits_the_rest_from_default() -> None:
 
 def test_fast_preset_inherits_default() -> None:
     fast = load_config("fast")
-    assert fast.vpr.filtering.num_candidates == 15
+    assert fast.vpr.filtering.num_candidates == 30  # the calibrated decision needs a field of candidates
     assert fast.vpr.database.stage1_dtype == "float16"
     assert fast.vpr.backbone.precision == "auto"
     assert (
@@ -102,7 +102,7 @@ def test_yaml_file_over_a_preset_that_has_its_own_base(tmp_path: Path) -> None:
     path.write_text("preset: fast\ndetector: {min_score: 0.35}\n")
     cfg = load_config(path)
     assert cfg.detector.min_score == 0.35
-    assert cfg.vpr.filtering.num_candidates == 15  # fast
+    assert cfg.vpr.filtering.num_candidates == 30  # fast
     assert cfg.backend.registration.lidar.min_inlier_ratio == 0.8  # default, under fast
 
 

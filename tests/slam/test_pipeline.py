@@ -98,7 +98,8 @@ def slam_config(weights_path: Path, odometry: str) -> SlamConfig:
     cfg = load_config()  # the default (paper) preset
     cfg.vpr.backbone.weights = str(weights_path)
     cfg.vpr.backbone.device = "cpu"
-    cfg.detector.pca_warmup_keyframes = 30  # the first revisit comes at keyframe ~64
+    cfg.detector.pca_warmup_keyframes = 30  # the first revisit comes at keyframe ~64...
+    cfg.detector.calibrated.min_history = 20  # ...34 queries after the warm-up: the model must be ready by then
     cfg.frontend.keyframes = KeyframeConfig(min_distance_m=None, min_angle_deg=None, max_interval_s=0.35)
     cfg.frontend.odometry.kind = odometry  # type: ignore[assignment]
     if odometry == "logged":
@@ -194,8 +195,14 @@ def open_gate(tmp_path_factory, weights_path, backbone, camera_frames, clean) ->
     frame): the pose graph of a front end whose loops are the recogniser's raw, appearance-based
     guesses, many of them wrong."""
     cfg = slam_config(weights_path, "logged")
+    cfg.detector.decision = "absolute"  # raw scores and the sequences the absolute rule shipped with
+    cfg.detector.sequence = cfg.detector.sequence.model_copy(
+        update={"length": 3, "direction": "both", "sequence_candidates": 10}
+    )
     cfg.detector.min_score = cfg.detector.accept_score = OPEN_GATE_SCORE
     cfg.detector.min_single_score = 0.0
+    cfg.backend.registration.two_view.on_geometry_failure = "yaw_prior"  # every guess a factor, unchecked...
+    cfg.backend.registration.odometry_gate.max_heading_deg = None  # ...whichever way it faces
     passes = backbone.passes
     run = _run(tmp_path_factory.mktemp("slam") / "open_gate", cfg, backbone, iter(camera_frames))
     assert backbone.passes == passes
@@ -255,6 +262,12 @@ def test_loops_are_found_and_all_correct(clean: Run) -> None:
         assert _gt_distance(clean, p.query_id, p.match_id) <= 5.0  # well inside the correct radius
     # nothing was proposed during the PCA warm-up
     assert min(r.proposal.query_id for r in clean.pipeline.state.loops) >= clean.config.detector.pca_warmup_keyframes
+    # the second lap drives the first's streets the same way: whatever the rear camera matched
+    # there faces the wrong way for the odometry, and is refused before registration
+    for r in clean.result.loops:
+        if r.proposal.accepted and r.proposal.camera == "rear":
+            assert r.registration is not None and r.registration.method == "implausible"
+            assert "max_heading_deg" in r.registration.reason
 
 
 def test_loop_closure_reduces_the_trajectory_error(clean: Run) -> None:
@@ -484,7 +497,9 @@ def test_loop_spacing_registers_fewer_loops_and_judges_the_spaced_with_them(spac
     registered = [r for r in records if r.registration is not None and r.registration.method == "icp"]
     assert out and not any(r.spaced for r in kiss.result.loops)
     kiss_registered = [r for r in kiss.result.loops if r.registration is not None]
-    assert len(registered) + len(out) == len(kiss_registered)  # each accepted proposal: registered or spaced
+    refused = [r for r in records if r.registration is not None and r.registration.method == "implausible"]
+    # each accepted proposal: registered, spaced, or refused before either (the odometry gate)
+    assert len(registered) + len(out) + len(refused) == len(kiss_registered)
     assert sum(r.in_graph for r in records) >= 3
     kfs = spaced.pipeline.state.keyframes
     for record in out:
@@ -533,7 +548,9 @@ def test_the_odometry_gate_refuses_loops_its_odometry_puts_too_far_apart_before_
             continue
         q, m = kfs[record.proposal.query_id], kfs[record.proposal.match_id]
         offset = float(np.linalg.norm(q.odom_pose[:3, 3] - m.odom_pose[:3, 3]))
-        if offset > TIGHT_GATE_M:  # refused without registration, whatever ICP would have said
+        if "max_heading_deg" in unguarded.registration.reason:  # facing the wrong way: refused by both
+            assert record.registration.reason == unguarded.registration.reason and not record.in_graph
+        elif offset > TIGHT_GATE_M:  # refused without registration, whatever ICP would have said
             assert record.registration.method == "implausible" and not record.in_graph
             assert record.registration.reason.startswith(f"implausible: odometry puts the keyframes {offset:.1f} m")
             refused += 1
@@ -543,8 +560,14 @@ def test_the_odometry_gate_refuses_loops_its_odometry_puts_too_far_apart_before_
             kept += 1
     assert refused >= 3 and kept >= 3  # the tight gate splits this run's loops
     assert gated.metrics["loops"]["in_graph"] < kiss.metrics["loops"]["in_graph"]
-    # the default gate (10 m + 2 % of the path) refuses none of the ungated run's right loops
-    assert not any(r.registration is not None and r.registration.method == "implausible" for r in kiss.result.loops)
+    # the default gate (10 m + 2 % of the path, headings within 90 deg) refuses none of the ungated
+    # run's right loops (what it refuses there are rear-camera matches of streets driven the same way)
+    kiss_kfs = kiss.pipeline.state.keyframes
+    for r in kiss.result.loops:
+        if r.registration is not None and r.registration.method == "implausible":
+            q, m = kiss_kfs[r.proposal.query_id], kiss_kfs[r.proposal.match_id]
+            right = np.linalg.norm(q.gt_pose[:3, 3] - m.gt_pose[:3, 3]) <= CORRECT_RADIUS
+            assert not right or r.proposal.camera == "rear", r.registration.reason
 
 
 # ------------------------------------------------------------------------ prior map (--map)
