@@ -33,7 +33,8 @@ from ssmvpr_slam.results import write_json
 
 LOOP_COLUMNS = [
     "query_kf", "match_kf", "score", "stage1_score", "column_shift", "yaw_guess_rad", "gate_accepted",
-    "gate_reason", "camera", "direction", "sequence_score", "sequence_terms", "registration", "registration_accepted",
+    "gate_reason", "camera", "direction", "sequence_score", "sequence_terms", "decision_score", "runner_up",
+    "registration", "registration_accepted",
     "registration_reason",
     "inlier_ratio", "rmse", "in_graph", "prior_map", "gt_distance_m",
 ]  # fmt: skip
@@ -111,6 +112,8 @@ def write_loop_csv(
             p.query_id, p.match_id, f"{p.score:.4f}", f"{p.stage1_score:.4f}", p.column_shift, f"{p.yaw_guess:.4f}",
             int(p.accepted), p.reason, p.camera, p.direction or "",
             "" if p.sequence_score is None else f"{p.sequence_score:.4f}", p.sequence_terms,
+            "" if p.decision_score is None else f"{p.decision_score:.3f}",
+            "" if p.runner_up_score is None else f"{p.runner_up_score:.4f}",
             reg.method if reg else "", int(reg.accepted) if reg else "",
             reg.reason if reg else "", f"{reg.inlier_ratio:.3f}" if reg else "", f"{reg.rmse:.3f}" if reg else "",
             int(record.in_graph), int(p.prior_map),
