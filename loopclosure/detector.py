@@ -381,8 +381,13 @@ class LoopDetector:
         """Session places too recent in keyframes or in travelled distance to be loop candidates."""
         n = len(self._session_travelled)
         first_recent = n - min(self.config.exclusion_keyframes, n)
-        # near: travelled_now - travelled_place < exclusion_distance
-        first_near = bisect.bisect_right(self._session_travelled, self._travelled - self.config.exclusion_distance)
+        # near: travelled_now - travelled_place < exclusion_distance; a stream that never gave a
+        # position has travelled nothing, so only its keyframe count can say what is recent
+        first_near = (
+            n
+            if self._last_position is None
+            else bisect.bisect_right(self._session_travelled, self._travelled - self.config.exclusion_distance)
+        )
         return np.arange(self.prior_places + min(first_recent, first_near), self.prior_places + n, dtype=np.int64)
 
     def _score_places(self, grid: np.ndarray, places: np.ndarray) -> np.ndarray:

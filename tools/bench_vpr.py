@@ -71,7 +71,15 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from loopclosure.config import BackboneConfig, DatabaseConfig, SequenceMatchConfig, VPRConfig, feature_side, grid_side  # noqa: E402
+from loopclosure.config import (  # noqa: E402
+    BackboneConfig,
+    DatabaseConfig,
+    DetectorConfig,
+    SequenceMatchConfig,
+    VPRConfig,
+    feature_side,
+    grid_side,
+)
 from loopclosure.database import PlaceDatabase  # noqa: E402
 from loopclosure.encoder import PlaceCodes  # noqa: E402
 from loopclosure.filtering import max_row_norm, rank_neighbours, vote  # noqa: E402
@@ -757,15 +765,16 @@ def bench_sequence(args, config: VPRConfig, lengths: list[int], repeats: int) ->
     def scorer(grid: np.ndarray, places: np.ndarray) -> np.ndarray:
         return spatial_scores(grid, store[places], chunk).scores
 
-    default_k = SequenceMatchConfig().sequence_candidates
+    default_k = SequenceMatchConfig().sequence_candidates  # vpr-eval's K
+    detector_k = DetectorConfig().sequence.sequence_candidates  # the SLAM detector's K
     out: dict = {
         "store_places": n_places, "exclusion_window_places": window, "num_candidates": n_cand,
         "stream_queries": n_stream, "timed_queries": repeats, "blas_threads": 1,
-        "default_sequence_candidates": default_k, "settings": {},
+        "default_sequence_candidates": default_k, "detector_sequence_candidates": detector_k, "settings": {},
     }  # fmt: skip
     for length in lengths:
         for direction in ("forward", "both"):
-            for k_best in (None, default_k):
+            for k_best in (None, default_k, detector_k):
                 seq_cfg = SequenceMatchConfig(length=length, direction=direction, sequence_candidates=k_best)
                 matcher = SequenceMatcher(seq_cfg, scorer)
                 rows: dict[str, Samples] = {n: Samples() for n in ("filter", "spatial", "matcher", "total")}

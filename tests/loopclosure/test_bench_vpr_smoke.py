@@ -59,7 +59,7 @@ def _check_common(out: dict) -> None:
     sequence = out["sequence_query_ms"]
     assert sequence["num_candidates"] == 50 and sequence["timed_queries"] == 2
     assert set(sequence["settings"]) == {
-        f"L{L}_{d}_K{k}" for L in (3, 5) for d in ("forward", "both") for k in ("all", 10)
+        f"L{L}_{d}_K{k}" for L in (3, 5) for d in ("forward", "both") for k in ("all", 10, 20)
     }
     full = sequence["settings"]["L5_forward_Kall"]
     assert full["total_ms"]["median"] >= full["matcher_ms"]["median"] > 0

@@ -283,6 +283,13 @@ def test_position_none_does_not_advance_the_distance(codebooks: str) -> None:
     assert det.process(scene(2), 10, None) is None  # no position: still 0 m travelled
 
 
+def test_a_stream_without_positions_is_windowed_by_keyframes_alone(codebooks: str) -> None:
+    det = detector(keyframes=5, distance=10.0, codebooks=codebooks)
+    feed(det, list(range(10)), 0)  # never a position: the 10 m window cannot be measured
+    proposal = det.process(scene(2), 10)
+    assert proposal is not None and proposal.match_id == 2
+
+
 @pytest.mark.parametrize("bad", [np.eye(4), np.zeros(4), np.zeros((1, 3)), np.zeros(1)])
 def test_a_position_of_the_wrong_shape_is_an_input_error(bad: np.ndarray, codebooks: str) -> None:
     """A 4x4 pose passed as the position was read row by row: its first row became the position."""

@@ -70,7 +70,7 @@ vpr:
   backbone: {input_size: 112, device: cpu}
   filtering: {pca: {dim: 8}}
   spatial: {pca: {dim: 8}}
-detector: {pca_warmup_keyframes: 15}
+detector: {pca_warmup_keyframes: 15, calibrated: {min_history: 10}}  # a short log: its revisit comes early
 evaluation: {loops: {min_frame_gap: 25}}
 """
 FRONTEND = "frontend:\n  keyframes: {min_distance_m: null, min_angle_deg: null, max_interval_s: 0.35}\n"

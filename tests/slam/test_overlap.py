@@ -34,7 +34,7 @@ FRAMES = 100
 CONFIG = {
     "vpr": {"backbone": {"input_size": 112, "device": "cpu"}, "filtering": {"pca": {"dim": 8}},
             "spatial": {"pca": {"dim": 8}}},
-    "detector": {"pca_warmup_keyframes": 15},
+    "detector": {"pca_warmup_keyframes": 15, "calibrated": {"min_history": 10}},  # a short log: loops come early
     "frontend": {"keyframes": {"min_distance_m": None, "min_angle_deg": None, "max_interval_s": 0.35},
                  "odometry": {"kind": "logged", "logged": {"pose_source": "logged",
                               "drift": {"enabled": True, "yaw_bias_per_m": 0.002, "translation_scale_error": 0.02}}}},
