@@ -70,13 +70,24 @@ vpr:
   backbone: {input_size: 112, device: cpu}
   filtering: {pca: {dim: 8}}
   spatial: {pca: {dim: 8}}
-detector: {pca_warmup_keyframes: 15, calibrated: {min_history: 10}}  # a short log: its revisit comes early
+detector: {pca_warmup_keyframes: 15, calibrated: {min_history: 10}}
 evaluation: {loops: {min_frame_gap: 25}}
 """
+SMALL_DETECTOR = "detector: {pca_warmup_keyframes: 15, calibrated: {min_history: 10}}\n"  # a short log: early revisits
 FRONTEND = "frontend:\n  keyframes: {min_distance_m: null, min_angle_deg: null, max_interval_s: 0.35}\n"
 
+# the camera-only log is too short and its 112-px images too coarse for the calibrated decision, and
+# for the checks on camera loops, to let a loop into the graph before the kill; a resume must rebuild
+# the same graph whatever the rules, so this log takes the loosest (absolute thresholds, camera loops
+# unchecked). The LiDAR log below resumes with the default rules.
+ABSOLUTE = (
+    "detector: {pca_warmup_keyframes: 15, decision: absolute, rear: {direction: both},\n"
+    "           sequence: {length: 3, direction: both, sequence_candidates: 10}}\n"
+    "backend: {registration: {two_view: {on_geometry_failure: yaw_prior}, odometry_gate: {max_heading_deg: null}}}\n"
+)
+
 CONFIG = (
-    SMALL
+    SMALL.replace(SMALL_DETECTOR, ABSOLUTE)
     + FRONTEND
     + """\
   odometry:
