@@ -260,6 +260,14 @@ def test_loops_are_found_and_all_correct(clean: Run) -> None:
         assert p.accepted and record.registration is not None and record.registration.accepted
         assert p.query_id - p.match_id >= 40  # a revisit a lap later, not the recent past
         assert _gt_distance(clean, p.query_id, p.match_id) <= 5.0  # well inside the correct radius
+        # verified: by two views, or (a yaw prior) by earlier loops of its revisit under odometry
+        method, reason = record.registration.method, record.registration.reason
+        assert method.startswith("two_view_") or (
+            method == "yaw_prior" and "earlier loops of the revisit agree" in reason
+        )
+    # a loop no geometry verified and no earlier loop vouched for is recorded, never a factor
+    unverified = [r for r in clean.result.loops if r.registration is not None and r.registration.method == "unverified"]
+    assert not any(r.in_graph or r.factor_handle is not None for r in unverified)
     # nothing was proposed during the PCA warm-up
     assert min(r.proposal.query_id for r in clean.pipeline.state.loops) >= clean.config.detector.pca_warmup_keyframes
     # the second lap drives the first's streets the same way: whatever the rear camera matched
@@ -353,6 +361,12 @@ def test_wrong_loops_barely_move_the_trajectory(injected: Run, clean: Run) -> No
     injected_ate = injected.metrics["ate_optimised"]["rmse"]
     assert injected_ate <= max(1.10 * clean_ate, clean_ate + 0.2)
     assert injected_ate <= 0.5 * injected.metrics["ate_odometry"]["rmse"]
+
+
+def test_configured_to_the_yaw_prior_every_unverified_guess_is_a_factor(open_gate: Run) -> None:
+    prior = [r for r in open_gate.result.loops if r.registration is not None and r.registration.method == "yaw_prior"]
+    assert prior and all(r.in_graph and "agree" not in r.registration.reason for r in prior)
+    assert not any(r.registration is not None and r.registration.method == "unverified" for r in open_gate.result.loops)
 
 
 def test_optimize_recovers_a_graph_of_raw_appearance_loops_from_odometry(open_gate: Run, tmp_path: Path) -> None:
@@ -610,6 +624,12 @@ def test_saved_map_holds_every_place_with_pose_and_ground_truth(clean: Run) -> N
 def test_a_second_session_closes_loops_against_the_prior_map(second_logged: Run) -> None:
     prior = second_logged.metrics["prior_map_loops"]
     n = len(second_logged.pipeline.state.keyframes)
+    # a map keeps no images: its loops are place priors, factors only once earlier loops of the
+    # revisit agree under odometry; the first ones of the session have none and stay out
+    records = [r for r in second_logged.result.loops if r.proposal.accepted and r.proposal.prior_map]
+    first = [r for r in records if r.registration is not None and r.registration.method == "unverified"]
+    assert first and all(not r.in_graph for r in first)
+    assert all(r.in_graph == (r.registration.method == "yaw_prior") for r in records if r.registration is not None)
     # the session grew its own copy: the loaded map, and what is reported of it, stay as read
     assert prior["places"] == n and len(second_logged.pipeline.prior_map) == n
     assert len(second_logged.pipeline.detector.database) == 2 * n
