@@ -33,7 +33,7 @@ class BackboneConfig(_Strict):
     batch_size: int = Field(default=8, ge=1)
     num_threads: int | None = Field(default=None, ge=1, description="torch CPU threads; None keeps torch's default.")
     # fp32 stays the default: bf16 moved Corridor's single-frame PR-AUC by 0.010 (one query of 111),
-    # more than the 0.005 allowed, though its sequence (L=3) PR-AUC moved by 0.0002 (README "Speed").
+    # more than the 0.005 allowed, though its sequence (L=3) PR-AUC moved by 0.0002 (docs/benchmarks.md, "Speed").
     precision: Literal["auto", "fp32", "bf16", "int8"] = Field(
         default="fp32",
         description="fp32: torch fp32, the reference (reproducible results). auto: bf16 on a CPU with "
@@ -79,7 +79,7 @@ class FilteringConfig(_Strict):
         default=None, ge=1, description="Nearest database vectors per query vector; None uses N as the paper does."
     )
     # The nearest-vector search behind the votes (loopclosure/ann_index.py). exact and numpy give
-    # the same votes bit for bit (tested); ivf/hnsw are approximate (README "Speed": recall@N).
+    # the same votes bit for bit (tested); ivf/hnsw are approximate (docs/benchmarks.md, "Speed": recall@N).
     index: Literal["auto", "exact", "ivf", "hnsw", "numpy"] = Field(
         default="auto",
         description="exact: faiss brute-force inner products; ivf: faiss IVF (trained k-means lists), "
@@ -166,7 +166,7 @@ class SpatialConfig(_Strict):
 
 class DatabaseConfig(_Strict):
     """How place codes are stored: float, or int8 with one float32 scale per vector (x ~ q * s,
-    s = max|x| / 127): 19.2 kB per place instead of 40.2 kB (README "Speed")."""
+    s = max|x| / 127): 19.2 kB per place instead of 40.2 kB (docs/benchmarks.md, "Speed")."""
 
     stage1_dtype: Literal["float16", "float32", "int8"] = "float32"
     stage2_dtype: Literal["float16", "float32", "int8"] = "float16"
@@ -297,7 +297,7 @@ class CalibratedDecisionConfig(_Strict):
     accepted loop). z = (winner - median of the last `history` runner-ups) / their
     interquartile range. Absolute stage-II levels differ by texture, camera and light (a night
     walk's right matches score like a simulated city's aliases); a lead over the stream's own
-    runner-ups does not (README, "Loop decisions on real data")."""
+    runner-ups does not (docs/loop_decisions.md)."""
 
     accept: float = Field(
         default=6.0, description="z from which a proposal is accepted (chosen on Gardens Point, Nordland, Corridor "

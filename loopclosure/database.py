@@ -11,7 +11,7 @@ Codes are stored as float32, float16, or int8 with one float32 scale per vector
 its stage's per-dimension spread w (sqrt of each PCA component's variance, from the map's own
 codebooks), so the low-variance components keep their precision: it reads back as
 q * s * w in float32. On Corridor that halved the error (1.07 % -> 0.63 % of the norm) and
-kept every stage-II top-1 (README "Speed").
+kept every stage-II top-1 (docs/benchmarks.md, "Speed").
 
 A saved map can also be opened memory-mapped (`load(folder, mmap=True)`: nothing is read
 until used, so a map larger than RAM opens at once) and grown in place (`open(folder)`, then

@@ -98,7 +98,7 @@ class PipelineConfig(BaseModel):
         description="Run the source, odometry and keyframe selection in a thread of their own (run and demo put "
         "kiss-icp in a process of its own: it keeps the GIL), alongside recognition, registration and iSAM2 (same "
         "keyframes, loops and trajectory as false). Off by default: on a 2-core CPU every stage already uses both "
-        'cores, and it saved nothing with -c fast and 9 % with int8 (README, "SLAM demo"); try it where cores are free.',
+        "cores, and it saved nothing with -c fast and 9 % with int8 (docs/slam_demo.md); try it where cores are free.",
     )
     overlap_queue_keyframes: int = Field(
         default=2, ge=1, description="With overlap: keyframes the front end may run ahead of the back end."

@@ -171,7 +171,7 @@ class LidarRegistrationConfig(_Strict):
         "first_acceptable",
         description="first_acceptable: seeds nearest the guess first; the first seed, and any that screens at "
         "early_stop_inlier_ratio, is refined at once, and the first that passes acceptance ends the search (demo "
-        "log: 143 -> 78 ms a loop, same 305 decisions; README, 'SLAM demo'). Where a scene has an acceptable "
+        "log: 143 -> 78 ms a loop, same 305 decisions; docs/slam_demo.md). Where a scene has an acceptable "
         "alias (a half-turn symmetric hall) it takes the one nearest the guess. best: screen every seed, refine "
         "the refine_top_k best, keep the best",
     )
@@ -203,8 +203,8 @@ class LidarRegistrationConfig(_Strict):
         "whose query is fewer keyframes after an accepted ICP loop's query, with its match as near that "
         "loop's match, is recorded (method 'spaced') but not registered, as odometry already carries that "
         "loop's correction to it. Registration is most of a revisit keyframe's back-end cost: the fast preset's 4 "
-        "took the demo log from 329 to 287 core-ms a keyframe with the same ATE after the loops (README, 'SLAM "
-        "demo'). 1: register every accepted loop",
+        "took the demo log from 329 to 287 core-ms a keyframe with the same ATE after the loops (docs/slam_demo.md). "
+        "1: register every accepted loop",
     )
     rot_sigma: float = Field(0.02, gt=0, description="rad; factor sigma of an accepted ICP loop")
     trans_sigma: float = Field(0.1, gt=0, description="m; factor sigma of an accepted ICP loop")

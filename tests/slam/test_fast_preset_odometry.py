@@ -2,7 +2,7 @@
 tracks: on simulated scans and on real KITTI Velodyne pairs, as kiss-icp's defaults do.
 
 Its speed and whole-traverse accuracy are benchmarks (`tools/bench_odometry.py --slam-config
-fast`, README "SLAM demo"); these tests guard against a setting that loses track.
+fast`, docs/slam_demo.md); these tests guard against a setting that loses track.
 """
 
 from __future__ import annotations

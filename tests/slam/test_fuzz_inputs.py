@@ -1,6 +1,6 @@
 """Bad input, category by category: each case must exit with the documented status, print no
 traceback, name the input it refuses, and lose no finished data (results folders and `latest`
-stay valid). The README's "Bad input policy" quotes the case counts per category from here.
+stay valid). docs/robustness.md, "Bad input policy", quotes the case counts per category from here.
 
 Categories: config and environment, --out, prior map folders, logs / route files / images,
 partial ground truth; plus the results writer's atomicity under crashes and interrupts.

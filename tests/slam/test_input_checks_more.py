@@ -1,4 +1,4 @@
-"""More bad input, each refused as one line naming the input (README "Bad input policy"):
+"""More bad input, each refused as one line naming the input (docs/robustness.md, "Bad input policy"):
 
 - a damaged checkpoint given to `run --resume` (cut-short .npz files, a missing array, NaN or
   misshapen poses, keyframe ids out of order, checkpoint.json fields of the wrong type or out of
