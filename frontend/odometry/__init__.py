@@ -19,8 +19,8 @@ def choose_odometry(config: OdometryConfig, topics: dict[str, str], log: str) ->
     # poses read as ground truth only (an image folder's poses file by default): say how to drive with them
     hint = (
         "; its poses are read as ground truth: to take odometry from them set "
-        "frontend.odometry.logged.pose_source: gt (an image folder: frontend.source.folder.pose_role: logged, "
-        "or both to evaluate against them too)"
+        "frontend.odometry.logged.pose_source: gt (an image folder: `run --pose-role logged`, or both to "
+        "evaluate against them too)"
         if pose_role == "logged_pose" and "gt_pose" in topics
         else ""
     )

@@ -176,13 +176,27 @@ def test_an_image_folders_poses_drive_the_run_once_named_odometry(
     out = tmp_path / "out"
     result = invoke("run", image_folder, "--weights", weights_path, "--out", out)
     assert_user_error(result, str(image_folder), "no LiDAR scans and no logged poses",
-                      "read as ground truth", "frontend.source.folder.pose_role: logged")  # fmt: skip
+                      "read as ground truth", "run --pose-role logged")  # fmt: skip
     assert _run_folders(out) == []
-    env = {"SSMVPR_FRONTEND__SOURCE__FOLDER__POSE_ROLE": "both"}  # as the error says
-    result = invoke("run", image_folder, "--weights", weights_path, "--device", "cpu", "--out", out, env=env)
+    assert_user_error(invoke("run", image_folder, "--pose-role", "odometry"), "--pose-role", "'odometry'")
+    result = invoke("run", image_folder, "--pose-role", "both", "--weights", weights_path, "--device", "cpu",
+                    "--out", out)  # fmt: skip  # as the error says
     assert result.exit_code == 0, result.output
     metrics = json.loads((_run_folders(out)[0] / "metrics.json").read_text())
     assert metrics["odometry_kind"] == "logged" and metrics["frames"] == 6 and metrics["keyframes"] >= 2
+    assert metrics["ground_truth"] and metrics["ground_truth_coverage"] == 1.0  # both: the poses are the truth too
+
+
+def test_an_image_folder_without_poses_points_to_the_recognition_benchmarks(
+    image_folder: Path, weights_path: Path, tmp_path: Path
+) -> None:
+    bare = tmp_path / "images_only"
+    bare.mkdir()
+    for image in sorted(image_folder.glob("*.png")):
+        (bare / image.name).write_bytes(image.read_bytes())
+    result = invoke("run", bare, "--pose-role", "logged", "--weights", weights_path, "--out", tmp_path / "out")
+    assert_user_error(result, str(bare), "images only", "--pose-role logged", "loop-eval", "vpr-eval")
+    assert not (tmp_path / "out").exists()
 
 
 def test_run_refuses_configured_codebooks_it_cannot_read_before_any_work(

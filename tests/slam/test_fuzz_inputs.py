@@ -218,9 +218,9 @@ def _publish(base: Path, payload: str, during: Callable[[Path], None] | None = N
 
 
 def _assert_latest(base: Path, folder: Path, payload: str) -> None:
-    latest = base / "latest"
-    assert latest.is_symlink() and latest.resolve() == folder.resolve()
-    assert (latest / "metrics.json").read_text() == payload and (latest / "loop_closures.csv").is_file()
+    for latest in (base / "latest", base / "latest-run"):
+        assert latest.is_symlink() and latest.resolve() == folder.resolve()
+        assert (latest / "metrics.json").read_text() == payload and (latest / "loop_closures.csv").is_file()
     assert not [p for p in base.iterdir() if p.name.startswith(".")]  # no staging or temp link left
 
 
@@ -242,7 +242,9 @@ def test_a_failed_write_leaves_the_previous_results_and_latest(fault: str, tmp_p
     during, error = WRITE_FAULTS[fault]
     with pytest.raises(error):
         _publish(tmp_path, "second", during)
-    assert sorted(p.name for p in tmp_path.iterdir() if not p.name.startswith(".")) == sorted([first.name, "latest"])
+    assert sorted(p.name for p in tmp_path.iterdir() if not p.name.startswith(".")) == sorted(
+        [first.name, "latest", "latest-run"]
+    )
     _assert_latest(tmp_path, first, "first")
 
 

@@ -26,15 +26,15 @@ def test_optimize_ring_writes_outputs(tmp_path: Path, shared_dir: Path) -> None:
     result = invoke("optimize", base / "originalDataset" / "ring.g2o", "--gt", base / "groundTruth" / "ring.g2o",
                     "--times", times, "--out", out)  # fmt: skip
     assert result.exit_code == 0, result.output
-    metrics = json.loads((out / "metrics.json").read_text())
+    metrics = json.loads((out / "latest-optimize" / "metrics.json").read_text())
     assert metrics["vertices"] == 434 and metrics["loop_candidates"] == 26 and metrics["loops_outlier"] == 0
     assert metrics["ate"]["rmse"] < 0.5 * metrics["ate_initial"]["rmse"]
     assert metrics["solver"] == "auto" and metrics["kernel_solve"] == "batch"  # the default, from stored vertices
     assert metrics["gnc"] is True and metrics["kernel"] == "dcs"
     assert metrics["check"] is True and metrics["check_removed"] == 0
-    graph = read_pose_graph(out / "optimised.g2o")
+    graph = read_pose_graph(out / "latest-optimize" / "optimised.g2o")
     assert graph.ids == tuple(range(434)) and len(graph.edges) == 459
-    stamps, poses = read_tum(out / "optimised.tum")
+    stamps, poses = read_tum(out / "latest-optimize" / "optimised.tum")
     assert len(poses) == 434 and stamps[1] == pytest.approx(0.1)
     np.testing.assert_allclose(poses[:, :3, 3], graph.poses[:, :3, 3], atol=1e-6)
 
@@ -60,7 +60,7 @@ def test_optimize_reports_loop_classification(tmp_path: Path, truth: str) -> Non
         truth_args = ["--gt-edges", true_edges]
     result = invoke("optimize", graph, *truth_args, "--out", tmp_path / "o")
     assert result.exit_code == 0, result.output
-    metrics = json.loads((tmp_path / "o" / "metrics.json").read_text())
+    metrics = json.loads((tmp_path / "o" / "latest-optimize" / "metrics.json").read_text())
     assert metrics["initialised_from_odometry"] is True
     # from an odometry start both kernel solves run and the lower TLS objective is kept
     assert metrics["solver"] == "auto" and set(metrics["start_tls"]) == {"batch", "isam2"}
@@ -108,10 +108,10 @@ def test_from_odometry_ignores_a_bent_stored_estimate(tmp_path: Path) -> None:
     truth.write_text("".join("VERTEX_SE2 {} {} {} {}\n".format(k, *planar_of(p)) for k, p in enumerate(chain)))
     result = invoke("optimize", graph, "--from-odometry", "--gt", truth, "--gt-radius", 5, "--out", tmp_path / "o")
     assert result.exit_code == 0, result.output
-    metrics = json.loads((tmp_path / "o" / "metrics.json").read_text())
+    metrics = json.loads((tmp_path / "o" / "latest-optimize" / "metrics.json").read_text())
     assert metrics["initialised_from_odometry"] is True and metrics["loops_outlier"] == 0
     assert metrics["ate_oracle"]["rmse"] < 1e-6 and metrics["ate_ratio_to_oracle"] is None
-    optimised = read_pose_graph(tmp_path / "o" / "optimised.g2o")
+    optimised = read_pose_graph(tmp_path / "o" / "latest-optimize" / "optimised.g2o")
     np.testing.assert_allclose(optimised.poses, np.array(chain), atol=1e-6)
 
 
@@ -162,4 +162,4 @@ def test_a_graph_gtsam_cannot_solve_is_one_error_line(tmp_path: Path, edges: str
         len(errors) == 1
         and f"{graph}: GTSAM could not optimise this graph (indeterminate linear system near " in errors[0]
     )
-    assert "Traceback" not in result.output and not (tmp_path / "o" / "optimised.g2o").exists()
+    assert "Traceback" not in result.output and not (tmp_path / "o" / "latest-optimize").exists()

@@ -58,7 +58,7 @@ def test_optimize_gt_edges_from_the_ground_truth_g2o(tmp_path: Path, shared_dir:
     result = invoke("optimize", ring / "originalDataset" / "ring.g2o", "--gt", truth, "--gt-edges", truth,
                     "--out", out)  # fmt: skip
     assert result.exit_code == 0, result.output
-    metrics = json.loads((out / "metrics.json").read_text())
+    metrics = json.loads((out / "latest-optimize" / "metrics.json").read_text())
     assert metrics["loop_classification"]["true_outliers"] == 0 and metrics["loop_classification"]["loops"] == 26
     assert metrics["ate_oracle"]["rmse"] == pytest.approx(metrics["ate"]["rmse"], rel=1e-3)
     assert metrics["ate_oracle"]["rmse"] < 0.5 * metrics["ate_initial"]["rmse"]  # not the odometry start

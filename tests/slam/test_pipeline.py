@@ -387,7 +387,7 @@ def test_optimize_recovers_a_graph_of_raw_appearance_loops_from_odometry(open_ga
                 "--out", str(out)]  # fmt: skip
         result = CliRunner().invoke(app, args)
         assert result.exit_code == 0, result.output
-        return json.loads((out / "metrics.json").read_text())
+        return json.loads((out / "latest-optimize" / "metrics.json").read_text())
 
     metrics = optimize()
     scores = metrics["loop_classification"]
