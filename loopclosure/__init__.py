@@ -1,1 +1,53 @@
-"""SSM-VPR (Camara & Preucil, ECMR 2019) place recognition, usable on its own."""
+"""SSM-VPR (Camara & Preucil, ECMR 2019) place recognition, usable on its own.
+
+The names a user needs import from here; torch loads on first use of one that needs it:
+
+    from loopclosure import LoopDetector, PlaceRecognizer, list_images, read_image
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from loopclosure.config import DetectorConfig, VPRConfig
+    from loopclosure.database import PlaceDatabase
+    from loopclosure.detector import LoopDetector, LoopProposal
+    from loopclosure.errors import LoopClosureError, LoopClosureInputError
+    from loopclosure.images import list_images, read_image
+    from loopclosure.place_recognizer import PlaceRecognizer
+    from loopclosure.recognizer import Recognition
+
+_EXPORTS = {
+    "DetectorConfig": "loopclosure.config",
+    "VPRConfig": "loopclosure.config",
+    "PlaceDatabase": "loopclosure.database",
+    "LoopDetector": "loopclosure.detector",
+    "LoopProposal": "loopclosure.detector",
+    "LoopClosureError": "loopclosure.errors",
+    "LoopClosureInputError": "loopclosure.errors",
+    "list_images": "loopclosure.images",
+    "read_image": "loopclosure.images",
+    "PlaceRecognizer": "loopclosure.place_recognizer",
+    "Recognition": "loopclosure.recognizer",
+}
+__all__ = [
+    "DetectorConfig",
+    "LoopClosureError",
+    "LoopClosureInputError",
+    "LoopDetector",
+    "LoopProposal",
+    "PlaceDatabase",
+    "PlaceRecognizer",
+    "Recognition",
+    "VPRConfig",
+    "list_images",
+    "read_image",
+]
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _EXPORTS:
+        raise AttributeError(f"module 'loopclosure' has no attribute {name!r}")
+    return getattr(importlib.import_module(_EXPORTS[name]), name)

@@ -17,6 +17,7 @@ import logging
 import math
 import time
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Literal
 
 import numpy as np
@@ -132,6 +133,24 @@ class LoopDetector:
         self._configured_codebooks = (
             self._load_codebooks(config.codebooks) if config.codebooks is not None and database is None else None
         )
+
+    @classmethod
+    def from_config(
+        cls,
+        vpr: VPRConfig | None = None,
+        config: DetectorConfig | None = None,
+        weights: str | Path | None = None,
+        device: str | None = None,
+        database: PlaceDatabase | None = None,
+    ) -> LoopDetector:
+        """A detector with its backbone and encoder built: the ECMR 2019 recognition settings and
+        the default preset's decision unless given; weights as configured (a path,
+        $SSMVPR_WEIGHTS, the cache, a download)."""
+        from loopclosure.backbone import load_backbone
+        from loopclosure.place_recognizer import configured
+
+        vpr = configured(vpr, weights, device)
+        return cls(vpr, config or DetectorConfig(), Encoder(vpr, load_backbone(vpr.backbone)), database)
 
     def _load_codebooks(self, path: str) -> Codebooks:
         """`detector.codebooks`, checked against the cube vectors this backbone and these cubes make."""

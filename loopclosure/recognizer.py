@@ -32,6 +32,10 @@ class Recognition:
     def best_score(self) -> float:
         return float(self.ranked_scores[0]) if len(self.ranked_scores) else 0.0
 
+    def __repr__(self) -> str:
+        return (f"Recognition(best_place={self.best_place}, best_score={self.best_score:.3f}, "
+                f"candidates={len(self.ranked_places)})")  # fmt: skip
+
     @property
     def won_without_boost(self) -> bool:
         """The best place would also be best on its stage-II score alone (no prior needed)."""

@@ -1,3 +1,44 @@
-"""ssmvpr-slam: streaming SSM-VPR loop closures with a GTSAM back end."""
+"""ssmvpr-slam: streaming SSM-VPR loop closures with a GTSAM back end.
+
+The core without I/O and the runner around it import from here (torch, gtsam and kiss-icp load
+on first use):
+
+    from ssmvpr_slam import SlamSystem, load_config, run_log
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from ssmvpr_slam.config import SlamConfig, load_config
+    from ssmvpr_slam.errors import SlamError
+    from ssmvpr_slam.result import RunResult
+    from ssmvpr_slam.runner import run_log
+    from ssmvpr_slam.system import SlamSystem
 
 __version__ = "0.1.0"
+
+_EXPORTS = {
+    "SlamConfig": "ssmvpr_slam.config",
+    "load_config": "ssmvpr_slam.config",
+    "SlamError": "ssmvpr_slam.errors",
+    "RunResult": "ssmvpr_slam.result",
+    "run_log": "ssmvpr_slam.runner",
+    "SlamSystem": "ssmvpr_slam.system",
+}
+__all__ = [
+    "RunResult",
+    "SlamConfig",
+    "SlamError",
+    "SlamSystem",
+    "load_config",
+    "run_log",
+]
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _EXPORTS:
+        raise AttributeError(f"module 'ssmvpr_slam' has no attribute {name!r}")
+    return getattr(importlib.import_module(_EXPORTS[name]), name)
