@@ -439,7 +439,11 @@ def _resume(log: Path, folder: Path, weights: Path | None, device: str | None, r
 
 @app.command(
     "demo",
-    epilog=_examples("ssmvpr-slam demo --weights $W", "ssmvpr-slam demo --odometry logged -c fast"),
+    epilog=_examples(
+        "ssmvpr-slam demo -c quick --weights $W   (the quick start: 170 frames, a few minutes)",
+        "ssmvpr-slam demo --weights $W           (the full demo, 676 frames)",
+        "ssmvpr-slam demo --odometry logged -c fast",
+    ),
 )
 @friendly_errors
 def demo(
@@ -450,9 +454,11 @@ def demo(
     device: DeviceOpt = None,
     out: OutOpt = None,
 ) -> None:
-    """Simulate the default loopy traverse, run it, evaluate, and print before/after."""
-    from ssmvpr_slam.results import output_dir
+    """Simulate the default loopy traverse, run it, evaluate, and print before/after (`-c quick`: a
+    short one, a few minutes). The log is kept in the user cache and reused."""
+    from ssmvpr_slam.results import output_dir, output_file
     from ssmvpr_slam.runner import run_log, simulate_to_mcap
+    from ssmvpr_slam.simulated_logs import simulated_log_path
 
     cfg = _config(config, weights, device, out)
     if frames is not None:
@@ -460,9 +466,13 @@ def demo(
     cfg.frontend.odometry.kind = _odometry_kind(odometry)  # type: ignore[assignment]
     if cfg.frontend.odometry.kind == "logged":
         cfg.pipeline.use_lidar_for_loops = False
-    with output_dir(cfg.results.out_dir, _out_option(out)) as folder:
-        log = folder / "demo.mcap"
-        simulate_to_mcap(cfg, log, console)
+    with output_dir(cfg.results.out_dir, _out_option(out)):
+        log = simulated_log_path(cfg)  # in the user cache, reused by the next demo with the same settings
+        if log.is_file():
+            console.print(f"simulated log (already rendered): {escape(str(log))}", highlight=False)
+        else:
+            with output_file(log, "the simulated log's cache folder ($SSMVPR_CACHE)"):
+                simulate_to_mcap(cfg, log, console)
         run_log(log, cfg, console=console, name="demo")
 
 

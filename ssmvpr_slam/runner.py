@@ -235,6 +235,8 @@ def summary_table(metrics: dict[str, Any], title: str = "ssmvpr-slam run") -> Ta
             table.add_row("loops spaced out (not registered)", str(loops["spaced"]))
         fmt = lambda v: "n/a" if v is None else f"{v:.3f}"  # noqa: E731
         table.add_row("loop precision / recall", f"{fmt(loops['precision'])} / {fmt(loops['recall'])}")
+        if loops.get("n_revisits") == 0:  # say why recall is n/a: the route never comes back
+            table.add_row("revisits in the ground truth", "none: no place is passed twice, no loop to find")
         if "recall_visible" in loops:  # what a camera could see: reverse revisits show the far side
             fwd, rev = loops["by_direction"]["forward"], loops["by_direction"]["reverse"]
             table.add_row("recall of visible / forward / reverse revisits",

@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -83,9 +84,16 @@ def plot_trajectories(
         raise ValueError(f"loop_correct: {len(loop_correct)} flags for {len(loops)} loops")
     fig = new_figure(cfg)
     ax = fig.subplots()
+    # odometry wide and dashed under the optimised line: where loops changed little, both stay visible
+    styles: dict[str, dict[str, Any]] = {
+        "ground truth": {"linewidth": 1.2}, "odometry": {"linewidth": 2.6, "linestyle": (0, (4, 2))},
+        "optimised": {"linewidth": 1.2},
+    }  # fmt: skip
     for label, (pos, colour) in series.items():
         if pos is not None:
-            ax.plot(pos[:, 0], pos[:, 1], color=colour, label=label)
+            ax.plot(pos[:, 0], pos[:, 1], color=colour, label=label, **styles[label])
+    if not loops:
+        ax.text(0.5, 0.5, "no loops", transform=ax.transAxes, ha="center", va="center", color="0.4", fontsize=14)
     order = ("odometry", "ground truth", "optimised")
     anchor = next(pos for pos, _ in (series[name] for name in order) if pos is not None)
     drawn: set[str] = set()
@@ -179,5 +187,11 @@ def plot_loop_summary(
     ax_count.bar(list(counts), list(counts.values()), color=colours)
     ax_count.tick_params(axis="x", labelrotation=30)
     ax_count.set_title("counts")
+    if evaluation.n_revisits == 0:  # empty bars would read as a failure: the route never comes back
+        for ax in (ax_ratio, ax_count):
+            ax.text(0.5, 0.5, "no revisits in the ground truth:\nno loops to find", transform=ax.transAxes,
+                    ha="center", va="center", color="0.3")  # fmt: skip
+    elif evaluation.n_loops == 0:
+        ax_ratio.text(0.5, 0.5, "no loops", transform=ax_ratio.transAxes, ha="center", va="center", color="0.3")
     fig.suptitle(title)
     return save_figure(fig, path, cfg)
