@@ -108,8 +108,10 @@ class FolderSourceConfig(_Model):
 class SourceConfig(_Model):
     """Which data source :func:`~frontend.sources.open_source` builds, and its settings."""
 
-    kind: Literal["auto", "mcap", "kitti", "folder"] = "auto"
-    mcap: McapSourceConfig = Field(default_factory=McapSourceConfig)
+    kind: Literal["auto", "mcap", "rosbag", "kitti", "folder"] = "auto"
+    mcap: McapSourceConfig = Field(
+        default_factory=McapSourceConfig, description="MCAP logs and ROS 1 / ROS 2 bags: topics, association, clock"
+    )
     kitti: KittiSourceConfig = Field(default_factory=KittiSourceConfig)
     folder: FolderSourceConfig = Field(default_factory=FolderSourceConfig)
 
