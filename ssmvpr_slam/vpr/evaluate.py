@@ -274,7 +274,8 @@ def write_plots(
     }
     for L, seq in outcome.sequences.items():
         by_stage[f"sequence L={L} ({seq.direction})"] = curve(seq.score, seq.match, tol)
-    plot_pr_curves(by_stage, folder / "pr_stages.png", f"Stage I vs stage II vs sequences (±{tol} frames)")
+    title = "Stage I vs stage II" + (" vs sequences" if outcome.sequences else "")
+    plot_pr_curves(by_stage, folder / "pr_stages.png", f"{title} (±{tol} frames)")
     if outcome.sequences:
         single_vs_sequence = {"single frame (stage II)": by_stage["stage II (spatial matching)"]}
         single_vs_sequence.update({k: v for k, v in by_stage.items() if k.startswith("sequence")})
@@ -290,7 +291,6 @@ def summary_table(metrics: dict[str, Any]) -> Table:
     table.add_column("value", justify="right")
     rows = [
         ("PR-AUC (stage II)", metrics["pr_auc"]),
-        ("precision @ 100% recall", metrics["precision_at_full_recall"]),
         ("recall @ 100% precision", metrics["recall_at_full_precision"]),
         ("top-1 accuracy, stage I", metrics["top1_accuracy_stage1"]),
         ("top-1 accuracy, stage II", metrics["top1_accuracy_stage2"]),
