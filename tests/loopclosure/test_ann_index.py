@@ -197,7 +197,9 @@ def test_exact_index_grows_with_the_database(backend):
 
 
 @pytest.fixture(scope="module")
-def corridor_codes(corridor_dir: Path, weights_path: Path) -> tuple[PlaceCodes, PlaceCodes]:
+def corridor_codes(
+    corridor_dir: Path, weights_path: Path, shared_backbone_passes: object
+) -> tuple[PlaceCodes, PlaceCodes]:
     from loopclosure.backbone import load_backbone
     from loopclosure.config import VPRConfig
     from loopclosure.encoder import Encoder

@@ -17,7 +17,9 @@ pytestmark = pytest.mark.slow
 
 
 @pytest.fixture(scope="module")
-def corridor_run(tmp_path_factory: pytest.TempPathFactory, corridor_dir: Path, weights_path: Path) -> Path:
+def corridor_run(
+    tmp_path_factory: pytest.TempPathFactory, corridor_dir: Path, weights_path: Path, shared_backbone_passes: object
+) -> Path:
     out = tmp_path_factory.mktemp("loop_eval")
     result = invoke("loop-eval", corridor_dir / "ref", corridor_dir / "query", "--weights", weights_path,
                     "--device", "cpu", "--out", out)  # fmt: skip

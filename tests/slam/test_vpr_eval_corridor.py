@@ -14,7 +14,9 @@ from ssmvpr_slam.cli import app
 
 
 @pytest.fixture(scope="module")
-def corridor_run(tmp_path_factory: pytest.TempPathFactory, corridor_dir: Path, weights_path: Path) -> Path:
+def corridor_run(
+    tmp_path_factory: pytest.TempPathFactory, corridor_dir: Path, weights_path: Path, shared_backbone_passes: object
+) -> Path:
     out = tmp_path_factory.mktemp("vpr_eval")
     result = CliRunner().invoke(app, [
         "vpr-eval", str(corridor_dir / "ref"), str(corridor_dir / "query"),
