@@ -88,7 +88,7 @@ def test_folder_errors(tmp_path: Path) -> None:
     with pytest.raises(FrontendInputError, match="not recognised"):
         open_source(empty)
     (tmp_path / "notes.txt").write_text("x")
-    with pytest.raises(FrontendInputError, match=r"notes\.txt: not a \.mcap file"):
+    with pytest.raises(FrontendInputError, match=r"notes\.txt: not a \.mcap or \.bag file"):
         open_source(tmp_path / "notes.txt")
     (tmp_path / "images" / "1.png").write_bytes(b"not a png")
     (tmp_path / "times.txt").unlink()
