@@ -7,8 +7,9 @@ The names a user needs import from here; torch loads on first use of one that ne
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from ssmvpr_common.lazy_exports import lazy_exports
 
 if TYPE_CHECKING:
     from loopclosure.config import DetectorConfig, VPRConfig
@@ -47,7 +48,4 @@ __all__ = [
 ]
 
 
-def __getattr__(name: str) -> Any:
-    if name not in _EXPORTS:
-        raise AttributeError(f"module 'loopclosure' has no attribute {name!r}")
-    return getattr(importlib.import_module(_EXPORTS[name]), name)
+__getattr__ = lazy_exports("loopclosure", _EXPORTS)

@@ -8,8 +8,9 @@ on first use):
 
 from __future__ import annotations
 
-import importlib
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
+
+from ssmvpr_common.lazy_exports import lazy_exports
 
 if TYPE_CHECKING:
     from ssmvpr_slam.config import SlamConfig, load_config
@@ -38,7 +39,4 @@ __all__ = [
 ]
 
 
-def __getattr__(name: str) -> Any:
-    if name not in _EXPORTS:
-        raise AttributeError(f"module 'ssmvpr_slam' has no attribute {name!r}")
-    return getattr(importlib.import_module(_EXPORTS[name]), name)
+__getattr__ = lazy_exports("ssmvpr_slam", _EXPORTS)

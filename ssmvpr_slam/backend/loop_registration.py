@@ -244,30 +244,20 @@ class LoopRegistrar:
         """No registration: odometry puts the two keyframes `offset_m` apart after `travelled_m`
         of driving between them, beyond what its drift explains (`odometry_gate`)."""
         gate = self.config.odometry_gate
-        return LoopRegistration(
-            T_mq=np.eye(4),
-            accepted=False,
-            reason=f"implausible: odometry puts the keyframes {offset_m:.1f} m apart, beyond "
+        return _implausible(
+            f"implausible: odometry puts the keyframes {offset_m:.1f} m apart, beyond "
             f"{gate.limit(travelled_m):.1f} m ({gate.base_m:g} m + {gate.per_m_travelled:g} x {travelled_m:.0f} m "
-            "driven between them; backend.registration.odometry_gate)",
-            inlier_ratio=float("nan"),
-            rmse=float("nan"),
-            method="implausible",
+            "driven between them; backend.registration.odometry_gate)"
         )
 
     def turned(self, claimed_yaw: float, odometry_yaw: float) -> LoopRegistration:
         """No registration: the match says the query faces `claimed_yaw` relative to the place,
         the odometry says `odometry_yaw`, more than `odometry_gate.max_heading_deg` apart."""
         gate = self.config.odometry_gate
-        return LoopRegistration(
-            T_mq=np.eye(4),
-            accepted=False,
-            reason=f"implausible: the match puts the heading at {math.degrees(claimed_yaw):.0f} deg to the place, "
+        return _implausible(
+            f"implausible: the match puts the heading at {math.degrees(claimed_yaw):.0f} deg to the place, "
             f"the odometry at {math.degrees(odometry_yaw):.0f} deg, more than {gate.max_heading_deg:g} deg apart "
-            "(backend.registration.odometry_gate.max_heading_deg)",
-            inlier_ratio=float("nan"),
-            rmse=float("nan"),
-            method="implausible",
+            "(backend.registration.odometry_gate.max_heading_deg)"
         )
 
     def unverified(self, prior: LoopRegistration, agreeing: int) -> LoopRegistration:
@@ -303,6 +293,14 @@ class LoopRegistrar:
             sigmas=sigmas,
             method="yaw_prior",
         )
+
+
+def _implausible(reason: str) -> LoopRegistration:
+    """A loop the odometry gate refuses before any registration: no pose, never a factor."""
+    return LoopRegistration(
+        T_mq=np.eye(4), accepted=False, reason=reason, inlier_ratio=float("nan"), rmse=float("nan"),
+        method="implausible",
+    )  # fmt: skip
 
 
 def _finite_yaw(yaw: float) -> float:
