@@ -221,8 +221,7 @@ class LoopDetector:
         """Make the two places of a loop the caller accepted one (with `links_from_decisions`
         off). The query's place is its keyframe's: keyframe ids must count places from 0, as a
         SLAM run's do."""
-        if self._calibrated and self.config.calibrated.link_accepted:
-            self.links.join(self.prior_places + proposal.query_id, proposal.match_place)
+        self._join_places(self.prior_places + proposal.query_id, proposal.match_place)
 
     @property
     def ready(self) -> bool:
@@ -490,13 +489,12 @@ class LoopDetector:
 
     def _link(self, proposal: LoopProposal, query_place: int) -> None:
         """An accepted loop makes its two places one (see `CalibratedDecisionConfig.link_accepted`)."""
-        if (
-            proposal.accepted
-            and self.links_from_decisions
-            and self._calibrated
-            and self.config.calibrated.link_accepted
-        ):
-            self.links.join(query_place, proposal.match_place)
+        if proposal.accepted and self.links_from_decisions:
+            self._join_places(query_place, proposal.match_place)
+
+    def _join_places(self, a: int, b: int) -> None:
+        if self._calibrated and self.config.calibrated.link_accepted:
+            self.links.join(a, b)
 
     def _decide(
         self, match: SequenceMatch, centre: float, rear: bool = False

@@ -332,7 +332,7 @@ def explain_config(config: SlamConfig) -> str:
             if isinstance(value, BaseModel):
                 walk(value, key + ".")
                 continue
-            shown = json.dumps(value.model_dump(mode="json") if isinstance(value, BaseModel) else _plain(value))
+            shown = json.dumps(_plain(value))
             note = f"  # {info.description}" if info.description else ""
             lines.append(f"{key}: {shown}{note}")
 

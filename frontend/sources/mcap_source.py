@@ -12,7 +12,7 @@ is read linearly in file order, and a cut is reported after every frame before i
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterator
+from collections.abc import Generator, Iterator
 from pathlib import Path
 from typing import IO, Any
 
@@ -103,7 +103,7 @@ class McapSource(RosStreamSource):
 
     # ---------------------------------------------------------------- messages
 
-    def _decoded(self, topics: list[str]) -> Iterator[tuple[str, int, Any]]:
+    def _decoded(self, topics: list[str]) -> Generator[tuple[str, int, Any]]:
         factory = DecoderFactory()
         with self._open() as stream:
             for schema, channel, message in self._raw_messages(stream, topics):

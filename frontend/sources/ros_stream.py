@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import logging
 from abc import abstractmethod
-from collections.abc import Iterator
+from collections.abc import Generator, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -91,7 +91,7 @@ class RosStreamSource(Source):
         self._length = counts.get(self._roles[self.driver].name) if counts else None
 
     @abstractmethod
-    def _decoded(self, topics: list[str]) -> Iterator[tuple[str, int, Any]]:
+    def _decoded(self, topics: list[str]) -> Generator[tuple[str, int, Any]]:
         """(topic, log time in ns, decoded message or None when it could not be decoded), in
         time order; an exception means the log is cut or corrupt there."""
 
@@ -207,9 +207,7 @@ class RosStreamSource(Source):
                     ready = associator.add_aux(topic.role, time, payload)
                 yield from self._frames(ready)
         finally:
-            close = getattr(messages, "close", None)
-            if close is not None:
-                close()  # a generator holding the file open lets go of it now
+            messages.close()  # the reader holding the log open lets go of it now
         yield from self._frames(associator.flush())
         if failure is not None:
             why = f"{self.path}: log is truncated or corrupt after {self.stats.frames_yielded} frames ({failure})"

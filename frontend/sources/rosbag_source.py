@@ -5,7 +5,7 @@ settings apply to bags too; see :mod:`frontend.sources.ros_stream`)."""
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Generator, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
@@ -58,7 +58,7 @@ class RosbagSource(RosStreamSource):
         finally:
             reader.close()
 
-    def _decoded(self, topics: list[str]) -> Iterator[tuple[str, int, Any]]:
+    def _decoded(self, topics: list[str]) -> Generator[tuple[str, int, Any]]:
         wanted = set(topics)
         with self._reader() as reader:
             connections = [c for c in reader.connections if c.topic in wanted]
