@@ -71,7 +71,9 @@ class McapSourceConfig(_Model):
     )
     max_pending_frames: int = Field(64, ge=1, description="frames held while waiting")
     max_buffered_messages: int = Field(64, ge=2, description="per-stream look-back buffer")
-    use_header_stamp: bool = Field(True, description="associate by header.stamp (log_time when the stamp is zero)")
+    use_header_stamp: bool = Field(
+        True, description="time messages by header.stamp; log time for the whole log when a topic's first stamp is 0"
+    )
     strict: bool = Field(True, description="truncated/corrupt log: raise (True) or warn once and stop (False)")
     skip_undecodable_images: bool = Field(
         True, description="bad image: count it, keep the frame's other sensors (False: stop)"

@@ -30,6 +30,7 @@ from ssmvpr_common.poses import (
     tum_lines,
 )
 from ssmvpr_common.poses import data_lines as text_data_lines
+from ssmvpr_common.text_files import read_text
 
 PoseFormat = Literal["tum", "kitti"]
 
@@ -45,11 +46,7 @@ class PoseFile:
 
 def data_lines(path: Path) -> list[tuple[int, list[str]]]:
     """(line number, tokens) of each data line; an unreadable file is an input error naming it."""
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as error:
-        raise FrontendInputError(f"{path}: cannot read pose file ({error})") from None
-    return text_data_lines(text)
+    return text_data_lines(read_text(path, FrontendInputError))
 
 
 def _floats(path: Path, lineno: int, tokens: list[str], expected: int, what: str) -> np.ndarray:

@@ -24,18 +24,19 @@ class SourceStats:
     skipped: Counter[str] = field(default_factory=Counter)
     notes: Counter[str] = field(default_factory=Counter)  # e.g. unmatched_lidar
     warned: set[str] = field(default_factory=set)
+    quiet: bool = False  # a read-ahead (choosing the clock) counts nothing that the real pass will tell
 
     def skip(self, reason: str, detail: str) -> None:
         """Count a skip; log the first of each reason (a long log must not flood the console)."""
         self.skipped[reason] += 1
-        if reason not in self.warned:
+        if reason not in self.warned and not self.quiet:
             self.warned.add(reason)
             log.warning("%s (further '%s' skips are only counted)", detail, reason)
 
     def warn(self, reason: str, detail: str) -> None:
         """Count something kept but doubtful (a note); log the first of each reason."""
         self.notes[reason] += 1
-        if reason not in self.warned:
+        if reason not in self.warned and not self.quiet:
             self.warned.add(reason)
             log.warning("%s (further '%s' cases are only counted)", detail, reason)
 

@@ -10,10 +10,43 @@ that long is a guess.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
+import numpy as np
+
+from frontend.errors import FrontendInputError
 from frontend.sources.base import SourceStats
+from ssmvpr_common.text_files import read_text
 
 DEFAULT_MAX_GAP_S = 5.0
+MAX_TIME_S = float(2**31 - 1)
+"""The last second a ROS time can hold (int32 seconds, January 2038): a later time could be read
+but never written back (the trajectory log, a converted bag), so it is refused before any work."""
+
+
+def time_problem(time: float) -> str | None:
+    """Why `time` (seconds) cannot be a frame's time, or None."""
+    if not math.isfinite(time):
+        return f"time {time} is not finite"
+    if not 0.0 <= time <= MAX_TIME_S:
+        return f"time {time:.9g} s is outside 0 .. {MAX_TIME_S:.0f} s (what a ROS time can hold, until 2038)"
+    return None
+
+
+def read_times(path: Path) -> np.ndarray:
+    """A times file (one time in seconds per line), refused with one line naming the file when it
+    is not text, not numbers, not finite, or holds a time no writer could keep."""
+    text = read_text(path, FrontendInputError)
+    try:
+        times = np.loadtxt(text.splitlines(), dtype=np.float64, ndmin=1)
+    except ValueError as error:
+        raise FrontendInputError(f"{path}: unreadable ({error})") from None
+    if times.ndim != 1 or not np.all(np.isfinite(times)):
+        raise FrontendInputError(f"{path}: need one finite time per line")
+    bad = np.flatnonzero((times < 0.0) | (times > MAX_TIME_S))
+    if len(bad):
+        raise FrontendInputError(f"{path} line {bad[0] + 1}: {time_problem(float(times[bad[0]]))}; refusing the times")
+    return times
 
 
 class StreamClock:
@@ -26,8 +59,9 @@ class StreamClock:
 
     def accept(self, stream: str, time: float, where: str) -> bool:
         """True to use the message; False (counted, first one warned) to skip it."""
-        if not math.isfinite(time):
-            self.stats.skip(f"bad_time_{stream}", f"{where}: time {time} is not finite; skipped")
+        problem = time_problem(time)
+        if problem is not None:
+            self.stats.skip(f"bad_time_{stream}", f"{where}: {problem}; skipped")
             return False
         last = self._last.get(stream)
         if last is not None and time <= last:

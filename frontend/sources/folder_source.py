@@ -22,9 +22,9 @@ from frontend.errors import FrontendInputError
 from frontend.frame import Frame
 from frontend.poses_io import PoseFile, read_poses
 from frontend.sources.base import Source
-from frontend.sources.clock import StreamClock
+from frontend.sources.clock import StreamClock, read_times
 from frontend.sources.images import read_rgb
-from ssmvpr_common.images import image_files
+from ssmvpr_common.images import frame_number, image_files, pair_by_number
 
 IMAGE_DIR_NAMES = ("images", "image", "rgb", "image_2", "image_0")
 POSES_NAMES = ("poses.txt", "groundtruth.txt", "poses_tum.txt", "poses_kitti.txt", "gt.txt")
@@ -53,6 +53,8 @@ class FolderSource(Source):
         self.poses_path = self._find(self.config.poses_file, POSES_NAMES, "poses file")
         self.pose_file: PoseFile | None = read_poses(self.poses_path, config=pose_config) if self.poses_path else None
         self.times_path = self._find(self.config.times_file, (TIMES_NAME,), "times file")
+        self._unpaired: list[Path] = []  # images numbered past the last times/poses line
+        self._gaps: list[int] = []  # lines (frames) with no image
         self.times, real_times = self._times()
         self.poses = self._match_poses(real_times)
 
@@ -82,15 +84,13 @@ class FolderSource(Source):
         """Per-image times, and whether they are real (usable to match TUM poses)."""
         count = len(self.images)
         if self.times_path is not None:
-            try:
-                times = np.loadtxt(self.times_path, dtype=np.float64, ndmin=1)
-            except ValueError as error:
-                raise FrontendInputError(f"{self.times_path}: unreadable ({error})") from None
-            if times.ndim != 1 or len(times) != count or not np.all(np.isfinite(times)):
+            times = read_times(self.times_path)
+            lines = self._lines(len(times))
+            if lines is None:
                 raise FrontendInputError(
                     f"{self.times_path}: need {count} finite times (one per image), got {times.size}"
                 )
-            return times, True
+            return times[lines], True
         try:
             stems = np.array([float(p.stem) for p in self.images])
             if np.all(np.isfinite(stems)) and np.all(np.diff(stems) > 0):
@@ -108,12 +108,31 @@ class FolderSource(Source):
         poses, stamps = self.pose_file.poses, self.pose_file.timestamps
         if stamps is not None and real_times:
             return self._nearest(stamps, poses)
-        if len(poses) != len(self.images):
+        lines = self._lines(len(poses))
+        if lines is None:
             raise FrontendInputError(
                 f"{self.poses_path}: {len(poses)} poses for {len(self.images)} images "
                 "(without timestamps to match, poses pair with images by index)"
             )
-        return list(poses)
+        return list(poses[lines])
+
+    def _lines(self, lines: int) -> np.ndarray | None:
+        """The line of a per-frame file (times, poses) each image pairs with: its position when the
+        counts agree and the names are in step; its frame number (``000030.png`` is line 30) when
+        names are frame numbers with a gap, so one missing image shifts nothing (the images
+        numbered past the last line are dropped, told once); None when neither pairs them."""
+        paired = pair_by_number(self.images, lines)
+        if paired is None:
+            return np.arange(lines) if lines == len(self.images) else None
+        at, extra = paired
+        self._gaps = [line for line, path in enumerate(at) if path is None]
+        if extra:
+            self._unpaired = extra
+            kept = set(self.images) - set(extra)
+            self.images = [p for p in self.images if p in kept]
+            if not self.images:
+                return None
+        return np.array([frame_number(p) for p in self.images])
 
     def _nearest(self, stamps: np.ndarray, poses: np.ndarray) -> list[np.ndarray | None]:
         if len(stamps) == 0:
@@ -152,6 +171,16 @@ class FolderSource(Source):
         self.reset_stats()
         roles = POSE_ROLES[self.config.pose_role]
         clock = StreamClock(self.stats, self.config.max_time_gap_s)
+        if self._unpaired:
+            self.stats.warn(
+                "unpaired_image",
+                f"{self.image_dir}: {len(self._unpaired)} image(s) numbered past the times/poses lines "
+                f"(first {self._unpaired[0].name}); ignored",
+            )
+        for line in self._gaps:
+            self.stats.skip(
+                "missing_image", f"{self.image_dir}: frame {line} has no image file (a gap in the numbering)"
+            )
         for index, (path, time) in enumerate(zip(self.images, self.times)):
             if not clock.accept("frame", float(time), str(path)):
                 continue

@@ -26,10 +26,11 @@ from frontend.errors import FrontendInputError
 from frontend.frame import Frame
 from frontend.poses_io import read_kitti
 from frontend.sources.base import Source
-from frontend.sources.clock import StreamClock
+from frontend.sources.clock import StreamClock, read_times
 from frontend.sources.images import read_rgb
-from ssmvpr_common.images import image_files
+from ssmvpr_common.images import image_files, pair_by_number
 from ssmvpr_common.poses import KITTI_COLUMNS, pose_from_kitti_row, pose_problem
+from ssmvpr_common.text_files import read_text
 
 log = logging.getLogger("frontend.sources.kitti")
 
@@ -57,12 +58,7 @@ def read_calib_tr(path: Path) -> np.ndarray | None:
     (a scaled or singular Tr would scale or break the ground truth moved by it)."""
     if not path.is_file():
         return None
-    try:
-        text = path.read_text(encoding="utf-8")
-    except UnicodeDecodeError as exc:
-        raise FrontendInputError(f"{path}: not a text calib file (byte {exc.start} is not UTF-8)") from None
-    except OSError as exc:
-        raise FrontendInputError(f"{path}: cannot read ({exc.strerror or exc})") from None
+    text = read_text(path, FrontendInputError)
     for lineno, line in enumerate(text.splitlines(), start=1):
         key, _, values = line.partition(":")
         if key.strip() == "Tr":
@@ -98,28 +94,19 @@ class KittiSource(Source):
             raise FrontendInputError(
                 f"{self.path}: a KITTI sequence folder needs times.txt (one timestamp per frame); it has none"
             )
-        self.times = self._read_times(self.path / "times.txt")
+        self.times = read_times(self.path / "times.txt")
         self.camera_folder = self._camera_folder()
         self.images = image_files(self.path / self.camera_folder) if self.camera_folder else []
         velodyne = self.path / "velodyne"
         self.scans = sorted(velodyne.glob("*.bin")) if self.config.load_points and velodyne.is_dir() else []
         if not self.images and not self.scans:
             raise FrontendInputError(f"{self.path}: no images ({'/'.join(CAMERA_FOLDERS)}) and no velodyne/*.bin scans")
-        self._check_count(self.images, self.camera_folder)
-        self._check_count(self.scans, "velodyne")
+        self._image_at, self._extra_images = self._pair(self.images, self.camera_folder)
+        self._scan_at, self._extra_scans = self._pair(self.scans, "velodyne")
         self.tr = read_calib_tr(self.path / "calib.txt")
         self.gt_frame = self._gt_frame()
         self.poses_path = self._poses_path()
         self.gt_poses = self._read_gt(pose_config)
-
-    def _read_times(self, path: Path) -> np.ndarray:
-        try:
-            times = np.loadtxt(path, dtype=np.float64, ndmin=1)
-        except ValueError as error:
-            raise FrontendInputError(f"{path}: unreadable ({error})") from None
-        if times.ndim != 1 or not np.all(np.isfinite(times)):
-            raise FrontendInputError(f"{path}: need one finite time per line")
-        return times
 
     def _camera_folder(self) -> str | None:
         choice = self.config.camera
@@ -131,11 +118,19 @@ class KittiSource(Source):
             return choice
         return next((c for c in CAMERA_FOLDERS if (self.path / c).is_dir()), None)
 
-    def _check_count(self, files: list[Path], what: str | None) -> None:
-        if files and len(files) != len(self.times):
+    def _pair(self, files: list[Path], what: str | None) -> tuple[list[Path | None], list[Path]]:
+        """Each frame's file by its number (``000030.png`` is frame 30: a missing file is a gap,
+        never a shift); by position when the names are not frame numbers (counts must agree)."""
+        if not files:
+            return [], []
+        paired = pair_by_number(files, len(self.times))
+        if paired is not None:
+            return paired
+        if len(files) != len(self.times):
             raise FrontendInputError(
                 f"{self.path / str(what)}: {len(files)} files but times.txt has {len(self.times)} lines"
             )
+        return list(files), []
 
     def _gt_frame(self) -> str:
         if self.config.gt_frame != "auto":
@@ -167,12 +162,20 @@ class KittiSource(Source):
             poses = np.linalg.inv(tr) @ poses @ tr
         return poses
 
-    def _read(self, reader: Callable[[Path], np.ndarray], files: list[Path], index: int, reason: str):  # noqa: ANN202
+    def _read(self, reader: Callable[[Path], np.ndarray], files: list[Path | None], index: int, what: str, reason: str):  # noqa: ANN202
         """One sensor file of a frame, or None (counted, first warned): the frame keeps the rest."""
         if not files:
             return None
+        path = files[index]
+        if path is None:
+            self.stats.skip(
+                f"missing_{what}",
+                f"{self.path}: frame {index} (times.txt line {index + 1}) has no {what} file; "
+                "the frame keeps its other sensors",
+            )
+            return None
         try:
-            return reader(files[index])
+            return reader(path)
         except (FrontendInputError, OSError, ValueError) as error:
             self.stats.skip(reason, f"{error}; file skipped")
             return None
@@ -205,11 +208,18 @@ class KittiSource(Source):
     def __iter__(self) -> Iterator[Frame]:
         self.reset_stats()
         clock = StreamClock(self.stats, self.config.max_time_gap_s)
+        for extra, what in ((self._extra_images, "image"), (self._extra_scans, "scan")):
+            if extra:
+                self.stats.warn(
+                    f"unpaired_{what}",
+                    f"{self.path}: {len(extra)} {what} file(s) numbered past times.txt's {len(self.times)} lines "
+                    f"(first {extra[0].name}); ignored",
+                )
         for index, timestamp in enumerate(self.times):
             if not clock.accept("frame", float(timestamp), f"{self.path}/times.txt line {index + 1}"):
                 continue
-            image = self._read(read_rgb, self.images, index, "undecodable_image")
-            points = self._read(read_velodyne, self.scans, index, "bad_lidar")
+            image = self._read(read_rgb, self._image_at, index, "image", "undecodable_image")
+            points = self._read(read_velodyne, self._scan_at, index, "scan", "bad_lidar")
             if (self.images or self.scans) and image is None and points is None:
                 continue  # nothing of this frame could be read
             gt_pose = None

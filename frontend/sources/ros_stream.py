@@ -22,8 +22,8 @@ from frontend.errors import FrontendInputError
 from frontend.frame import Frame
 from frontend.sources import ros_convert
 from frontend.sources.association import Associated, StreamAssociator
-from frontend.sources.base import Source
-from frontend.sources.clock import StreamClock
+from frontend.sources.base import Source, SourceStats
+from frontend.sources.clock import StreamClock, time_problem
 from frontend.sources.ros_msgdefs import (
     COMPRESSED_IMAGE,
     IMAGE,
@@ -36,6 +36,10 @@ from ssmvpr_common.poses import pose_problem
 log = logging.getLogger("frontend.sources.ros")
 
 POSE_WITH_COVARIANCE_STAMPED = "geometry_msgs/msg/PoseWithCovarianceStamped"
+CLOCK_PROBE_MESSAGES = 2000
+"""Messages read ahead to find every chosen topic's first time (the clock is chosen from them)."""
+UNSET_STAMP_LOG_TIME_S = 1.0
+"""A stamp of 0 is unset when the message's log time is past this (a log may start at time 0)."""
 _POSE_TYPES = (ODOMETRY, POSE_STAMPED, POSE_WITH_COVARIANCE_STAMPED)
 _CAMERA_ROLES = ("camera", "rear_camera")
 # role -> (types accepted when the topic is named, types auto-detected, default topic names)
@@ -83,6 +87,7 @@ class RosStreamSource(Source):
         self.config = config or McapSourceConfig()
         self._rotation_tolerance = (pose_config or PoseFileConfig()).rotation_tolerance
         self._scan_stopped: str | None = None  # why a linear topic scan ended early (cut or corrupt log)
+        self._header_clock = self.config.use_header_stamp
 
     def _choose_streams(self, present: dict[str, str], counts: dict[str, int] | None) -> None:
         """Select each role's topic among `present` ({topic: normalised type}) and the driver."""
@@ -178,6 +183,7 @@ class RosStreamSource(Source):
             self.stats,
         )
         by_topic = {t.name: t for t in self._roles.values()}
+        self._header_clock = self._choose_clock(list(by_topic))
         clock = StreamClock(self.stats, cfg.max_time_gap_s)
         failure: str | None = None
         messages = self._decoded(list(by_topic))
@@ -196,6 +202,13 @@ class RosStreamSource(Source):
                     continue
                 topic = by_topic[name]
                 time = self._time(decoded, log_time)
+                if time is None:
+                    self.stats.skip(
+                        f"unset_stamp_{topic.role}",
+                        f"{self.path}: {topic.name} message with header stamp 0 in a log timed by header "
+                        "stamps; skipped",
+                    )
+                    continue
                 if not clock.accept(topic.role, time, f"{self.path}: {topic.name}"):
                     continue
                 payload = self._convert(topic, decoded, time)
@@ -217,13 +230,59 @@ class RosStreamSource(Source):
 
     # ---------------------------------------------------------------- helpers
 
-    def _time(self, decoded: Any, log_time_ns: int) -> float:
+    @staticmethod
+    def _stamp(decoded: Any, log_time: float) -> float | None:
+        """The message's header stamp in seconds; None when it has none or it is unset: 0 (or
+        less) while the log time is not (a recorder that leaves stamps at 0 but logs wall-clock
+        time); a log that starts at time 0 on both clocks is stamped, not unset."""
         header = getattr(decoded, "header", None)
-        if self.config.use_header_stamp and header is not None:
-            stamp = ros_convert.stamp_seconds(header.stamp)
-            if stamp > 0:
-                return stamp
-        return log_time_ns / ros_convert.NANOSECONDS
+        if header is None:
+            return None
+        stamp = ros_convert.stamp_seconds(header.stamp)
+        return stamp if stamp > 0 or log_time < UNSET_STAMP_LOG_TIME_S else None
+
+    def _choose_clock(self, topics: list[str]) -> bool:
+        """One clock for the whole log, from each topic's first message: header stamps when every
+        topic's first stamp is set, else log time for every topic (said once). Frames never mix
+        the two clocks, and a log whose times no writer can hold is refused before any work."""
+        first: dict[str, tuple[float | None, float]] = {}
+        counting, self.stats = self.stats, SourceStats(quiet=True)  # the real pass counts and tells
+        messages = self._decoded(topics)
+        try:
+            for count, (name, log_time, decoded) in enumerate(messages):
+                if decoded is not None and name not in first:
+                    seconds = log_time / ros_convert.NANOSECONDS
+                    first[name] = (self._stamp(decoded, seconds), seconds)
+                if len(first) == len(topics) or count >= CLOCK_PROBE_MESSAGES:
+                    break
+        except FrontendInputError:
+            raise
+        except Exception:  # a cut log: the main pass reports where
+            pass
+        finally:
+            messages.close()
+            self.stats = counting
+        header = self.config.use_header_stamp and bool(first)
+        unset = sorted(name for name, (stamp, _) in first.items() if stamp is None)
+        if header and unset:
+            header = False
+            self.stats.warn(
+                "clock_log_time",
+                f"{self.path}: header stamps of {', '.join(unset)} start unset (0); every topic is timed "
+                "by log time instead (one clock for the whole log)",
+            )
+        for name, (stamp, log_time) in first.items():
+            time = stamp if header and stamp is not None else log_time
+            problem = time_problem(time)
+            if problem is not None:
+                clock = "header stamp" if header else "log time"
+                raise FrontendInputError(f"{self.path}: {name} {clock}: {problem}; refusing the log")
+        return header
+
+    def _time(self, decoded: Any, log_time_ns: int) -> float | None:
+        """The message's time on the log's clock; None for an unset stamp on a header-stamped log."""
+        log_time = log_time_ns / ros_convert.NANOSECONDS
+        return self._stamp(decoded, log_time) if self._header_clock else log_time
 
     def _convert(self, topic: Topic, decoded: Any, time: float) -> Any:
         """Message -> numpy payload for the Frame; None (counted, first one warned) when unusable.

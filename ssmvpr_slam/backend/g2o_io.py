@@ -41,6 +41,7 @@ import numpy as np
 
 from ssmvpr_common.atomic import atomic_write_text
 from ssmvpr_common.poses import matrix_to_quaternion, quaternion_to_matrix
+from ssmvpr_common.text_files import read_text
 from ssmvpr_slam.backend.se3 import make_pose, project_to_so3, rot_z, yaw_of
 
 QUATERNION_NORM_TOL = 1e-3
@@ -271,10 +272,7 @@ def read_pose_graph(path: str | os.PathLike[str]) -> PoseGraphData:
     name = str(path)
     if not path.is_file():
         raise FileNotFoundError(f"{path}: pose-graph file not found")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as error:
-        raise PoseGraphFileError(f"{path}: cannot read pose-graph file ({error})") from None
+    text = read_text(path, PoseGraphFileError)
     dim: int | None = None
     dim_line = 0
     vertices: dict[int, tuple[np.ndarray, int]] = {}
@@ -381,7 +379,7 @@ def read_vertex_poses(path: str | os.PathLike[str]) -> tuple[np.ndarray | None, 
     ids: list[int] = []
     poses: list[np.ndarray] = []
     width: int | None = None
-    for lineno, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
+    for lineno, line in enumerate(read_text(path, PoseGraphFileError).splitlines(), start=1):
         tokens = line.replace(",", " ").split()
         if not tokens or tokens[0].startswith("#"):
             continue
@@ -411,7 +409,7 @@ def read_edge_pairs(path: str | os.PathLike[str]) -> set[tuple[int, int]]:
     if not path.is_file():
         raise FileNotFoundError(f"{path}: edge file not found")
     pairs: set[tuple[int, int]] = set()
-    for lineno, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
+    for lineno, line in enumerate(read_text(path, PoseGraphFileError).splitlines(), start=1):
         tokens = line.split()
         if not tokens or tokens[0].startswith("#") or tokens[0].startswith("VERTEX"):
             continue
@@ -490,11 +488,10 @@ def _in_graph_order(path: Path, graph: PoseGraphData, by_id: dict[int, np.ndarra
 
 
 def _first_token(path: Path) -> str:
-    with path.open(encoding="utf-8") as handle:
-        for line in handle:
-            tokens = line.split()
-            if tokens and not tokens[0].startswith("#"):
-                return tokens[0]
+    for line in read_text(path, PoseGraphFileError).splitlines():
+        tokens = line.split()
+        if tokens and not tokens[0].startswith("#"):
+            return tokens[0]
     return ""
 
 
@@ -505,7 +502,7 @@ def read_times(path: str | os.PathLike[str], graph: PoseGraphData) -> np.ndarray
         raise FileNotFoundError(f"{path}: times file not found")
     by_id: dict[int, float] = {}
     plain: list[float] = []
-    for lineno, line in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
+    for lineno, line in enumerate(read_text(path, PoseGraphFileError).splitlines(), start=1):
         tokens = line.replace(",", " ").split()
         if not tokens or tokens[0].startswith("#"):
             continue

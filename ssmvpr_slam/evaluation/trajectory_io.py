@@ -21,6 +21,7 @@ import numpy as np
 
 from ssmvpr_common import poses as pose_format
 from ssmvpr_common.atomic import atomic_write_text
+from ssmvpr_common.text_files import read_text
 from ssmvpr_slam.backend.se3 import as_pose, as_pose_array
 
 TUM_FIELDS = pose_format.TUM_COLUMNS
@@ -38,11 +39,7 @@ def _rows(path: Path, expected: int, fmt: str) -> Iterator[tuple[int, np.ndarray
     """(line number, values) of each data line, each checked to hold `expected` numbers."""
     if not path.is_file():
         raise FileNotFoundError(f"{path}: trajectory file not found")
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as error:
-        raise ValueError(f"{path}: cannot read trajectory file ({error})") from None
-    for lineno, fields in pose_format.data_lines(text):
+    for lineno, fields in pose_format.data_lines(read_text(path, ValueError)):
         yield lineno, _numbers(path, lineno, fields, expected, fmt)
 
 

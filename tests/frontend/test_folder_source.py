@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import importlib.util
+import logging
 from pathlib import Path
 
 import cv2
@@ -131,3 +132,30 @@ def test_a_pose_file_glitch_is_skipped_like_a_logged_one(tmp_path: Path, caplog:
     assert all(f.image is not None for f in frames)
     assert source.stats.skipped == {"implausible_logged_pose": 1, "implausible_gt_pose": 1}
     assert "poses.txt at t=10.200000: pose jumped 1e+05 m in 0.1 s" in caplog.text
+
+
+def test_images_pair_with_times_and_poses_by_frame_number(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """000002.png missing and 000005.png extra (counts equal): frame 3 keeps line 3's time and
+    pose instead of taking line 2's; the gap is a counted skip and the extra image is ignored."""
+    folder = tmp_path / "seq"
+    (folder / "images").mkdir(parents=True)
+    for number in (0, 1, 3, 4, 5):
+        cv2.imwrite(str(folder / "images" / f"{number:06d}.png"), np.full((8, 8, 3), number * 10, np.uint8))
+    (folder / "times.txt").write_text("".join(f"{0.5 * i}\n" for i in range(5)))
+    poses = np.repeat(np.eye(4)[None], 5, axis=0)
+    poses[:, 0, 3] = np.arange(5)
+    write_kitti(folder / "poses.txt", poses)
+    source = FolderSource(folder)
+    with caplog.at_level(logging.WARNING):
+        frames = list(source)
+    assert [f.timestamp for f in frames] == [0.0, 0.5, 1.5, 2.0]
+    assert [f.gt_pose[0, 3] for f in frames] == [0.0, 1.0, 3.0, 4.0]
+    assert [int(f.image[0, 0, 0]) for f in frames] == [0, 10, 30, 40]
+    assert source.stats.skipped["missing_image"] == 1 and source.stats.notes["unpaired_image"] == 1
+    assert "first 000005.png" in caplog.text and "frame 2 has no image file" in caplog.text
+
+
+def test_unpadded_image_names_sort_as_numbers(tmp_path: Path) -> None:
+    for number in (0, 1, 2, 10, 9):
+        cv2.imwrite(str(tmp_path / f"{number}.jpg"), np.zeros((4, 4, 3), np.uint8))
+    assert [p.stem for p in FolderSource(tmp_path).images] == ["0", "1", "2", "9", "10"]

@@ -111,15 +111,32 @@ def test_kitti_errors_name_the_input(tmp_path: Path, caplog: pytest.LogCaptureFi
     with caplog.at_level(logging.WARNING):
         list(KittiSource(seq))  # streaming: a counted, named skip
     assert any(re.search(r"000001\.bin: 6 bytes is not a whole number", r.getMessage()) for r in caplog.records)
-    (seq / "velodyne" / "000009.bin").write_bytes(b"\0" * 16)
+    (seq / "velodyne" / "scan_x.bin").write_bytes(b"\0" * 16)  # a name that is no frame number: by position
     with pytest.raises(FrontendInputError, match=r"velodyne: 5 files but times.txt has 4 lines"):
         KittiSource(seq)
-    (seq / "velodyne" / "000009.bin").unlink()
+    (seq / "velodyne" / "scan_x.bin").unlink()
     with pytest.raises(FrontendInputError, match="poses file not found"):
         KittiSource(seq, KittiSourceConfig(poses_file=str(tmp_path / "nope.txt")))
     (seq / "times.txt").unlink()
     with pytest.raises(FrontendInputError, match=rf"^{re.escape(str(seq))}: a KITTI sequence folder needs times\.txt"):
         KittiSource(seq)
+
+
+def test_files_pair_with_frames_by_number_not_position(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """A gap (000001.png missing) with an extra file (000009.png) keeps the counts equal; frame 1
+    must lose its image, not take frame 2's, and the extra file is ignored, both told."""
+    seq, truth = _make_sequence(tmp_path)
+    gap = seq / "image_2" / "000001.png"
+    gap.rename(seq / "image_2" / "000009.png")
+    source = KittiSource(seq, KittiSourceConfig(camera="image_2"))
+    with caplog.at_level(logging.WARNING):
+        frames = list(source)
+    assert [f.index for f in frames] == [0, 1, 2, 3]  # the scan still makes frame 1
+    assert frames[1].image is None and frames[1].points is not None
+    assert np.array_equal(frames[2].image, truth["rgb"][2]) and np.array_equal(frames[3].image, truth["rgb"][3])
+    assert source.stats.skipped["missing_image"] == 1 and source.stats.notes["unpaired_image"] == 1
+    messages = " ".join(r.getMessage() for r in caplog.records)
+    assert "frame 1 (times.txt line 2) has no image file" in messages and "first 000009.png" in messages
 
 
 def _load_tool(name: str):
