@@ -645,7 +645,7 @@ def optimize(
         optimize_graph,
         trajectory_ate,
     )  # fmt: skip
-    from ssmvpr_slam.backend.pose_graph import gtsam_reason
+    from ssmvpr_slam.backend.gtsam_errors import gtsam_reason
     from ssmvpr_slam.evaluation.trajectory_io import write_tum
     from ssmvpr_slam.results import output_dir, staged_results_dir, write_json
 
@@ -675,7 +675,7 @@ def optimize(
             result = optimize_graph(data, settings)
         except RuntimeError as exc:  # GTSAM's: an indeterminate or ill-conditioned system
             raise g2o_io.PoseGraphFileError(
-                f"{graph}: GTSAM could not optimise this graph ({gtsam_reason(exc)}); look for edges with extreme information "
+                f"{graph}: GTSAM could not optimise this graph in the robust solve ({gtsam_reason(exc)}); look for edges with extreme information "
                 "or translations, and for vertices no edge connects to the first"
             ) from None
         loops = [data.edges[k] for k in result.loop_indices]
@@ -686,7 +686,8 @@ def optimize(
             "solver": solver, "kernel_solve": result.solver,
             "start_tls": dict(result.start_tls), "kernel": kernel,
             "refine_scales": list(settings.refine_scales) if kernel != "none" else [], "gnc": gnc,
-            "check": gnc and check, "check_removed": result.check_removed, "check_readmitted": result.check_readmitted,
+            "check": gnc and check and result.check_error is None, "check_error": result.check_error,
+            "check_removed": result.check_removed, "check_readmitted": result.check_readmitted,
             "seconds": result.seconds,
             "loops_inlier": int(result.loop_inlier.sum()), "loops_outlier": result.n_outliers,
             "classification": result.classification,
@@ -721,6 +722,8 @@ def optimize(
             if stamps is not None:
                 write_tum(staged.path / "optimised.tum", stamps, result.poses)
             write_json(staged.path / "metrics.json", metrics)
+    if result.check_error is not None:
+        console.print(f"[yellow]warning:[/yellow] {escape(str(graph))}: {escape(result.check_error)}", highlight=False)
     summary = f"{len(data.ids)} vertices, {len(loops)} loop candidates, {result.n_outliers} rejected"
     if "ate" in metrics:
         summary += f", ATE {metrics['ate']['rmse']:.3f} m"

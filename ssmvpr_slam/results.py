@@ -13,6 +13,7 @@ previous results and the previous `latest` as they were, never a half-written fo
 from __future__ import annotations
 
 import json
+import math
 import logging
 import os
 import shutil
@@ -279,7 +280,24 @@ def staged_results_dir(base: str | Path, name: str, target: Path | None = None) 
 
 
 def write_json(path: Path, data: Any) -> None:
-    atomic_write_text(path, json.dumps(data, indent=2, allow_nan=False, default=_plain) + "\n")
+    """Strict JSON (no NaN or Infinity, which most readers refuse): a value that is not a finite
+    number (an ATE of a diverged graph, a ratio over zero) is written as null."""
+    atomic_write_text(path, json.dumps(_finite(data), indent=2, allow_nan=False, default=_plain) + "\n")
+
+
+def _finite(value: Any) -> Any:
+    """`value` with every non-finite float (numpy's too) replaced by None, containers walked."""
+    import numpy as np
+
+    if isinstance(value, dict):
+        return {key: _finite(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_finite(item) for item in value]
+    if isinstance(value, np.ndarray):
+        return _finite(value.tolist())
+    if isinstance(value, (float, np.floating)):
+        return float(value) if math.isfinite(value) else None
+    return value
 
 
 def _plain(value: Any) -> Any:

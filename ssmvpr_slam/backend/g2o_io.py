@@ -45,6 +45,12 @@ from ssmvpr_common.text_files import read_text
 from ssmvpr_slam.backend.se3 import make_pose, project_to_so3, rot_z, yaw_of
 
 QUATERNION_NORM_TOL = 1e-3
+MAX_COORDINATE_M = 1e8
+"""Coordinates and edge lengths past this (100,000 km) are refused: no map is that large, so such
+a value is a wrong unit or a corrupted number (at 1e300 its square overflows to inf)."""
+MAX_INFORMATION_RATIO = 1e12
+"""Largest spread of information eigenvalues across one graph: the standard graphs span 1 to 1e3,
+the pipeline's about 1e6; past 1e12 the weak edges vanish from the normal equations."""
 """A stored quaternion whose norm is off by more than this is refused (else renormalised)."""
 NUMBER_FORMAT = "{:.12g}"
 
@@ -322,9 +328,41 @@ def read_pose_graph(path: str | os.PathLike[str]) -> PoseGraphData:
                                                  "which the file does not declare")  # fmt: skip
     else:
         vertices = {v: (np.eye(4), 0) for e in edges for v in (e.i, e.j)}
+    _check_scales(name, vertices, edges)
     ids_sorted = tuple(sorted(vertices))
     poses = np.array([vertices[v][0] for v in ids_sorted]).reshape(-1, 4, 4)
     return PoseGraphData(dim, ids_sorted, poses, tuple(edges), name, declared)
+
+
+def _check_scales(name: str, vertices: dict[int, tuple[np.ndarray, int]], edges: list[GraphEdge]) -> None:
+    """Refuse what double-precision least squares cannot use, naming the line: a coordinate past
+    `MAX_COORDINATE_M`, or information eigenvalues
+    spread wider than `MAX_INFORMATION_RATIO` across the graph (the normal equations lose every
+    digit of the weak edges: GNC then rejects every loop and the estimate comes back unchanged)."""
+    for vertex, (pose, lineno) in vertices.items():
+        reach = float(np.abs(pose[:3, 3]).max())
+        if reach > MAX_COORDINATE_M:
+            raise _fail(name, lineno, f"vertex {vertex} lies {reach:.3g} m out, beyond the {MAX_COORDINATE_M:.0e} m "
+                                      "double-precision least squares can solve; shift or rescale the graph")  # fmt: skip
+    if not edges:
+        return
+    for edge in edges:
+        reach = float(np.abs(edge.measured[:3, 3]).max())
+        if reach > MAX_COORDINATE_M:
+            raise _fail(name, edge.line, f"edge {edge.i} -> {edge.j} measures {reach:.3g} m, beyond the "
+                                         f"{MAX_COORDINATE_M:.0e} m double-precision least squares can solve")  # fmt: skip
+    spectra = np.linalg.eigvalsh(np.array([e.information for e in edges]))  # (E, 6), ascending
+    weakest, strongest = int(np.argmin(spectra[:, 0])), int(np.argmax(spectra[:, -1]))
+    low, high = float(spectra[weakest, 0]), float(spectra[strongest, -1])
+    if high > MAX_INFORMATION_RATIO * low:
+        # Name the edge further from the graph's typical weight: that is the one to fix.
+        typical = float(np.median(np.log10(spectra)))
+        k, value = (strongest, high) if np.log10(high) - typical >= typical - np.log10(low) else (weakest, low)
+        edge = edges[k]
+        raise _fail(name, edge.line, f"edge {edge.i} -> {edge.j} has information eigenvalue {value:.3g} against "
+                                     f"{low if k == strongest else high:.3g} elsewhere in the graph: a spread past "
+                                     f"{MAX_INFORMATION_RATIO:.0e} that double-precision least squares cannot solve; "
+                                     "fix that edge's information")  # fmt: skip
 
 
 # --------------------------------------------------------------------------- writing

@@ -27,7 +27,6 @@ about; only when the last one fails too is a `PoseGraphError` raised, with the e
 
 from __future__ import annotations
 
-import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import NoReturn
@@ -37,6 +36,7 @@ import numpy as np
 
 from ssmvpr_slam.backend import noise
 from ssmvpr_slam.backend.config import PoseGraphConfig
+from ssmvpr_slam.backend.gtsam_errors import gtsam_reason
 from ssmvpr_slam.backend.se3 import as_pose, relative
 from ssmvpr_slam.errors import SlamError
 
@@ -74,15 +74,6 @@ class GraphRecovery:
     """Keyframes added in the failed step."""
     what: str
     """One line: what failed and what the graph did instead."""
-
-
-def gtsam_reason(error: Exception) -> str:
-    """GTSAM's multi-line message in a few words (its indeterminate-system text runs to ten lines)."""
-    text = " ".join(str(error).split())
-    symbol = re.search(r"Symbol: (\w+)", text)
-    if "Indeterminate linear system" in text:
-        return "indeterminate linear system" + (f" near {symbol.group(1)}" if symbol else "")
-    return text[:160] or type(error).__name__
 
 
 def _isolation_text(cut: list[int], dropped: list[int]) -> str:

@@ -343,7 +343,7 @@ CALIB_CASES = {
     "scaled": (_tr_line("2 0 0 0 0 2 0 0 0 0 2 0"), "rotation is not orthonormal"),
     "reflection": (_tr_line("1 0 0 0 0 1 0 0 0 0 -1 0"), "non-positive determinant"),
     "sheared": (_tr_line("1 0.01 0 0 0 1 0 0 0 0 1 0"), "rotation is not orthonormal"),
-    "not_utf8": (b"P0: 1\n\xff\xfe\nTr: 1 0 0 0 0 1 0 0 0 0 1 0\n", "calib.txt: not a text calib file"),
+    "not_utf8": (b"P0: 1\n\xff\xfe\nTr: 1 0 0 0 0 1 0 0 0 0 1 0\n", "calib.txt: not UTF-8 text"),
 }
 
 
@@ -351,7 +351,7 @@ CALIB_CASES = {
 def test_a_bad_calib_file_is_refused(case: str, tmp_path: Path) -> None:
     calib, fragment = CALIB_CASES[case]
     sequence = _kitti_sequence(tmp_path / "seq", calib)
-    with pytest.raises(FrontendInputError, match="Tr is not a rigid|not a text calib") as caught:
+    with pytest.raises(FrontendInputError, match="Tr is not a rigid|not UTF-8 text") as caught:
         KittiSource(sequence)
     assert fragment in str(caught.value) and str(sequence / "calib.txt") in str(caught.value)
 

@@ -76,3 +76,16 @@ def test_writing_twice_changes_neither_the_result_nor_the_prior_map(tmp_path: Pa
     grown = PriorMap.load(tmp_path / "first" / "database", config.vpr)
     assert len(grown) == 8 and np.allclose(grown.poses[7][:3, 3], [4.0, -2.0, 0.0])  # session places in the map frame
     assert json.loads((tmp_path / "first" / "metrics.json").read_text())["prior_map_loops"]["places"] == 3
+
+
+def test_json_is_strict_a_non_finite_number_is_null(tmp_path: Path) -> None:
+    """metrics.json never holds NaN or Infinity (most JSON readers refuse them): null instead."""
+    import json as json_module
+
+    import numpy as np
+
+    from ssmvpr_slam.results import write_json
+
+    path = tmp_path / "m.json"
+    write_json(path, {"ate": float("inf"), "ratio": np.float64("nan"), "rows": [1.5, np.array([np.inf, 2.0])]})
+    assert json_module.loads(path.read_text()) == {"ate": None, "ratio": None, "rows": [1.5, [None, 2.0]]}
