@@ -122,6 +122,26 @@ def write_checkpoint(
     number = 1 + max([_number(p) for p in run_folder.glob(f"{_PREFIX}*")] or [0])
     folder = run_folder / f"{_PREFIX}{number:06d}"
     folder.mkdir()
+    try:
+        _write_version(folder, previous, partial, detector_state, config, meta)
+    except BaseException:  # a full disk: the half-written version goes, so the space it took is free
+        shutil.rmtree(folder, ignore_errors=True)  # for the next checkpoint; the last good one stays linked
+        raise
+    switch_link(run_folder / LINK, folder.name)
+    for old in run_folder.glob(f"{_PREFIX}*"):  # earlier versions, and any a kill left half written
+        if old != folder:
+            shutil.rmtree(old, ignore_errors=True)
+    return folder
+
+
+def _write_version(
+    folder: Path,
+    previous: Path | None,
+    partial: RunResult,
+    detector_state: dict[str, np.ndarray],
+    config: SlamConfig,
+    meta: CheckpointMeta,
+) -> None:
     write_trajectories(folder, partial)
     write_loop_csv(folder / "loop_closures.csv", partial.keyframes, partial.loops, prior_gt(partial))
     write_config(folder, config)
@@ -135,14 +155,10 @@ def write_checkpoint(
         "rear_keyframes": partial.rear_keyframes, "seconds": partial.ending.seconds,
         "keyframes": len(partial.keyframes), "timings": [dict(r) for r in partial.timings],
         "loops": [_loop_dict(r) for r in partial.loops],
+        "config_sha256": hashlib.sha256((folder / "config.yaml").read_bytes()).hexdigest(),
     }  # fmt: skip
     atomic_write_text(folder / META, json.dumps(record, indent=1, allow_nan=True) + "\n")
     _fsync_dir(folder)
-    switch_link(run_folder / LINK, folder.name)
-    for old in run_folder.glob(f"{_PREFIX}*"):  # earlier versions, and any a kill left half written
-        if old != folder:
-            shutil.rmtree(old, ignore_errors=True)
-    return folder
 
 
 def _current(run_folder: Path) -> Path | None:
@@ -274,6 +290,11 @@ class Checkpointer:
         """Write a checkpoint if one is due and the system can be resumed from it."""
         if not self.due():
             return None
+        return self.write()
+
+    def write(self) -> Path | None:
+        """Write a checkpoint now (a stop request: the run is resumable from where it stopped),
+        if the system can be resumed from one; None when it cannot (the PCA warm-up) or failed."""
         state = self.system.detector_state()
         if state is None:  # still in the PCA warm-up: nothing a resume could start from
             return None
@@ -311,7 +332,9 @@ class Checkpoint:
 
 
 def find_checkpoint(path: str | Path) -> Path:
-    """The checkpoint version folder for a run's results folder or a checkpoint folder."""
+    """The checkpoint version folder for a run's results folder or a checkpoint folder. A run
+    stopped by SIGTERM/SIGINT published its partial results beside the checkpoint it wrote as it
+    stopped: it resumes from that checkpoint like a killed run."""
     path = Path(path)
     if (path / META).is_file():
         return path.resolve()  # the `checkpoint` link itself: its version folder
@@ -320,8 +343,36 @@ def find_checkpoint(path: str | Path) -> Path:
     if not path.exists():
         raise CheckpointError(f"{path}: no such results folder")
     if (path / "metrics.json").is_file():
+        if _interrupted(path / "metrics.json"):
+            raise CheckpointError(f"{path}: this run was stopped before its first checkpoint (during the PCA "
+                                  "warm-up); nothing to resume: run the log again")  # fmt: skip
         raise CheckpointError(f"{path}: this run finished (metrics.json is there); nothing to resume")
     raise CheckpointError(f"{path}: no checkpoint here (no {LINK}/{META}); a run writes one after its PCA warm-up")
+
+
+def _interrupted(metrics: Path) -> bool:
+    try:
+        return bool(json.loads(metrics.read_text(encoding="utf-8")).get("interrupted"))
+    except (OSError, ValueError, AttributeError):
+        return False
+
+
+def carry_checkpoint(run_folder: Path | None, into: Path) -> bool:
+    """Put the run's current checkpoint into `into` (the partial results of a stopped run, about
+    to replace the run's folder) by hard links, so a resume still finds it; False when there is none."""
+    current = None if run_folder is None else _current(run_folder)
+    if current is None:
+        return False
+    shutil.copytree(current, into / current.name, copy_function=_link_or_copy)
+    switch_link(into / LINK, current.name)
+    return True
+
+
+def _link_or_copy(source: str, target: str) -> None:
+    try:
+        os.link(source, target)
+    except OSError:  # another file system, or links refused: a copy
+        shutil.copy2(source, target)
 
 
 def load_checkpoint(path: str | Path) -> Checkpoint:
@@ -352,6 +403,7 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
         raise CheckpointError(f"{folder / META}: not a usable checkpoint ({type(exc).__name__}: {exc})") from None
     except OSError as exc:
         raise CheckpointError(f"{folder}: cannot read the checkpoint ({exc})") from None
+    _check_config(folder, record, config_text, database)
     prior_places = _prior_places(folder / "detector.npz", detector_state, len(database))
     _check_loops(folder / META, loops, n, prior_places, tolerance)
     for info in database.places[prior_places:]:  # the session's places: the poses are the checkpoint's, not the run's
@@ -523,6 +575,27 @@ def _check_keyframe_arrays(path: Path, arrays: dict[str, np.ndarray], record: di
         if not np.all(none | (sizes > 0).all(axis=1)):
             raise CheckpointError(f"{path}: {name} must be -1 -1 (no image) or a width and height > 0")
     return n
+
+
+def _check_config(folder: Path, record: dict[str, Any], config_text: str, database: PlaceDatabase) -> None:
+    """config.yaml must be the settings the database and the state were made with: a resume
+    runs with it, and writes it into the results as the run's settings. Edited (its digest is not
+    the one checkpoint.json recorded), or naming code sizes the database's codebooks do not have,
+    it is refused (one line), never a resume whose config.yaml says what the run did not do."""
+    path = folder / "config.yaml"
+    digest = record.get("config_sha256")
+    if digest is not None and hashlib.sha256(config_text.encode("utf-8")).hexdigest() != digest:
+        raise CheckpointError(f"{path}: changed after the checkpoint was written (not the digest {META} "
+                              "recorded); a resume runs with the settings its state was made with: restore the file")  # fmt: skip
+    try:
+        vpr = yaml.safe_load(config_text)["vpr"]
+        dims = (int(vpr["filtering"]["pca"]["dim"]), int(vpr["spatial"]["pca"]["dim"]))
+    except (yaml.YAMLError, KeyError, TypeError, ValueError):
+        return  # a config.yaml without them is refused when it is loaded
+    held = (database.codebooks.stage1.dim, database.codebooks.stage2.dim)
+    if dims != held:
+        raise CheckpointError(f"{path}: PCA dims {dims[0]}/{dims[1]} (vpr.filtering/spatial.pca.dim), but the "
+                              f"checkpoint's database holds {held[0]}/{held[1]}-dim codes; restore the file")  # fmt: skip
 
 
 def _rotation_tolerance(config_text: str) -> float:

@@ -125,6 +125,16 @@ _OPTION_OF_FIELD = {
 }
 
 
+def _file_system_error(exc: OSError) -> str:
+    """'PATH: No space left on device (...)': the file first, and for a full disk or quota where
+    results can go instead."""
+    where = f"{exc.filename}: " if exc.filename else ""
+    message = f"{where}{exc.strerror or exc}"
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
+        message += " while writing it; free space there, or give --out (or --cache) a folder on another disk"
+    return message
+
+
 def friendly_errors(func: Callable[..., Any]) -> Callable[..., Any]:
     """Known input problems -> one line on stderr and exit status 2, never a traceback."""
 
@@ -138,7 +148,7 @@ def friendly_errors(func: Callable[..., Any]) -> Callable[..., Any]:
         except OSError as exc:
             if exc.errno not in _FILE_SYSTEM_ERRNOS:  # a broken pipe, a child process, a timeout: a fault
                 raise
-            _print_error(str(exc))  # "[Errno 28] No space left on device: 'PATH'"
+            _print_error(_file_system_error(exc))
             raise typer.Exit(2) from None
         except Exception as exc:
             from pydantic import ValidationError
@@ -425,13 +435,21 @@ def _resume(log: Path, folder: Path, weights: Path | None, device: str | None, r
     """`run LOG --resume DIR`: the checkpoint's own settings, prior map and results folder; only
     where the weights are and which device runs them may change."""
     from ssmvpr_slam.checkpoint import CheckpointError, load_checkpoint
+    from ssmvpr_slam.config import settings_variables
+    from ssmvpr_slam.results import check_writable
     from ssmvpr_slam.runner import run_log
 
     given = [name for name, value in refused.items() if value is not None]
     if given:
         raise CheckpointError(f"--resume {folder}: {', '.join(given)} cannot be combined with it "
                               "(a resumed run keeps the settings of its checkpoint)")  # fmt: skip
+    variables = settings_variables()
+    if variables:
+        raise CheckpointError(f"--resume {folder}: environment variable(s) {', '.join(variables)} would change "
+                              "the checkpoint's settings; unset them (a resumed run keeps the settings of its "
+                              "checkpoint; only the weights and the device may change)")  # fmt: skip
     checkpoint = load_checkpoint(folder)
+    check_writable(checkpoint.run_folder, "--resume")
     cfg = _config(str(checkpoint.config_path), weights, device, checkpoint.run_folder.parent)
     prior_map = Path(checkpoint.meta.prior_map) if checkpoint.meta.prior_map else None
     run_log(log, cfg, prior_map, console, name=checkpoint.meta.name, resume=checkpoint)

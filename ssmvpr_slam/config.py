@@ -229,6 +229,26 @@ def _env_json_error(exc: SettingsError) -> str:
     return f"environment variable {key}={mine[key]!r}: not valid JSON, which {where} needs (e.g. [1, 2])"
 
 
+RESUME_MAY_CHANGE = (("VPR", "BACKBONE", "WEIGHTS"), ("VPR", "BACKBONE", "DEVICE"))
+"""Settings a resumed run may take from the environment: where the weights are and what runs them
+(as --weights and --device may); everything else is the checkpoint's."""
+
+
+def settings_variables(environ: dict[str, str] | None = None) -> list[str]:
+    """The SSMVPR_ variables that set a configuration field (SSMVPR_WEIGHTS, SSMVPR_CACHE and the
+    like name files, not settings), leaving out those a resume may change."""
+    sections = {name.upper() for name in SlamConfig.model_fields}
+    found = []
+    for key in sorted(os.environ if environ is None else environ):
+        parts = tuple(key.upper().removeprefix("SSMVPR_").split("__"))
+        if not key.upper().startswith("SSMVPR_") or parts[0] not in sections:
+            continue
+        if any(parts == allowed[: len(parts)] and len(parts) == len(allowed) for allowed in RESUME_MAY_CHANGE):
+            continue
+        found.append(key)
+    return found
+
+
 def _env_variable(loc: tuple[Any, ...]) -> tuple[str, bool] | None:
     """The SSMVPR_ variable behind the error at `loc` (names are case-insensitive), and whether it
     alone set that value: the variable of the field, or of a list whose item failed. A variable
@@ -279,7 +299,15 @@ def _read_with_base(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
         base = "default"  # a user file refines the default preset unless it names another
     if base is None:
         return data
-    base_path = _preset_path(str(base), str(path))
+    if (
+        not isinstance(base, str)
+        or not base
+        or any(sep in base for sep in ("/", "\\"))
+        or base.endswith((".yaml", ".yml"))
+    ):
+        raise ConfigError(f"config {path}: preset: {base!r}: a preset is a name ({', '.join(available_presets())}), "
+                          "never a file; to build on a file of your own, copy its keys in")  # fmt: skip
+    base_path = _preset_path(base, f"config {path}: preset:")
     if base_path.resolve() in seen or base_path.resolve() == path.resolve():
         raise ConfigError(f"config {path}: preset {base!r} is part of a preset cycle")
     return _merge(_read_with_base(base_path, (*seen, path.resolve())), data)
@@ -288,7 +316,9 @@ def _read_with_base(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
 def _preset_path(name: str, referrer: str) -> Path:
     path = PRESETS_DIR / f"{name}.yaml"
     if not path.is_file():
-        raise ConfigError(f"{referrer}: {name!r} is neither a file nor a preset ({', '.join(available_presets())})")
+        chained = referrer.endswith("preset:")  # a file's `preset:` key takes names only
+        what = "is not a preset" if chained else "is neither a file nor a preset"
+        raise ConfigError(f"{referrer}{'' if chained else ':'} {name!r} {what} ({', '.join(available_presets())})")
     return path
 
 

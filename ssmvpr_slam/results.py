@@ -13,8 +13,8 @@ previous results and the previous `latest` as they were, never a half-written fo
 from __future__ import annotations
 
 import json
-import math
 import logging
+import math
 import os
 import shutil
 import signal
@@ -54,6 +54,13 @@ def _check_writable(folder: Path, option: str, shown: Path) -> None:
             pass
     except OSError as exc:
         raise OutputError(f"{option} {shown}: cannot write in {folder} ({exc.strerror or exc})") from None
+
+
+def check_writable(folder: Path, what: str) -> None:
+    """Refuse, before any work, a folder whose results could not be written (read-only, full
+    quota): a resume writes checkpoints into the run's folder and its results beside it."""
+    for place in (folder, folder.parent):
+        _check_writable(place, what, folder)
 
 
 def _make_folder(folder: Path, option: str, shown: Path) -> None:

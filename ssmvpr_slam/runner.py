@@ -29,6 +29,7 @@ from ssmvpr_slam.checkpoint import (
     Checkpointer,
     CheckpointError,
     CheckpointMeta,
+    carry_checkpoint,
     check_log,
     log_fingerprint,
 )
@@ -63,11 +64,14 @@ def run_log(
     meta = CheckpointMeta(str(log), log_fingerprint(log), None if prior_map is None else str(prior_map), name)
     checkpoints = Checkpointer(run_folder, config, meta, pipeline.system, pipeline.ending.seconds)
     stream_frames(pipeline, frames, source, checkpoints, console)
+    stopped = pipeline.ending.interrupted and checkpoints.write() is not None  # resumable where it stopped
     result = pipeline.finish()
     report = evaluate(result, config.evaluation)
     extra = run_description(log, source, config, prior_map, resume)
-    folder, metrics = publish_results(run_folder, result, report, config, extra, name)
+    folder, metrics = publish_results(run_folder, result, report, config, extra, name, keep_checkpoint=stopped)
     print_summary(console, metrics, result, folder, name)
+    if stopped:
+        console.print(f"resume it with: ssmvpr-slam run {escape(str(log))} --resume {escape(str(folder))}")
     if not metrics["recognition_started"]:
         warn_recognition_never_started(console, config, len(result.keyframes))
     raise_if_failed(pipeline, folder)
@@ -177,11 +181,14 @@ def run_description(log: Path, source: Source, config: SlamConfig, prior_map: Pa
 
 
 def publish_results(run_folder: RunFolder, result: RunResult, report: RunReport, config: SlamConfig,
-                    extra: dict[str, Any], name: str) -> tuple[Path, dict[str, Any]]:  # fmt: skip
+                    extra: dict[str, Any], name: str, keep_checkpoint: bool = False) -> tuple[Path, dict[str, Any]]:  # fmt: skip
     """Write every result into a staging folder and move it into place as one unit (over the
-    run's checkpoints, if it wrote any); `latest` moves once it is complete."""
+    run's checkpoints, if it wrote any); `latest` moves once it is complete. keep_checkpoint (a
+    stopped run): the last checkpoint goes with the partial results, for `--resume`."""
     with staged_results_dir(run_folder.base, name, run_folder.path) as staged:
         metrics = write_results(staged.path, result, report, config, extra)
+        if keep_checkpoint:
+            carry_checkpoint(run_folder.path, staged.path)
     assert staged.final is not None
     return staged.final, metrics
 

@@ -144,12 +144,16 @@ def _env() -> dict[str, str]:
     return {k: v for k, v in os.environ.items() if not k.upper().startswith("SSMVPR_")}
 
 
-def _kill(inputs: SimpleNamespace, weights_path: Path, at_keyframes: int) -> SimpleNamespace:
-    """`run` in a subprocess, killed with SIGKILL once a checkpoint holds `at_keyframes`."""
-    out = inputs.base / "killed"
+def _kill(
+    inputs: SimpleNamespace, weights_path: Path, at_keyframes: int, sig: signal.Signals = signal.SIGKILL
+) -> SimpleNamespace:
+    """`run` in a subprocess, sent `sig` once a checkpoint holds `at_keyframes` (SIGKILL: it dies
+    there; SIGTERM: it stops at the frame it is on, as a preempted job does, and writes its partial
+    results with the checkpoint it writes as it stops)."""
+    out = inputs.base / ("killed" if sig == signal.SIGKILL else f"stopped_{sig.name}")
     command = [sys.executable, "-c", "from ssmvpr_slam.cli import app; app()", "run", str(inputs.log),
                "-c", str(inputs.config), "--weights", str(weights_path), "--out", str(out)]  # fmt: skip
-    log_file = open(inputs.base / "killed.log", "wb")  # noqa: SIM115
+    log_file = open(inputs.base / "killed.log", "wb")  # noqa: SIM115 (one at a time: each call rewrites it)
     process = subprocess.Popen(command, stdout=log_file, stderr=subprocess.STDOUT, env=_env())
     checkpointed = 0
     deadline = time.monotonic() + 600
@@ -163,8 +167,9 @@ def _kill(inputs: SimpleNamespace, weights_path: Path, at_keyframes: int) -> Sim
                 except (OSError, ValueError):
                     pass  # replaced under our feet: the next poll reads the new one
             time.sleep(0.1)
-        process.send_signal(signal.SIGKILL)
-        assert process.wait(60) == -signal.SIGKILL
+        process.send_signal(sig)
+        code = process.wait(120)
+        assert code == (-signal.SIGKILL if sig == signal.SIGKILL else 0), (inputs.base / "killed.log").read_text()
     finally:
         if process.poll() is None:
             process.kill()
@@ -299,6 +304,21 @@ def test_resume_finishes_the_run_as_if_never_killed(resumed: Path, uninterrupted
 def test_a_finished_run_is_not_resumed_again(resumed: Path, inputs: SimpleNamespace) -> None:
     result = invoke("run", inputs.log, "--resume", resumed)
     assert_user_error(result, str(resumed), "this run finished")
+
+
+def test_a_run_stopped_by_sigterm_resumes_as_if_never_stopped(
+    inputs: SimpleNamespace, uninterrupted: Path, weights_path: Path
+) -> None:
+    """A scheduler's SIGTERM (preemption): the run publishes its partial results with the
+    checkpoint it wrote as it stopped, and `--resume` finishes it as if it had never stopped
+    (before: the partial results replaced the checkpoint, and the resume said "finished")."""
+    stopped = _kill(inputs, weights_path, 30, signal.SIGTERM)
+    metrics = json.loads((stopped.run_folder / "metrics.json").read_text())
+    assert metrics["interrupted"] is True and (stopped.out / "latest").resolve() == stopped.run_folder
+    assert stopped.checkpoint.result.frames_seen == metrics["frames"] < FRAMES  # checkpointed where it stopped
+    assert "resume it with: ssmvpr-slam run" in " ".join((inputs.base / "killed.log").read_text().split())
+    resumed = _resume(stopped, inputs, weights_path)
+    _assert_finished_as_if_never_killed(resumed, uninterrupted, stopped, FRAMES)
 
 
 def test_a_lidar_run_with_spaced_and_gated_loops_resumes_as_if_never_killed(

@@ -279,3 +279,16 @@ def test_a_section_variable_is_blamed_only_for_what_its_json_sets(
     monkeypatch.setenv("SSMVPR_SIMULATION__CITY__HOUSE_WIDTH_RANGE_M", "[12]")  # a pair given one value
     with pytest.raises(ConfigError, match="^environment variable SSMVPR_SIMULATION__CITY__HOUSE_WIDTH_RANGE_M: "):
         load_config()
+
+
+def test_a_preset_chain_naming_a_file_says_presets_are_names(tmp_path: Path) -> None:
+    """Before: "'cfg/cyc2.yaml' is neither a file nor a preset" while the file was there."""
+    (tmp_path / "cfg").mkdir()
+    (tmp_path / "cfg" / "cyc2.yaml").write_text("results: {plots: false}\n")
+    user = tmp_path / "cfg" / "cyc1.yaml"
+    user.write_text(f"preset: {tmp_path / 'cfg' / 'cyc2.yaml'}\n")
+    with pytest.raises(ConfigError, match=r"preset: '.*cyc2\.yaml': a preset is a name \(.*fast.*\), never a file"):
+        load_config(str(user))
+    user.write_text("preset: nosuch\n")
+    with pytest.raises(ConfigError, match=r"cyc1\.yaml: preset: 'nosuch' is not a preset \("):
+        load_config(str(user))

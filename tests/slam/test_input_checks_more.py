@@ -77,6 +77,7 @@ def _write_valid_checkpoint(run_folder: Path) -> Path:
     with its factor (handle 0), one rejected proposal, grey copies and a thumbnail."""
     config = load_config()
     config.results.plots = False
+    config.vpr.filtering.pca.dim, config.vpr.spatial.pca.dim = 8, 6  # the made-up database's codes
     poses = np.tile(np.eye(4), (N, 1, 1))
     poses[:, 0, 3] = np.arange(N, dtype=float)
     grey = (np.arange(48 * 64).reshape(48, 64) % 251).astype(np.uint8)
@@ -100,7 +101,7 @@ def _write_valid_checkpoint(run_folder: Path) -> Path:
                         session_places={k: k for k in range(N)})  # fmt: skip
     state = {"prior_places": np.array(0, np.int64), "session_travelled": np.arange(N, dtype=float)}
     meta = CheckpointMeta("log.mcap", {"kind": "file", "size": 1, "sha256": "0"}, None, "run")
-    run_folder.mkdir(parents=True)
+    run_folder.mkdir(parents=True, exist_ok=True)
     return write_checkpoint(run_folder, partial, state, config, meta)
 
 
@@ -199,6 +200,24 @@ def _not_utf8_config(folder: Path) -> str:
     return "config.yaml"
 
 
+def _edit_config(digest: bool) -> Callable[[Path], str]:
+    """config.yaml's stage-I PCA dim 8 -> 4: with the digest checkpoint.json records (caught by
+    it), or with the digest removed (a checkpoint of an older build: caught by the database)."""
+
+    def apply(folder: Path) -> str:
+        path = folder / "config.yaml"
+        text = path.read_text()
+        assert text.count("dim: 8") == 1
+        path.write_text(text.replace("dim: 8", "dim: 4"))
+        if not digest:
+            record = json.loads((folder / "checkpoint.json").read_text())
+            del record["config_sha256"]
+            (folder / "checkpoint.json").write_text(json.dumps(record))
+        return "config.yaml"
+
+    return apply
+
+
 CHECKPOINT_CASES: dict[str, tuple[Callable[[Path], str], str]] = {
     # name: (damage, returning the file the message must name; a fragment of the message)
     "keyframes_cut_short": (_cut("keyframes.npz"), "cannot read (BadZipFile"),
@@ -244,6 +263,8 @@ CHECKPOINT_CASES: dict[str, tuple[Callable[[Path], str], str]] = {
     "prior_places_too_many": (_npz("detector.npz", _replace("prior_places", np.array(9))), "prior_places must be"),
     "prior_places_text": (_npz("detector.npz", _replace("prior_places", np.array("x"))), "prior_places must be"),
     "config_not_utf8": (_not_utf8_config, "not UTF-8"),
+    "config_edited": (_edit_config(digest=True), "changed after the checkpoint was written"),
+    "config_dims_other_than_the_database": (_edit_config(digest=False), "PCA dims 4/6"),
 }  # fmt: skip
 
 
@@ -443,3 +464,84 @@ def test_what_a_map_may_hold_still_loads(tmp_path: Path) -> None:
     prior = PriorMap.load(folder, load_config().vpr)
     assert sorted(prior.poses) == [0, 2, 3] and prior.database.places[3].timestamp == 7.0
     assert np.isnan(prior.database.places[2].timestamp)
+
+
+# ------------------------------------------------------------------------ resume as a contract
+
+
+def test_resume_refuses_environment_variables_that_change_the_settings(valid_checkpoint: Path, tmp_path: Path) -> None:
+    """A resume keeps its checkpoint's settings: SSMVPR_ variables that would change them are
+    refused like --config (before: applied silently, 22 proposals against 1). The weights and
+    the device may change, as --weights and --device may."""
+    log = tmp_path / "log.mcap"
+    log.write_bytes(b"not read: the resume is refused first")
+    result = invoke("run", log, "--resume", valid_checkpoint, env={"SSMVPR_DETECTOR__CALIBRATED__ACCEPT": "5"})
+    assert_user_error(result, f"--resume {valid_checkpoint}", "SSMVPR_DETECTOR__CALIBRATED__ACCEPT", "unset them")
+    allowed = invoke("run", log, "--resume", valid_checkpoint, env={"SSMVPR_VPR__BACKBONE__DEVICE": "cpu",
+                                                                    "SSMVPR_WEIGHTS": "/nowhere.pth"})  # fmt: skip
+    assert "environment variable" not in allowed.stderr and "log.mcap" in allowed.stderr  # refused later, for the log
+
+
+def test_resume_checks_the_folder_is_writable_before_any_replay(
+    valid_checkpoint: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A read-only results folder: refused in one line before the log is read (before: the whole
+    rest was processed, every checkpoint failed, and the resumed work was lost)."""
+    import errno
+    import tempfile
+
+    import ssmvpr_slam.results as results
+
+    copy = _copy(valid_checkpoint, tmp_path)
+    real = tempfile.TemporaryFile
+
+    def read_only(*args: Any, **kwargs: Any) -> Any:
+        if Path(kwargs.get("dir", "")) == copy.run:
+            raise OSError(errno.EROFS, "Read-only file system")
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(results.tempfile, "TemporaryFile", read_only)
+    log = tmp_path / "log.mcap"
+    log.write_bytes(b"never read")
+    result = invoke("run", log, "--resume", copy.run)
+    assert_user_error(result, f"--resume {copy.run}: cannot write in {copy.run} (Read-only file system)")
+
+
+def test_a_run_stopped_before_its_first_checkpoint_says_so(tmp_path: Path) -> None:
+    run = tmp_path / "run_x"
+    run.mkdir()
+    (run / "metrics.json").write_text(json.dumps({"interrupted": True}))
+    log = tmp_path / "log.mcap"
+    log.write_bytes(b"never read")
+    assert_user_error(invoke("run", log, "--resume", run), str(run), "stopped before its first checkpoint")
+    (run / "metrics.json").write_text(json.dumps({"interrupted": False}))
+    assert_user_error(invoke("run", log, "--resume", run), str(run), "this run finished")
+
+
+# ---------------------------------------------------------------------------------- disk full
+
+
+def test_a_checkpoint_that_fills_the_disk_leaves_no_folder_and_the_last_one_resumable(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A disk that fills while a checkpoint is written: the half-written version is removed (its
+    space is free for the next one), the error names the file, the previous checkpoint stays linked."""
+    import errno
+
+    import ssmvpr_slam.checkpoint as checkpoint_module
+
+    run = tmp_path / "run"
+    first = _write_valid_checkpoint(run)
+    real = checkpoint_module.atomic_write_bytes
+
+    def fills_up(path: Path, data: bytes) -> Path:
+        if Path(path).name == "detector.npz":
+            raise OSError(errno.ENOSPC, "No space left on device", str(path))
+        return real(path, data)
+
+    monkeypatch.setattr(checkpoint_module, "atomic_write_bytes", fills_up)
+    with pytest.raises(OSError) as caught:
+        _write_valid_checkpoint(run)
+    assert caught.value.errno == errno.ENOSPC and caught.value.filename.endswith("detector.npz")
+    assert sorted(p.name for p in run.iterdir()) == ["checkpoint", first.name]  # no half-written version left
+    assert load_checkpoint(run).folder == first

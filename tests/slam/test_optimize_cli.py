@@ -239,3 +239,21 @@ def test_a_check_gtsam_cannot_solve_keeps_gncs_answer_and_says_so(
     assert metrics["loops_inlier"] == 20  # GNC's answer: every true loop kept
     solved = read_pose_graph(tmp_path / "o" / "latest-optimize" / "optimised.g2o")
     np.testing.assert_allclose(solved.poses[20, :2, 3], _ring_pose(20)[:2, 3], atol=1e-6)
+
+
+def test_a_full_disk_names_the_file_and_where_to_go_instead(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Before: 'error: [Errno 28] No space left on device', naming neither the file nor --out."""
+    import errno
+
+    import ssmvpr_common.atomic as atomic
+
+    def full(_fd: int) -> None:
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(atomic.os, "fsync", full)
+    result = invoke("optimize", _ring_of_loops(tmp_path / "g.g2o"), "--out", tmp_path / "o")
+    assert result.exit_code == 2, result.output
+    errors = [x for x in result.stderr.splitlines() if x.startswith("error:")]
+    assert len(errors) == 1 and "optimised.g2o: No space left on device while writing it" in errors[0], result.stderr
+    assert "--out" in errors[0] and str(tmp_path / "o") in errors[0]
+    assert not (tmp_path / "o" / "latest-optimize").exists() and not list((tmp_path / "o").glob(".optimize*"))
