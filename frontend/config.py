@@ -25,23 +25,29 @@ class _Model(BaseModel):
 class McapWriterConfig(_Model):
     """How :class:`~frontend.sources.mcap_writer.McapFrameWriter` lays out a log."""
 
-    camera_topic: str = "/camera/image_raw"
-    compressed_camera_topic: str = "/camera/image_raw/compressed"
-    rear_camera_topic: str = "/camera_rear/image_raw"
-    compressed_rear_camera_topic: str = "/camera_rear/image_raw/compressed"
-    lidar_topic: str = "/lidar/points"
-    odom_topic: str = "/odom"
-    gt_topic: str = "/ground_truth"
-    image_format: Literal["raw", "jpeg", "png"] = "raw"
-    jpeg_quality: int = Field(90, ge=1, le=100)
-    png_compression: int = Field(3, ge=0, le=9)
-    world_frame_id: str = "map"
-    body_frame_id: str = "base_link"
-    camera_frame_id: str = "camera"
-    rear_camera_frame_id: str = "camera_rear"
-    lidar_frame_id: str = "lidar"
+    camera_topic: str = Field("/camera/image_raw", description="forward camera images when image_format is raw (Image)")
+    compressed_camera_topic: str = Field(
+        "/camera/image_raw/compressed", description="forward camera images when jpeg or png (CompressedImage)"
+    )
+    rear_camera_topic: str = Field("/camera_rear/image_raw", description="rear camera images when raw (Image)")
+    compressed_rear_camera_topic: str = Field(
+        "/camera_rear/image_raw/compressed", description="rear camera images when jpeg or png (CompressedImage)"
+    )
+    lidar_topic: str = Field("/lidar/points", description="LiDAR scans (PointCloud2)")
+    odom_topic: str = Field("/odom", description="logged poses (Odometry)")
+    gt_topic: str = Field("/ground_truth", description="ground-truth poses (PoseStamped)")
+    image_format: Literal["raw", "jpeg", "png"] = Field(
+        "raw", description="camera images as raw rgb8 Image, or JPEG / PNG CompressedImage"
+    )
+    jpeg_quality: int = Field(90, ge=1, le=100, description="OpenCV JPEG quality of jpeg images")
+    png_compression: int = Field(3, ge=0, le=9, description="OpenCV PNG compression level of png images")
+    world_frame_id: str = Field("map", description="frame_id of the pose messages (the fixed world frame)")
+    body_frame_id: str = Field("base_link", description="child_frame_id of the odometry messages")
+    camera_frame_id: str = Field("camera", description="frame_id of the forward camera's images")
+    rear_camera_frame_id: str = Field("camera_rear", description="frame_id of the rear camera's images")
+    lidar_frame_id: str = Field("lidar", description="frame_id of the point clouds")
     chunk_size: int = Field(1024 * 1024, gt=0, description="bytes per MCAP chunk")
-    compression: Literal["zstd", "lz4", "none"] = "zstd"
+    compression: Literal["zstd", "lz4", "none"] = Field("zstd", description="compression of the MCAP chunks")
     rotation_tolerance: float = Field(1e-3, gt=0.0, description="a pose whose |R^T R - I| exceeds this is refused")
 
 
@@ -51,13 +57,13 @@ class McapSourceConfig(_Model):
     A topic left ``None`` is found by message type; ``""`` switches the stream off.
     """
 
-    camera_topic: str | None = None
+    camera_topic: str | None = Field(None, description="forward camera (Image or CompressedImage)")
     rear_camera_topic: str | None = Field(
         None, description="backward-looking camera; None = the writer's rear topic names only (never by type)"
     )
-    lidar_topic: str | None = None
-    odom_topic: str | None = None
-    gt_topic: str | None = None
+    lidar_topic: str | None = Field(None, description="LiDAR scans (PointCloud2)")
+    odom_topic: str | None = Field(None, description="logged poses (found by type: Odometry)")
+    gt_topic: str | None = Field(None, description="ground-truth poses (found by type: PoseStamped)")
     drive: Literal["auto", "camera", "lidar"] = Field(
         "auto", description="stream whose messages become frames; auto = camera if present"
     )
@@ -84,8 +90,10 @@ class McapSourceConfig(_Model):
 class KittiSourceConfig(_Model):
     """A KITTI odometry sequence folder (``sequences/XX``)."""
 
-    camera: Literal["auto", "image_2", "image_0", "none"] = "auto"
-    load_points: bool = True
+    camera: Literal["auto", "image_2", "image_0", "none"] = Field(
+        "auto", description="image folder to read; auto = image_2 (colour) if present, else image_0"
+    )
+    load_points: bool = Field(True, description="read the velodyne/ scans (False: camera only)")
     poses_file: str | None = Field(None, description="explicit ground-truth poses file")
     gt_frame: Literal["auto", "lidar", "camera"] = Field(
         "auto", description="body frame of gt_pose; auto = lidar when velodyne/ exists"
@@ -99,7 +107,9 @@ class FolderSourceConfig(_Model):
     image_dir: str | None = Field(None, description="sub-folder with the images (auto)")
     poses_file: str | None = Field(None, description="poses file (auto: poses.txt, ...)")
     times_file: str | None = Field(None, description="one timestamp per image (auto)")
-    pose_role: Literal["gt", "logged", "both"] = "gt"
+    pose_role: Literal["gt", "logged", "both"] = Field(
+        "gt", description="the poses file gives the ground truth, the logged odometry, or both"
+    )
     association_tolerance_s: float = Field(
         0.02, ge=0.0, description="image time vs TUM pose time, when both are timestamps"
     )
@@ -110,7 +120,9 @@ class FolderSourceConfig(_Model):
 class SourceConfig(_Model):
     """Which data source :func:`~frontend.sources.open_source` builds, and its settings."""
 
-    kind: Literal["auto", "mcap", "rosbag", "kitti", "folder"] = "auto"
+    kind: Literal["auto", "mcap", "rosbag", "kitti", "folder"] = Field(
+        "auto", description="source type; auto = detected from the path's suffix and contents"
+    )
     mcap: McapSourceConfig = Field(
         default_factory=McapSourceConfig, description="MCAP logs and ROS 1 / ROS 2 bags: topics, association, clock"
     )
@@ -124,13 +136,13 @@ class SourceConfig(_Model):
 class KissIcpConfig(_Model):
     """kiss-icp's ``KISSConfig`` fields, flattened, plus our input guards."""
 
-    max_range: float = Field(100.0, gt=0.0)
+    max_range: float = Field(100.0, gt=0.0, description="m; farther returns are dropped")
     min_range: float = Field(0.5, ge=0.0, description="nearer returns are the vehicle itself or a driver's placeholder")
     deskew: bool = Field(True, description="used only when a scan has real per-point times")
     voxel_size: float | None = Field(None, gt=0.0, description="None: max_range / 100")
-    max_points_per_voxel: int = Field(20, ge=1)
-    max_num_iterations: int = Field(500, ge=1)
-    convergence_criterion: float = Field(1e-4, gt=0.0)
+    max_points_per_voxel: int = Field(20, ge=1, description="points kept per voxel of the local map")
+    max_num_iterations: int = Field(500, ge=1, description="ICP iterations per scan at most")
+    convergence_criterion: float = Field(1e-4, gt=0.0, description="ICP stops once a pose update's norm is below this")
     max_num_threads: int = Field(
         0,
         ge=0,
@@ -138,9 +150,13 @@ class KissIcpConfig(_Model):
         "(frontend/odometry/kiss_threads.py): where the odometry runs in the main process (pipeline.overlap "
         "false), the first built of this and backend.registration.lidar.max_threads counts for both",
     )
-    fixed_threshold: float | None = Field(None, gt=0.0)
-    initial_threshold: float = Field(2.0, gt=0.0)
-    min_motion_th: float = Field(0.1, ge=0.0)
+    fixed_threshold: float | None = Field(
+        None, gt=0.0, description="m; constant correspondence threshold sigma; None: kiss-icp's adaptive one"
+    )
+    initial_threshold: float = Field(
+        2.0, gt=0.0, description="m; adaptive threshold sigma until motions above min_motion_th are seen"
+    )
+    min_motion_th: float = Field(0.1, ge=0.0, description="m; smaller model deviations do not update the adaptive threshold")
     min_points: int = Field(20, ge=1, description="fewer valid in-range points: skip the scan, predict the pose")
     predict_on_skip: bool = Field(True, description="skipped scan: constant-velocity prediction (else hold the pose)")
 
@@ -159,9 +175,9 @@ class DriftConfig(_Model):
     grow with sqrt(d).
     """
 
-    enabled: bool = False
+    enabled: bool = Field(False, description="inject this drift into the poses used as odometry")
     seed: int = Field(0, ge=0, le=2**32 - 1, description="of numpy's generator (0 .. 2**32 - 1)")
-    translation_scale_error: float = Field(0.0, gt=-1.0)
+    translation_scale_error: float = Field(0.0, gt=-1.0, description="relative error of each step's length")
     yaw_bias_per_m: float = Field(0.0, description="rad per metre travelled")
     yaw_axis: Literal["x", "y", "z"] = Field(
         "z", description="body axis of yaw: z for z-up robots, y for KITTI's camera frame"
@@ -173,7 +189,9 @@ class DriftConfig(_Model):
 class LoggedOdometryConfig(_Model):
     """Odometry read from the log's poses (optionally degraded by :class:`DriftConfig`)."""
 
-    pose_source: Literal["logged", "gt"] = "logged"
+    pose_source: Literal["logged", "gt"] = Field(
+        "logged", description="frame poses used as odometry: the logged ones or the ground truth"
+    )
     drift: DriftConfig = Field(default_factory=DriftConfig)
 
 
@@ -196,7 +214,7 @@ class PoseFileConfig(_Model):
     rotation_tolerance: float = Field(
         1e-3, gt=0.0, description="max |R^T R - I| (or |q| - 1) before a line is rejected"
     )
-    timestamp_decimals: int = Field(9, ge=0, le=12)
+    timestamp_decimals: int = Field(9, ge=0, le=12, description="decimals of the timestamps in written TUM files")
     value_digits: int = Field(10, ge=6, le=17, description="significant digits per value")
 
 
@@ -206,9 +224,9 @@ class PoseFileConfig(_Model):
 class KeyframeConfig(_Model):
     """A frame becomes a keyframe when any enabled threshold is reached (None = off)."""
 
-    min_distance_m: float | None = Field(1.0, gt=0.0)
-    min_angle_deg: float | None = Field(10.0, gt=0.0)
-    max_interval_s: float | None = Field(None, gt=0.0)
+    min_distance_m: float | None = Field(1.0, gt=0.0, description="m moved since the last keyframe")
+    min_angle_deg: float | None = Field(10.0, gt=0.0, description="deg turned (rotation angle) since the last keyframe")
+    max_interval_s: float | None = Field(None, gt=0.0, description="s elapsed since the last keyframe")
 
 
 class FrontendConfig(_Model):

@@ -23,14 +23,30 @@ class BackboneConfig(_Strict):
         description="Path to a torchvision-layout VGG16 state dict, 'random' (tests only), "
         "or None to resolve automatically (SSMVPR_WEIGHTS, cache, download).",
     )
-    allow_download: bool = True
-    device: Literal["auto", "cpu", "cuda"] = "auto"
-    input_size: int = Field(default=224, ge=32)
-    preprocessing: Literal["torchvision", "caffe"] = "torchvision"
+    allow_download: bool = Field(
+        default=True,
+        description="Download the ImageNet VGG16 weights when no path, SSMVPR_WEIGHTS or cached file gives them.",
+    )
+    device: Literal["auto", "cpu", "cuda"] = Field(
+        default="auto", description="Where VGG16 runs; auto is cuda when torch sees a GPU, else cpu."
+    )
+    input_size: int = Field(
+        default=224, ge=32, description="Side in pixels of the square every image is resized to (no crop)."
+    )
+    preprocessing: Literal["torchvision", "caffe"] = Field(
+        default="torchvision",
+        description="Input normalisation: torchvision (RGB, ImageNet mean/std) or caffe (BGR, 0-255, mean subtracted).",
+    )
     pre_relu: bool = Field(default=True, description="Take activations before the ReLU, as the authors' code does.")
-    stage1_layer: Literal["conv4_2", "conv4_3", "conv5_1", "conv5_2", "conv5_3"] = "conv5_2"
-    stage2_layer: Literal["conv3_3", "conv4_1", "conv4_2", "conv4_3"] = "conv4_2"
-    batch_size: int = Field(default=8, ge=1)
+    stage1_layer: Literal["conv4_2", "conv4_3", "conv5_1", "conv5_2", "conv5_3"] = Field(
+        default="conv5_2", description="VGG16 layer whose map is cut into the stage-I (filtering) cubes."
+    )
+    stage2_layer: Literal["conv3_3", "conv4_1", "conv4_2", "conv4_3"] = Field(
+        default="conv4_2", description="VGG16 layer whose map is cut into the stage-II (spatial) cubes."
+    )
+    batch_size: int = Field(
+        default=8, ge=1, description="Images per VGG16 forward pass when encoding or fitting PCA on many images."
+    )
     num_threads: int | None = Field(default=None, ge=1, description="torch CPU threads; None keeps torch's default.")
     # fp32 stays the default: bf16 moved Corridor's single-frame PR-AUC by 0.010 (one query of 111),
     # more than the 0.005 allowed, though its sequence (L=3) PR-AUC moved by 0.0002 (docs/benchmarks.md, "Speed").
@@ -53,14 +69,16 @@ class BackboneConfig(_Strict):
 class CubeConfig(_Strict):
     """How a conv map is cut into cubes: LxLxC windows at a stride, each flattened."""
 
-    cube_size: int = Field(ge=1)
-    stride: int = Field(ge=1)
-    l2_normalize_locations: bool = True
+    cube_size: int = Field(ge=1, description="L: side of a cube, in conv-map cells.")
+    stride: int = Field(ge=1, description="Step, in conv-map cells, between neighbouring cubes.")
+    l2_normalize_locations: bool = Field(
+        default=True, description="L2-normalise each location's channel vector before cutting cubes (the paper's)."
+    )
 
 
 class PCAConfig(_Strict):
-    dim: int = Field(default=100, ge=1)
-    whiten: bool = False
+    dim: int = Field(default=100, ge=1, description="Dimensions a cube vector is projected to.")
+    whiten: bool = Field(default=False, description="Divide each PCA component by its standard deviation.")
     l2_normalize_output: bool = Field(
         default=True, description="Unit-length codes make nearest-neighbour and best-cell search cosine."
     )
@@ -136,7 +154,7 @@ class FilteringConfig(_Strict):
         "since the last training: lists trained on the first streets go on fitting a grown city.",
     )  # fmt: skip
     hnsw_m: int = Field(default=32, ge=4, description="HNSW links per vector.")
-    hnsw_ef_construction: int = Field(default=80, ge=1)
+    hnsw_ef_construction: int = Field(default=80, ge=1, description="HNSW build breadth (faiss efConstruction).")
     hnsw_ef_search: int = Field(default=128, ge=1, description="HNSW search breadth (at least k is used).")
     ann_candidates_factor: float = Field(
         default=1.0,
@@ -168,14 +186,20 @@ class DatabaseConfig(_Strict):
     """How place codes are stored: float, or int8 with one float32 scale per vector (x ~ q * s,
     s = max|x| / 127): 19.2 kB per place instead of 40.2 kB (docs/benchmarks.md, "Speed")."""
 
-    stage1_dtype: Literal["float16", "float32", "int8"] = "float32"
-    stage2_dtype: Literal["float16", "float32", "int8"] = "float16"
+    stage1_dtype: Literal["float16", "float32", "int8"] = Field(
+        default="float32", description="Storage type of the stage-I codes."
+    )
+    stage2_dtype: Literal["float16", "float32", "int8"] = Field(
+        default="float16", description="Storage type of the stage-II codes."
+    )
 
 
 class FrameCorrelationConfig(_Strict):
     """The RAS 2020 prior: candidates near the last recognitions get extra votes."""
 
-    enabled: bool = False
+    enabled: bool = Field(
+        default=False, description="Use the prior in vpr-eval (the default of --sequential); SLAM runs never use it."
+    )
     history: int = Field(default=2, ge=1, description="How many previous recognitions boost candidates.")
     radius: int = Field(default=2, ge=0, description="Frames around a previous match (shifted by the step) boosted.")
     boost: float = Field(default=0.5, ge=0.0, description="Added to a boosted candidate's normalised stage-I score.")
