@@ -156,7 +156,9 @@ class KissIcpConfig(_Model):
     initial_threshold: float = Field(
         2.0, gt=0.0, description="m; adaptive threshold sigma until motions above min_motion_th are seen"
     )
-    min_motion_th: float = Field(0.1, ge=0.0, description="m; smaller model deviations do not update the adaptive threshold")
+    min_motion_th: float = Field(
+        0.1, ge=0.0, description="m; smaller model deviations do not update the adaptive threshold"
+    )
     min_points: int = Field(20, ge=1, description="fewer valid in-range points: skip the scan, predict the pose")
     predict_on_skip: bool = Field(True, description="skipped scan: constant-velocity prediction (else hold the pose)")
 

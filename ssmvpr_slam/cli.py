@@ -271,6 +271,7 @@ def vpr_eval(
         "--weights $W",
         "ssmvpr-slam loop-eval images/ --gt-poses poses.txt --radius 10",
         "ssmvpr-slam loop-eval kitti00/image_0 --gt-matrix kitti00_loops.mat",
+        "ssmvpr-slam loop-eval drive.bag --radius 10 --weights $W",
     ),
 )
 @friendly_errors
@@ -279,7 +280,8 @@ def loop_eval(
         list[Path],
         typer.Argument(
             help="FIRST SECOND: two passes of one route, streamed one after the other (every SECOND frame i "
-            "revisits FIRST frame i); or one SEQUENCE with --gt-poses or --gt-matrix.",
+            "revisits FIRST frame i); or one SEQUENCE with --gt-poses or --gt-matrix; or one LOG (MCAP, ROS bag, "
+            "KITTI folder) judged by its own ground-truth poses, a keyframe per frontend.keyframes step.",
             show_default=False,
         ),
     ],
@@ -306,7 +308,9 @@ def loop_eval(
         ),
     ] = None,  # fmt: skip
     tolerance: Annotated[int, typer.Option(help="± frames around a true place that count as correct.")] = 2,
-    radius: Annotated[float, typer.Option(help="--gt-poses: metres within which a frame revisits another.")] = 10.0,
+    radius: Annotated[
+        float, typer.Option(help="--gt-poses or a LOG: metres within which a frame revisits another.")
+    ] = 10.0,
     spacing: Annotated[
         float, typer.Option(help="Metres per frame for the exclusion window, without --gt-poses.")
     ] = 1.0,

@@ -50,9 +50,11 @@ class VPREvalConfig(BaseModel):
 class ResultsConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
-    out_dir: str = "results"
-    save_database: bool = True
-    plots: bool = True
+    out_dir: str = Field(
+        default="results", description="Folder each command makes its results folder in (--out overrides it)."
+    )
+    save_database: bool = Field(default=True, description="Save the place database with run and vpr-eval results.")
+    plots: bool = Field(default=True, description="Write PNG plots with run, vpr-eval and loop-eval results.")
     mcap: bool = Field(
         default=True, description="Write trajectory.mcap (trajectories, loop edges, thumbnails) for Foxglove."
     )

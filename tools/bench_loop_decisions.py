@@ -105,8 +105,9 @@ def main(argv: list[str] | None = None) -> int:
             ap.error(f"unknown set {name!r}; one of {', '.join(SETS)}")
         first, second = (args.shared / "data" / p for p in SETS[name])
         inputs = LoopEvalInputs((first, second))
-        passes, rear, positions, loop_truth = prepare(inputs, base)
-        per_set: dict[str, Any] = {"frames": [len(p) for p in passes]}
+        prepared = prepare(inputs, base)
+        loop_truth = prepared.truth
+        per_set: dict[str, Any] = {"frames": list(prepared.lengths)}
         for variant in variants:
             cfg = base.model_copy(deep=True)
             if variant == "references":
@@ -129,7 +130,7 @@ def main(argv: list[str] | None = None) -> int:
                 else:
                     run.detector.calibrated = run.detector.calibrated.model_copy(update={"accept": accept})
                 start = time.perf_counter()
-                outcome = stream(run, backbone, passes, positions)  # type: ignore[arg-type]
+                outcome = stream(run, backbone, [read() for read in prepared.passes], prepared.positions)  # type: ignore[arg-type]
                 metrics = compute_metrics(outcome, loop_truth, run, 2)
                 entry = {"loops": metrics["loops"], "loops_across_passes": metrics["loops_across_passes"]}
                 if accept == default_accept or accept is None:

@@ -41,48 +41,70 @@ class CityConfig(_Model):
 
     block_size_m: float = Field(60.0, gt=5.0, description="block edge of the preset route grid")
     street_width_m: float = Field(16.0, gt=4.0, description="plot line to plot line")
-    sidewalk_width_m: float = Field(2.5, ge=0.0)
+    sidewalk_width_m: float = Field(2.5, ge=0.0, description="sidewalk on each side, within street_width_m")
     district_mix: dict[Literal["dense", "suburban", "open", "highway"], float] = Field(
         default={"dense": 0.45, "suburban": 0.3, "open": 0.15, "highway": 0.1},
         description="share of the route's length in each district kind",
     )
     district_scale_m: float = Field(120.0, gt=1.0, description="size of a district along the route")
     side_street_probability: float = Field(0.12, ge=0.0, le=1.0, description="a side street after a building")
-    side_street_width_range_m: tuple[float, float] = (9.0, 13.0)
-    house_width_range_m: tuple[float, float] = (8.0, 12.0)
-    house_setback_range_m: tuple[float, float] = (3.0, 7.0)
-    house_storeys_range: tuple[int, int] = (1, 2)
-    house_gap_probability: float = Field(0.6, ge=0.0, le=1.0)
+    side_street_width_range_m: tuple[float, float] = Field(
+        (9.0, 13.0), description="gap a side street leaves after a building"
+    )
+    house_width_range_m: tuple[float, float] = Field((8.0, 12.0), description="frontage of a suburban house")
+    house_setback_range_m: tuple[float, float] = Field((3.0, 7.0), description="suburban house facade behind plot line")
+    house_storeys_range: tuple[int, int] = Field(
+        (1, 2), description="storeys of a suburban house above its ground floor"
+    )
+    house_gap_probability: float = Field(0.6, ge=0.0, le=1.0, description="a gap with a tree after a suburban house")
     hedge_probability: float = Field(0.5, ge=0.0, le=1.0, description="suburban plot has a front hedge")
-    tree_spacing_range_m: tuple[float, float] = (8.0, 30.0)
-    tree_crown_size_range_m: tuple[float, float] = (3.0, 6.0)
-    tree_height_range_m: tuple[float, float] = (5.0, 10.0)
-    guard_rail_height_m: float = Field(0.75, gt=0.0)
+    tree_spacing_range_m: tuple[float, float] = Field(
+        (8.0, 30.0), description="step between tree sites on open roads (x1.5 on highways)"
+    )
+    tree_crown_size_range_m: tuple[float, float] = Field((3.0, 6.0), description="width of a tree's square crown")
+    tree_height_range_m: tuple[float, float] = Field((5.0, 10.0), description="height of a tree")
+    guard_rail_height_m: float = Field(0.75, gt=0.0, description="height of highway guard rails")
     road_camber: float = Field(0.02, ge=0.0, lt=0.2, description="fall of the road from its crown, per metre")
     kerb_height_m: float = Field(0.12, ge=0.0, description="sidewalks and verges above the road edge")
     verge_relief_m: float = Field(0.4, ge=0.0, description="peak undulation of the ground beyond the street")
     facade_relief_probability: float = Field(0.7, ge=0.0, le=1.0, description="facade has piers and recessed bays")
-    facade_relief_depth_range_m: tuple[float, float] = (0.2, 0.6)
-    facade_bay_width_range_m: tuple[float, float] = (3.0, 6.0)
-    building_width_range_m: tuple[float, float] = (8.0, 16.0)
+    facade_relief_depth_range_m: tuple[float, float] = Field(
+        (0.2, 0.6), description="depth of a relief facade's recessed bays"
+    )
+    facade_bay_width_range_m: tuple[float, float] = Field(
+        (3.0, 6.0), description="approximate width of a relief facade's bays"
+    )
+    building_width_range_m: tuple[float, float] = Field(
+        (8.0, 16.0), description="frontage of a dense-district building"
+    )
     building_depth_m: float = Field(10.0, gt=1.0, description="length of the side walls")
     setback_range_m: tuple[float, float] = Field((0.0, 2.5), description="facade behind plot line")
-    storey_height_range_m: tuple[float, float] = (3.0, 3.8)
-    ground_floor_height_range_m: tuple[float, float] = (3.6, 4.6)
-    storeys_range: tuple[int, int] = (2, 7)
-    parapet_m: float = Field(0.6, ge=0.0)
+    storey_height_range_m: tuple[float, float] = Field(
+        (3.0, 3.8), description="height of each storey above the ground floor"
+    )
+    ground_floor_height_range_m: tuple[float, float] = Field(
+        (3.6, 4.6), description="height of a building's ground floor"
+    )
+    storeys_range: tuple[int, int] = Field(
+        (2, 7), description="storeys of a dense-district building above its ground floor"
+    )
+    parapet_m: float = Field(0.6, ge=0.0, description="height of the cornice band above the top storey")
     gap_probability: float = Field(0.15, ge=0.0, le=1.0, description="alley after a building")
-    gap_width_range_m: tuple[float, float] = (2.0, 4.0)
+    gap_width_range_m: tuple[float, float] = Field(
+        (2.0, 4.0), description="alley between dense buildings (suburban gaps: twice this)"
+    )
     alley_depth_m: float = Field(8.0, gt=0.0, description="alley back wall behind the facade")
     pole_spacing_m: float = Field(15.0, gt=1.0, description="lamp posts along each kerb")
-    pole_jitter_m: float = Field(3.0, ge=0.0)
-    pole_size_m: float = Field(0.35, gt=0.0)
-    pole_height_m: float = Field(5.5, gt=0.0)
+    pole_jitter_m: float = Field(3.0, ge=0.0, description="random change of each pole spacing, within ± half this")
+    pole_size_m: float = Field(0.35, gt=0.0, description="side of a pole's square section")
+    pole_height_m: float = Field(5.5, gt=0.0, description="height of lamp posts")
     pole_kerb_offset_m: float = Field(0.6, ge=0.0, description="pole centre behind the kerb")
-    parked_car_probability: float = Field(0.3, ge=0.0, le=1.0)
-    car_slot_length_m: float = Field(7.0, gt=1.0)
+    parked_car_probability: float = Field(
+        0.3, ge=0.0, le=1.0, description="a kerb slot holds a car (re-drawn every parked_car_turnover_s)"
+    )
+    car_slot_length_m: float = Field(7.0, gt=1.0, description="kerb length per parked-car slot")
     car_size_m: tuple[float, float, float] = Field((4.3, 1.8, 1.5), description="length width height")
-    car_kerb_gap_m: float = Field(0.3, ge=0.0)
+    car_kerb_gap_m: float = Field(0.3, ge=0.0, description="gap between a parked car and the kerb")
     intersection_clearance_m: float = Field(4.0, ge=0.0, description="no cars this close to a crossing")
     facade_palette: list[RGB] = Field(
         default=[
@@ -96,6 +118,7 @@ class CityConfig(_Model):
             (0.60, 0.70, 0.55),  # sage green
         ],
         min_length=1,
+        description="base colours of the facades",
     )
     accent_palette: list[RGB] = Field(
         default=[
@@ -110,15 +133,19 @@ class CityConfig(_Model):
         description="signs, awnings, doors, parked cars",
     )
     colour_jitter: float = Field(0.06, ge=0.0, description="per-facade random change of the base colour")
-    sign_probability: float = Field(0.45, ge=0.0, le=1.0)
-    awning_probability: float = Field(0.3, ge=0.0, le=1.0)
+    sign_probability: float = Field(0.45, ge=0.0, le=1.0, description="ground floor has a shop sign (not houses)")
+    awning_probability: float = Field(0.3, ge=0.0, le=1.0, description="shop front has an awning (not houses)")
     shop_probability: float = Field(0.6, ge=0.0, le=1.0, description="glazed ground floor")
-    window_spacing_range_m: tuple[float, float] = (2.0, 3.6)
-    window_width_fraction_range: tuple[float, float] = (0.35, 0.7)
-    window_height_fraction_range: tuple[float, float] = (0.4, 0.65)
-    sign_length_range_m: tuple[float, float] = (3.0, 8.0)
-    sign_offset_range_m: tuple[float, float] = (0.5, 6.0)
-    door_offset_range_m: tuple[float, float] = (1.0, 6.0)
+    window_spacing_range_m: tuple[float, float] = Field((2.0, 3.6), description="window pitch along a facade")
+    window_width_fraction_range: tuple[float, float] = Field(
+        (0.35, 0.7), description="window width, fraction of the window pitch"
+    )
+    window_height_fraction_range: tuple[float, float] = Field(
+        (0.4, 0.65), description="window height, fraction of the storey height"
+    )
+    sign_length_range_m: tuple[float, float] = Field((3.0, 8.0), description="length of a shop sign")
+    sign_offset_range_m: tuple[float, float] = Field((0.5, 6.0), description="start of the shop sign along the facade")
+    door_offset_range_m: tuple[float, float] = Field((1.0, 6.0), description="door position along the facade")
 
     @field_validator(
         "building_width_range_m",
@@ -181,25 +208,27 @@ class RouteConfig(_Model):
     """Where the vehicle drives. ``preset`` is a named route or a TUM / KITTI poses file."""
 
     preset: str = Field("block_grid", description="block_grid | figure_eight | path to poses file")
-    poses_format: Literal["auto", "tum", "kitti"] = "auto"
+    poses_format: Literal["auto", "tum", "kitti"] = Field(
+        "auto", description="format of a poses-file route; auto: detected from its contents"
+    )
     poses_frame: Literal["auto", "camera", "body"] = Field(
         "auto", description="camera: KITTI ground truth (x right, y down, z forward); body: x forward, z up"
     )
     file_height_scale: float = Field(1.0, ge=0.0, description="scales a poses file's height profile")
     terrain_amplitude_m: float = Field(2.5, ge=0.0, description="hills of preset routes (peak)")
-    terrain_wavelength_m: float = Field(150.0, gt=1.0)
+    terrain_wavelength_m: float = Field(150.0, gt=1.0, description="size of the hills of preset routes")
     speed_mps: float = Field(11.0, gt=0.0, description="cruise speed on straights")
     speed_variation: float = Field(0.08, ge=0.0, lt=0.9, description="relative amplitude")
-    speed_variation_period_s: float = Field(25.0, gt=0.0)
+    speed_variation_period_s: float = Field(25.0, gt=0.0, description="period of the cruise speed's smooth variation")
     max_lateral_accel_mps2: float = Field(3.0, gt=0.0, description="sets the cornering speed")
-    max_accel_mps2: float = Field(2.0, gt=0.0)
-    max_decel_mps2: float = Field(3.0, gt=0.0)
+    max_accel_mps2: float = Field(2.0, gt=0.0, description="speed-profile limit on speeding up")
+    max_decel_mps2: float = Field(3.0, gt=0.0, description="speed-profile limit on braking")
     curvature_window_m: float = Field(1.0, gt=0.0, description="smoothing of the path curvature")
     laps: int = Field(2, ge=1, description="laps of the main loop (block_grid, figure_eight)")
-    turn_radius_m: float = Field(7.0, gt=0.0)
+    turn_radius_m: float = Field(7.0, gt=0.0, description="corner radius of preset routes")
     lane_offset_m: float = Field(-1.6, description="lateral offset from the centre line, + = left")
     lateral_wander_m: float = Field(0.25, ge=0.0, description="smooth lateral weaving amplitude")
-    wander_wavelength_m: float = Field(70.0, gt=0.0)
+    wander_wavelength_m: float = Field(70.0, gt=0.0, description="wavelength of the lateral weaving (preset routes)")
     path_smoothing_m: float = Field(3.0, ge=0.0, description="gaussian sigma easing turns in and out")
     path_resolution_m: float = Field(0.05, gt=0.0, description="sampling of the dense path")
     file_path_smoothing_m: float = Field(
@@ -225,33 +254,33 @@ class CameraConfig(_Model):
     """Forward pinhole camera on the vehicle's vertical axis, looking along body x, and an
     optional identical one looking backwards (along -x)."""
 
-    enabled: bool = True
+    enabled: bool = Field(True, description="render camera images")
     rear: bool = Field(
         True,
         description="also render a rear camera: at a street driven the other way it sees what the "
         "forward camera saw, so reverse revisits can be recognised",
     )
-    width: int = Field(320, ge=8)
-    height: int = Field(240, ge=8)
-    hfov_deg: float = Field(90.0, gt=1.0, lt=170.0)
+    width: int = Field(320, ge=8, description="image width in pixels")
+    height: int = Field(240, ge=8, description="image height in pixels")
+    hfov_deg: float = Field(90.0, gt=1.0, lt=170.0, description="horizontal field of view")
     height_m: float = Field(1.6, gt=0.0, description="above the ground")
     layers: int = Field(3, ge=1, description="nearest walls per column considered (occlusion)")
-    max_depth_m: float = Field(400.0, gt=0.0)
+    max_depth_m: float = Field(400.0, gt=0.0, description="walls farther along the ray are not drawn")
     texture_fade_distance_m: float = Field(90.0, gt=0.0, description="ground detail fades (anti-alias)")
 
 
 class LidarConfig(_Model):
     """Spinning multi-beam LiDAR; its frame is the body frame the poses describe."""
 
-    enabled: bool = True
+    enabled: bool = Field(True, description="simulate LiDAR scans")
     beams: int = Field(64, ge=1, description="rings: fewer and sparser ground rings make ICP sticky")
-    azimuths: int = Field(1024, ge=8)
+    azimuths: int = Field(1024, ge=8, description="firings per beam in one sweep (points per ring)")
     vfov_deg: tuple[float, float] = Field((-16.6, 16.6), description="uniform beams (an Ouster OS1-64's field)")
     height_m: float = Field(1.8, gt=0.0, description="above the ground (the pose's z)")
-    max_range_m: float = Field(80.0, gt=0.0)
-    min_range_m: float = Field(0.5, ge=0.0)
-    range_noise_sigma_m: float = Field(0.02, ge=0.0)
-    dropout_probability: float = Field(0.0, ge=0.0, lt=1.0)
+    max_range_m: float = Field(80.0, gt=0.0, description="farther returns are dropped")
+    min_range_m: float = Field(0.5, ge=0.0, description="nearer returns are dropped")
+    range_noise_sigma_m: float = Field(0.02, ge=0.0, description="sigma of the gaussian noise on each range")
+    dropout_probability: float = Field(0.0, ge=0.0, lt=1.0, description="a return is lost at random")
     scan_period_s: float | None = Field(None, gt=0.0, description="default: 1 / frame_rate_hz")
     motion_distortion: bool = Field(True, description="each azimuth measured from the pose at its time")
     layers: int = Field(4, ge=1, description="nearest walls per azimuth considered")
@@ -271,11 +300,15 @@ class LidarConfig(_Model):
     )
     range_scale_error: float = Field(0.0, gt=-0.1, lt=0.1, description="relative range error of the unit")
     # Vegetation is porous: a beam may pass a crown or return from anywhere inside it.
-    foliage_return_probability: float = Field(0.5, ge=0.0, le=1.0)
+    foliage_return_probability: float = Field(
+        0.5, ge=0.0, le=1.0, description="a beam meeting a crown or hedge returns from it (else passes)"
+    )
     foliage_depth_m: float = Field(1.2, ge=0.0, description="returns spread this deep into a crown")
     # Glass: a beam meeting a window mostly passes it and returns from the room behind.
-    glass_pass_probability: float = Field(0.6, ge=0.0, le=1.0)
-    glass_dropout_probability: float = Field(0.25, ge=0.0, le=1.0)
+    glass_pass_probability: float = Field(
+        0.6, ge=0.0, le=1.0, description="a beam meeting glass returns from the room behind it"
+    )
+    glass_dropout_probability: float = Field(0.25, ge=0.0, le=1.0, description="a beam meeting glass returns nothing")
 
     @field_validator("vfov_deg")
     @classmethod
@@ -291,19 +324,23 @@ class OdometryDriftConfig(_Model):
     scale_error: float = Field(0.02, gt=-0.5, lt=0.5, description="relative distance error")
     yaw_drift_rad_per_m: float = Field(5e-4, description="constant heading bias")
     yaw_bias_walk_rad_per_m_sqrt_m: float = Field(2e-5, ge=0.0, description="random walk of the bias")
-    yaw_noise_rad_per_sqrt_m: float = Field(1e-3, ge=0.0)
-    translation_noise_m_per_sqrt_m: float = Field(0.01, ge=0.0)
+    yaw_noise_rad_per_sqrt_m: float = Field(1e-3, ge=0.0, description="sigma of each step's heading noise")
+    translation_noise_m_per_sqrt_m: float = Field(
+        0.01, ge=0.0, description="sigma of each step's position noise (x and y)"
+    )
 
 
 class TrafficConfig(_Model):
     """What moves between visits: oncoming vehicles, and parked cars that come and go."""
 
     oncoming_vehicles_per_km: float = Field(6.0, ge=0.0, description="vehicles on the oncoming lane")
-    speed_range_mps: tuple[float, float] = (7.0, 14.0)
+    speed_range_mps: tuple[float, float] = Field((7.0, 14.0), description="speed of each oncoming vehicle")
     oncoming_lane_offset_m: float | None = Field(
         None, description="left of the centre line; default: mirror of the driven lane (preset) or 3.2 m (file)"
     )
-    vehicle_size_m: tuple[float, float, float] = (4.5, 1.8, 1.5)
+    vehicle_size_m: tuple[float, float, float] = Field(
+        (4.5, 1.8, 1.5), description="length width height of the oncoming vehicles"
+    )
     parked_car_turnover_s: float = Field(
         45.0, gt=0.0, description="each kerb slot is re-drawn this often (own phase), so visits differ"
     )
@@ -371,8 +408,10 @@ class SimulationConfig(_Model):
     """A whole simulated traverse."""
 
     seed: int = Field(0, ge=0, le=2**32 - 1, description="of every random stream (0 .. 2**32 - 1)")
-    frame_rate_hz: float = Field(5.0, gt=0.0)
-    start_time_s: float = Field(0.0, ge=0.0)
+    frame_rate_hz: float = Field(
+        5.0, gt=0.0, description="frames per second (and LiDAR sweeps, unless lidar.scan_period_s)"
+    )
+    start_time_s: float = Field(0.0, ge=0.0, description="timestamp of the first frame")
     max_frames: int | None = Field(None, ge=1, description="stop early")
     city: CityConfig = CityConfig()
     route: RouteConfig = RouteConfig()
@@ -380,7 +419,9 @@ class SimulationConfig(_Model):
     lidar: LidarConfig = LidarConfig()
     odometry: OdometryDriftConfig = OdometryDriftConfig()
     traffic: TrafficConfig = TrafficConfig()
-    appearances: dict[str, AppearanceConfig] = Field(default_factory=_default_appearances)
+    appearances: dict[str, AppearanceConfig] = Field(
+        default_factory=_default_appearances, description="named looks (light, colour, noise) appearance_schedule picks"
+    )
     appearance_schedule: list[str] = Field(
         default=["day", "day", "dusk"],
         min_length=1,

@@ -271,8 +271,8 @@ class RosStreamSource(Source):
                 f"{self.path}: header stamps of {', '.join(unset)} start unset (0); every topic is timed "
                 "by log time instead (one clock for the whole log)",
             )
-        for name, (stamp, log_time) in first.items():
-            time = stamp if header and stamp is not None else log_time
+        for name, (stamp, logged) in first.items():
+            time = stamp if header and stamp is not None else logged
             problem = time_problem(time)
             if problem is not None:
                 clock = "header stamp" if header else "log time"

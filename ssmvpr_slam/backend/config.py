@@ -58,7 +58,7 @@ class LoopNoiseConfig(_Strict):
 class RobustKernelConfig(_Strict):
     """M-estimator wrapped around every loop factor (odometry stays Gaussian)."""
 
-    kind: RobustKernelKind = "cauchy"
+    kind: RobustKernelKind = Field("cauchy", description="M-estimator of the loop factors; none: plain least squares")
     scale: float | None = Field(
         None,
         gt=0,
@@ -76,8 +76,10 @@ class RobustKernelConfig(_Strict):
 class ISAM2Config(_Strict):
     """Incremental solver settings."""
 
-    relinearize_threshold: float = Field(0.01, gt=0)
-    relinearize_skip: int = Field(1, ge=1)
+    relinearize_threshold: float = Field(
+        0.01, gt=0, description="variables whose linear delta exceeds this are relinearised (GTSAM)"
+    )
+    relinearize_skip: int = Field(1, ge=1, description="relinearisation is checked every this many iSAM2 updates")
     extra_updates_after_loop: int = Field(
         3, ge=0, description="extra iSAM2 iterations after a loop is added or removed"
     )
@@ -86,13 +88,13 @@ class ISAM2Config(_Strict):
 class GncConfig(_Strict):
     """Optional final batch pass with graduated non-convexity over the whole graph."""
 
-    enabled: bool = False
-    loss: Literal["tls", "gm"] = "tls"
+    enabled: bool = Field(False, description="run GNC at the end and remove the loops it rejects")
+    loss: Literal["tls", "gm"] = Field("tls", description="GNC loss: truncated least squares or Geman-McClure")
     inlier_probability: float = Field(0.99, gt=0, lt=1, description="chi2 quantile that sets the inlier cost threshold")
     weight_threshold: float = Field(
         0.5, ge=0, le=1, description="loops whose final GNC weight is at least this are inliers"
     )
-    max_iterations: int = Field(100, ge=1)
+    max_iterations: int = Field(100, ge=1, description="GNC iterations at most (GTSAM GncParams)")
     init: Literal["odometry", "current"] = Field(
         "odometry", description="start from the odometry chain or the current iSAM2 estimate"
     )
@@ -148,9 +150,9 @@ class LidarRegistrationConfig(_Strict):
     voxel_size: float = Field(1.0, gt=0, description="m; kiss-icp map voxel size")
     map_downsample_factor: float = Field(0.5, gt=0, description="x voxel_size, as kiss-icp")
     source_downsample_factor: float = Field(1.5, gt=0, description="x voxel_size, as kiss-icp")
-    max_points_per_voxel: int = Field(20, ge=1)
+    max_points_per_voxel: int = Field(20, ge=1, description="points kept per voxel of the target map")
     max_range: float = Field(100.0, gt=0, description="m; points farther away are dropped")
-    convergence_criterion: float = Field(1e-4, gt=0)
+    convergence_criterion: float = Field(1e-4, gt=0, description="ICP stops once a pose update's norm is below this")
     max_threads: int = Field(
         0,
         ge=0,
@@ -158,7 +160,11 @@ class LidarRegistrationConfig(_Strict):
         "(frontend/odometry/kiss_threads.py): where the odometry runs in the main process (pipeline.overlap "
         "false), the first built of this and frontend.odometry.kiss_icp.max_num_threads counts for both",
     )
-    stages: list[IcpStageConfig] = Field(default_factory=_default_stages, min_length=1)
+    stages: list[IcpStageConfig] = Field(
+        default_factory=_default_stages,
+        min_length=1,
+        description="ICP passes, coarse to fine: max_correspondence_distance, kernel (m), max_iterations",
+    )
     yaw_seed_offsets_deg: list[float] = Field(
         default_factory=lambda: [0.0, 30.0, -30.0, 60.0, -60.0, 90.0, -90.0, 180.0],
         min_length=1,
@@ -184,7 +190,9 @@ class LidarRegistrationConfig(_Strict):
         "the first seed always is. None: min_inlier_ratio",
     )
     inlier_distance: float = Field(0.5, gt=0, description="m; distance to the nearest raw map point counted as inlier")
-    min_inlier_ratio: float = Field(0.8, ge=0, le=1)  # demo: true loops >= 0.89, aliased streets <= 0.69
+    min_inlier_ratio: float = Field(
+        0.8, ge=0, le=1, description="share of inliers to accept (demo: true loops >= 0.89, aliased streets <= 0.69)"
+    )
     max_rmse: float = Field(0.3, gt=0, description="m; RMSE of the inlier distances")
     min_points: int = Field(50, ge=3, description="after down-sampling, per cloud")
     local_map_half_window: int = Field(2, ge=0, description="keyframes m-k..m+k make the target local map")
@@ -227,9 +235,9 @@ class TwoViewConfig(_Strict):
     body_from_camera: list[list[float]] = Field(
         default_factory=_optical_to_flu, description="3x3 rotation, camera axes in body frame"
     )
-    orb_features: int = Field(2000, ge=8)
+    orb_features: int = Field(2000, ge=8, description="ORB keypoints detected per image at most")
     ratio_test: float = Field(0.8, gt=0, le=1, description="Lowe ratio for ORB matches")
-    ransac_confidence: float = Field(0.999, gt=0, lt=1)
+    ransac_confidence: float = Field(0.999, gt=0, lt=1, description="RANSAC confidence of the E and H fits")
     ransac_threshold_px: float = Field(1.0, gt=0, description="essential matrix (epipolar)")
     homography_threshold_px: float = Field(
         2.0, gt=0, description="homography transfer error; 2-D, so looser than the epipolar one"

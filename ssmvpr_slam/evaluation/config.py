@@ -18,8 +18,13 @@ class TrajectoryMetricsConfig(_Strict):
         "se3", description="Umeyama alignment of the estimate to the reference before ATE"
     )
     rpe_delta: float = Field(1.0, gt=0, description="pair distance, in rpe_unit")
-    rpe_unit: Literal["frames", "m"] = "frames"
-    rpe_all_pairs: bool = False
+    rpe_unit: Literal["frames", "m"] = Field(
+        "frames", description="unit of rpe_delta: poses, or metres along the reference path"
+    )
+    rpe_all_pairs: bool = Field(
+        False,
+        description="pairs start at every pose, not every rpe_delta-th (evo all_pairs); the report does not read it",
+    )
     drift_segment_m: float = Field(100.0, gt=0, description="segment length for drift per 100 m")
     kitti_lengths_m: list[float] = Field(
         default=[100.0, 200.0, 300.0, 400.0, 500.0, 600.0, 700.0, 800.0],
@@ -57,9 +62,9 @@ class LoopMetricsConfig(_Strict):
 class PlotConfig(_Strict):
     """Figure output."""
 
-    dpi: int = Field(120, ge=30)
-    width_in: float = Field(7.0, gt=0)
-    height_in: float = Field(6.0, gt=0)
+    dpi: int = Field(120, ge=30, description="dots per inch of a run's PNG plots")
+    width_in: float = Field(7.0, gt=0, description="width of a run's plots, in inches")
+    height_in: float = Field(6.0, gt=0, description="height of a run's plots, in inches (some plots use a fraction)")
 
 
 class EvaluationConfig(_Strict):

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import csv
 import io
-from collections.abc import Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -15,13 +16,16 @@ from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 from rich.table import Table
 
+from frontend.errors import FrontendInputError
 from frontend.poses_io import read_poses
+from frontend.sources import detect_kind
 from loopclosure.backbone import load_backbone
 from loopclosure.images import list_images
 from ssmvpr_common.atomic import atomic_write_text
 from ssmvpr_slam.config import SlamConfig, dump_config
 from ssmvpr_slam.loop_eval import score, truth
-from ssmvpr_slam.loop_eval.stream import StreamOutcome, path_positions, stream, travelled
+from ssmvpr_slam.loop_eval.log_frames import images_of_log, keyframes_of
+from ssmvpr_slam.loop_eval.stream import ImagePair, StreamOutcome, images_of, path_positions, stream, travelled
 from ssmvpr_slam.loop_eval.truth import LoopTruth, LoopTruthError
 from ssmvpr_slam.results import staged_results_dir, write_json
 
@@ -46,34 +50,65 @@ def _images(folder: Path, what: str) -> list[Path]:
     return list_images(folder)  # an empty folder is an error naming it
 
 
-def prepare(
-    inputs: LoopEvalInputs, config: SlamConfig
-) -> tuple[list[list[Path]], list[list[Path]] | None, np.ndarray, LoopTruth]:
-    """The image lists, positions (metres, for the exclusion window) and ground truth, checked
-    before the backbone loads: a wrong count or a missing file is one line, at once."""
+@dataclass(frozen=True)
+class Prepared:
+    """What is streamed and how it is judged, checked before the backbone loads."""
+
+    passes: tuple[Callable[[], Iterable[ImagePair]], ...]  # each call reads its pass afresh
+    lengths: tuple[int, ...]
+    names: tuple[str, ...]  # one per frame: a file name, or LOG#frame
+    positions: np.ndarray  # (N, 3) metres, for the exclusion window
+    truth: LoopTruth
+
+
+def is_log(path: Path) -> bool:
+    """An MCAP, a ROS bag or a KITTI sequence (what `run` reads), not an image folder."""
+    try:
+        return detect_kind(path) != "folder"
+    except FrontendInputError:
+        return False
+
+
+def prepare(inputs: LoopEvalInputs, config: SlamConfig) -> Prepared:
+    """The passes, positions and ground truth, checked before the backbone loads: a wrong count or
+    a missing file is one line, at once."""
     if not 1 <= len(inputs.sequences) <= 2:
         raise LoopTruthError(f"loop-eval takes one sequence or two passes, got {len(inputs.sequences)} folders")
     if inputs.tolerance < 0:
         raise LoopTruthError(f"--tolerance must be 0 or more frames, got {inputs.tolerance}")
     if not inputs.spacing > 0:
         raise LoopTruthError(f"--spacing must be positive metres per frame, got {inputs.spacing}")
-    passes = [_images(folder, "image") for folder in inputs.sequences]
+    if len(inputs.sequences) == 1 and is_log(inputs.sequences[0]):
+        return _prepare_log(inputs, config)
+    for sequence in inputs.sequences:
+        if is_log(sequence):
+            raise LoopTruthError(f"{sequence}: a log is one sequence judged by its own ground truth; "
+                                 "two passes are image folders")  # fmt: skip
+    files = [_images(folder, "image") for folder in inputs.sequences]
     rear = None
     if inputs.rear:
-        if len(inputs.rear) != len(passes):
-            raise LoopTruthError(f"--rear: one rear-camera folder per sequence ({len(passes)}), got {len(inputs.rear)}")
+        if len(inputs.rear) != len(files):
+            raise LoopTruthError(f"--rear: one rear-camera folder per sequence ({len(files)}), got {len(inputs.rear)}")
         rear = [_images(folder, "rear camera") for folder in inputs.rear]
-        for front, back, folder in zip(passes, rear, inputs.rear):
+        for front, back, folder in zip(files, rear, inputs.rear):
             if len(front) != len(back):
                 raise LoopTruthError(f"{folder}: {len(back)} rear images for {len(front)} forward images")
-    n = sum(len(p) for p in passes)
+    passes = tuple(partial(images_of, f, None if rear is None else rear[k]) for k, f in enumerate(files))
+    lengths = tuple(len(f) for f in files)
+    names = tuple(path.name for f in files for path in f)
+    positions, loop_truth = _folder_truth(inputs, config, files)
+    return Prepared(passes, lengths, names, positions, loop_truth)
+
+
+def _folder_truth(inputs: LoopEvalInputs, config: SlamConfig, files: list[list[Path]]) -> tuple[np.ndarray, LoopTruth]:
+    n = sum(len(f) for f in files)
     det = config.detector
-    if len(passes) == 2:
+    if len(files) == 2:
         if inputs.gt_poses is not None or inputs.gt_matrix is not None:
             raise LoopTruthError("two passes are judged frame by frame (or by --gt); --gt-poses and --gt-matrix "
                                  "are for one sequence")  # fmt: skip
-        loop_truth, _ = truth.two_passes(passes[0], passes[1], inputs.ground_truth, inputs.tolerance)
-        return passes, rear, path_positions(n, inputs.spacing), loop_truth
+        loop_truth, _ = truth.two_passes(files[0], files[1], inputs.ground_truth, inputs.tolerance)
+        return path_positions(n, inputs.spacing), loop_truth
     if inputs.ground_truth is not None:
         raise LoopTruthError("--gt pairs a second pass with the first; one sequence needs --gt-poses or --gt-matrix")
     if (inputs.gt_poses is None) == (inputs.gt_matrix is None):
@@ -83,14 +118,34 @@ def prepare(
         if len(poses) != n:
             raise LoopTruthError(f"{inputs.gt_poses}: {len(poses)} poses for {n} images")
         positions = poses[:, :3, 3]
-        loop_truth = truth.from_poses(positions, inputs.radius, travelled(positions), det.exclusion_keyframes,
-                                      det.exclusion_distance)  # fmt: skip
-        return passes, rear, positions, loop_truth
+        return positions, _truth_from_positions(positions, inputs, config)
     assert inputs.gt_matrix is not None
     positions = path_positions(n, inputs.spacing)
     loop_truth = truth.from_matrix(inputs.gt_matrix, n, inputs.tolerance, travelled(positions),
                                    det.exclusion_keyframes, det.exclusion_distance)  # fmt: skip
-    return passes, rear, positions, loop_truth
+    return positions, loop_truth
+
+
+def _truth_from_positions(positions: np.ndarray, inputs: LoopEvalInputs, config: SlamConfig) -> LoopTruth:
+    det = config.detector
+    return truth.from_poses(positions, inputs.radius, travelled(positions), det.exclusion_keyframes,
+                            det.exclusion_distance)  # fmt: skip
+
+
+def _prepare_log(inputs: LoopEvalInputs, config: SlamConfig) -> Prepared:
+    """One log (MCAP, bag, KITTI): a keyframe every `frontend.keyframes` step of its own ground
+    truth, a revisit an earlier keyframe within --radius (`log_frames`)."""
+    log = inputs.sequences[0]
+    given = [name for name, value in (("--gt", inputs.ground_truth), ("--gt-poses", inputs.gt_poses),
+                                      ("--gt-matrix", inputs.gt_matrix)) if value is not None]  # fmt: skip
+    if given or inputs.rear:
+        raise LoopTruthError(f"{log}: a log is judged by its own ground-truth poses and streams its own rear "
+                             f"camera; {', '.join(given + (['--rear'] if inputs.rear else []))} is for image folders")  # fmt: skip
+    keyframes = keyframes_of(log, config)
+    positions = keyframes.poses[:, :3, 3]
+    passes = (partial(images_of_log, keyframes, config),)
+    return Prepared(passes, (len(positions),), tuple(keyframes.names()), positions,
+                    _truth_from_positions(positions, inputs, config))  # fmt: skip
 
 
 def compute_metrics(outcome: StreamOutcome, loop_truth: LoopTruth, config: SlamConfig, n_passes: int) -> dict[str, Any]:
@@ -114,7 +169,7 @@ LOOP_COLUMNS = ["frame", "pass", "image", "match_frame", "match_image", "decisio
                 "single_score", "runner_up", "direction", "camera", "accepted", "correct", "true_frame", "reason"]  # fmt: skip
 
 
-def write_loops_csv(path: Path, outcome: StreamOutcome, loop_truth: LoopTruth, files: Sequence[Path]) -> None:
+def write_loops_csv(path: Path, outcome: StreamOutcome, loop_truth: LoopTruth, names: Sequence[str]) -> None:
     """One row per frame that had a winner."""
     buffer = io.StringIO()
     writer = csv.writer(buffer)
@@ -124,7 +179,7 @@ def write_loops_csv(path: Path, outcome: StreamOutcome, loop_truth: LoopTruth, f
             continue
         true = loop_truth.matches[q]
         writer.writerow([
-            q, int(loop_truth.passes[q]), files[q].name, p.match_id, files[p.match_id].name,
+            q, int(loop_truth.passes[q]), names[q], p.match_id, names[p.match_id],
             f"{score.decision_score(p):.4f}", "" if p.sequence_score is None else f"{p.sequence_score:.4f}",
             f"{p.score:.4f}", "" if p.runner_up_score is None else f"{p.runner_up_score:.4f}", p.direction or "",
             p.camera, int(p.accepted), int(bool(loop_truth.has_truth[q]) and loop_truth.correct(q, p.match_id)),
@@ -183,30 +238,35 @@ def run_loop_eval(
 ) -> tuple[Path, dict[str, Any]]:
     """Stream, judge, write metrics.json, loops.csv, pr.png and config.yaml; returns (folder, metrics)."""
     console = console or Console()
-    passes, rear, positions, loop_truth = prepare(inputs, config)
+    prepared = prepare(inputs, config)
+    loop_truth = prepared.truth
     if not loop_truth.has_truth.any():
         console.print("[bold yellow]warning:[/bold yellow] no frame has a true revisit under this ground truth: "
                       "recall and the PR curve are undefined", highlight=False)  # fmt: skip
     backbone = load_backbone(config.vpr.backbone, progress=True)
-    files = [f for p in passes for f in p]
     with Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
                   TimeRemainingColumn(), console=console, transient=False) as progress:  # fmt: skip
-        task = progress.add_task("streaming", total=len(files))
-        outcome = stream(config, backbone, passes, positions, rear, lambda: progress.advance(task))
+        task = progress.add_task("streaming", total=sum(prepared.lengths))
+        passes = [read() for read in prepared.passes]
+        outcome = stream(config, backbone, passes, prepared.positions, lambda: progress.advance(task))
     metrics = compute_metrics(outcome, loop_truth, config, len(passes))
+    from_log = len(inputs.sequences) == 1 and is_log(inputs.sequences[0])
+    by_poses = from_log or inputs.gt_poses is not None
     metrics["inputs"] = {
         "sequences": [str(s) for s in inputs.sequences],
-        "frames": [len(p) for p in passes],
-        "ground_truth": str(inputs.gt_poses or inputs.gt_matrix or inputs.ground_truth or "frame-aligned"),
+        "frames": list(prepared.lengths),
+        "ground_truth": "the log's ground-truth poses"
+        if from_log
+        else str(inputs.gt_poses or inputs.gt_matrix or inputs.ground_truth or "frame-aligned"),
         "tolerance": inputs.tolerance,
-        "radius_m": inputs.radius if inputs.gt_poses is not None else None,
-        "spacing_m": inputs.spacing if inputs.gt_poses is None else None,
+        "radius_m": inputs.radius if by_poses else None,
+        "spacing_m": inputs.spacing if not by_poses else None,
         "rear": [str(r) for r in inputs.rear],
     }
     with staged_results_dir(config.results.out_dir, "loop_eval") as staged:
         folder = staged.path
         write_json(folder / "metrics.json", metrics)
-        write_loops_csv(folder / "loops.csv", outcome, loop_truth, files)
+        write_loops_csv(folder / "loops.csv", outcome, loop_truth, prepared.names)
         atomic_write_text(folder / "config.yaml", dump_config(config))
         if config.results.plots and loop_truth.has_truth.any():
             name = " then ".join(s.name for s in inputs.sequences)

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -45,12 +45,21 @@ def travelled(positions: np.ndarray) -> np.ndarray:
     return np.r_[0.0, np.cumsum(steps)]
 
 
+ImagePair = tuple[np.ndarray, "np.ndarray | None"]
+"""A keyframe's forward image and its rear image (None without a rear camera)."""
+
+
+def images_of(files: Sequence[Path], rear: Sequence[Path] | None = None) -> Iterator[ImagePair]:
+    """A folder pass read image by image (never all in memory)."""
+    for k, path in enumerate(files):
+        yield read_image(path), (read_image(rear[k]) if rear is not None else None)
+
+
 def stream(
     config: SlamConfig,
     backbone: Backbone,
-    passes: Sequence[Sequence[Path]],
+    passes: Sequence[Iterable[ImagePair]],
     positions: np.ndarray,
-    rear: Sequence[Sequence[Path]] | None = None,
     on_frame: Callable[[], None] | None = None,
 ) -> StreamOutcome:
     """Stream the passes one after the other as one traverse; between passes the detector is told
@@ -59,13 +68,16 @@ def stream(
     proposals: list[LoopProposal | None] = []
     seconds: list[float] = []
     frame = 0
-    for p, files in enumerate(passes):
+    for p, images in enumerate(passes):
         if p:
             detector.break_sequence()
-        for k, path in enumerate(files):
+        pairs = iter(images)
+        while True:
             start = time.perf_counter()
-            image = read_image(path)
-            rear_image = read_image(rear[p][k]) if rear is not None else None
+            pair = next(pairs, None)  # reading the image is part of the frame's time
+            if pair is None:
+                break
+            image, rear_image = pair
             proposals.append(detector.process(image, frame, positions[frame], float(frame), rear_image))
             seconds.append(time.perf_counter() - start)
             frame += 1

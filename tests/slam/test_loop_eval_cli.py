@@ -11,6 +11,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import torch
 from cli_helpers import assert_user_error, clean_ssmvpr_environment, invoke  # noqa: F401
 
 
@@ -107,3 +108,66 @@ def test_other_input_errors(tmp_path: Path, images: Path) -> None:
         invoke("loop-eval", images, images, "--rear", images, *out), "one rear-camera folder per sequence"
     )
     assert not (tmp_path / "out").exists()
+
+
+@pytest.fixture(scope="module")
+def sim_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Two laps of a 10 m block grid with a rear camera, ground truth, no LiDAR: the second lap
+    revisits the first."""
+    from frontend.simulation.config import SimulationConfig
+    from frontend.simulation.simulator import TraverseSimulator
+    from frontend.sources import write_frames
+
+    sim = SimulationConfig(frame_rate_hz=2.0, city={"block_size_m": 10.0}, route={"preset": "block_grid", "laps": 2},
+                           max_frames=70, lidar={"enabled": False}, camera={"width": 64, "height": 48})  # fmt: skip
+    log = tmp_path_factory.mktemp("log") / "sim.mcap"
+    write_frames(TraverseSimulator(sim).frames(), log)
+    return log
+
+
+def test_a_log_is_one_sequence_judged_by_its_own_ground_truth(tmp_path: Path, sim_log: Path) -> None:
+    """An MCAP (and the same log as a ROS 1 bag): keyframes every metre of the true path, the
+    rear camera streamed, revisits within --radius; the bag gives the very same decisions."""
+    from frontend.sources.rosbag_convert import mcap_to_rosbag
+
+    runs = {}
+    bag = mcap_to_rosbag(sim_log, tmp_path / "sim.bag", "ros1")
+    for name, log in (("mcap", sim_log), ("bag", bag)):
+        out = tmp_path / name
+        torch.manual_seed(0)  # the same random weights for both
+        result = invoke("loop-eval", log, "--radius", "3", "-c", small_config(tmp_path), "--out", out, *SMALL)
+        assert result.exit_code == 0, result.output
+        metrics = json.loads((out / "latest" / "metrics.json").read_text())
+        rows = list(csv.DictReader((out / "latest" / "loops.csv").open()))
+        runs[name] = (metrics, rows)
+    metrics, rows = runs["mcap"]
+    assert metrics["inputs"]["ground_truth"] == "the log's ground-truth poses" and metrics["inputs"]["radius_m"] == 3
+    assert 40 <= metrics["loops"]["frames"] < 70 and metrics["loops"]["with_truth"] > 5  # thinned; lap 2 revisits
+    assert rows and all(r["image"].startswith("sim.mcap#") for r in rows)
+    from ssmvpr_slam.config import load_config
+    from ssmvpr_slam.loop_eval.log_frames import images_of_log, keyframes_of
+
+    config = load_config(str(small_config(tmp_path)))
+    keyframes = keyframes_of(sim_log, config)
+    assert keyframes.has_rear and len(keyframes.frame_indices) == metrics["loops"]["frames"]
+    first, rear = next(images_of_log(keyframes, config))
+    assert first.shape == rear.shape == (48, 64, 3)  # the log's rear camera is streamed too
+    assert runs["bag"][0]["loops"] == metrics["loops"]
+    assert [{k: v for k, v in r.items() if "image" not in k} for r in runs["bag"][1]] == [
+        {k: v for k, v in r.items() if "image" not in k} for r in rows
+    ]
+
+
+def test_a_log_without_ground_truth_or_with_folder_options_is_refused(tmp_path: Path, sim_log: Path) -> None:
+    from frontend.sources import McapSource, write_frames
+
+    blind = tmp_path / "blind.mcap"
+    frames = []
+    for frame in McapSource(sim_log):
+        frame.gt_pose = None
+        frames.append(frame)
+    write_frames(iter(frames), blind)
+    assert_user_error(invoke("loop-eval", blind, *SMALL), str(blind), "no ground-truth poses")
+    assert_user_error(
+        invoke("loop-eval", sim_log, "--gt-poses", tmp_path / "p.txt", *SMALL), "--gt-poses is for image folders"
+    )
