@@ -142,7 +142,7 @@ def test_a_log_is_one_sequence_judged_by_its_own_ground_truth(tmp_path: Path, si
         runs[name] = (metrics, rows)
     metrics, rows = runs["mcap"]
     assert metrics["inputs"]["ground_truth"] == "the log's ground-truth poses" and metrics["inputs"]["radius_m"] == 3
-    assert 30 <= metrics["loops"]["frames"] <= 50 and metrics["loops"]["with_truth"] > 5  # thinned; lap 2 revisits
+    assert 30 <= metrics["loops"]["frames"] <= 50 and metrics["loops"]["with_truth"] >= 3  # lap 2 begins revisits
     assert rows and all(r["image"].startswith("sim.mcap#") for r in rows)
     from ssmvpr_slam.config import load_config
     from ssmvpr_slam.loop_eval.log_frames import images_of_log, keyframes_of
