@@ -13,7 +13,6 @@ returns float32 NCHW numpy maps, so nothing downstream knows which one ran.
 
 from __future__ import annotations
 
-import functools
 import logging
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -23,6 +22,7 @@ import torch
 from torch import nn
 
 from loopclosure.config import BackboneConfig, VPRConfig
+from loopclosure.cpu import cpu_flags
 from loopclosure.errors import LoopClosureInputError
 
 if TYPE_CHECKING:
@@ -64,19 +64,6 @@ def resolve_device(requested: str) -> torch.device:
     if requested == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     return torch.device(requested)
-
-
-@functools.lru_cache(maxsize=1)
-def cpu_flags() -> frozenset[str] | None:
-    """The CPU's feature flags from /proc/cpuinfo (Linux); None where it cannot be read."""
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as handle:
-            for line in handle:
-                if line.startswith("flags"):
-                    return frozenset(line.split(":", 1)[1].split())
-    except OSError:
-        pass
-    return None
 
 
 def cpu_has_fast_bf16() -> bool:
@@ -233,8 +220,8 @@ class Backbone:
 
     def _calibration_from_config(self) -> np.ndarray:
         """`int8_calibration_images` images spread evenly over the `int8_calibration` folder."""
-        from loopclosure.encoder import evenly_spaced
         from loopclosure.images import as_rgb, list_images, read_image, resize_square
+        from loopclosure.sampling import evenly_spaced
 
         folder = self.config.int8_calibration
         assert folder  # without one, __init__ calibrates on the stream instead

@@ -172,13 +172,6 @@ def _per_image_budget(config: VPRConfig) -> int:
     return max(1, -(-pca.max_fit_samples // pca.max_fit_images))
 
 
-def evenly_spaced(n: int, k: int) -> np.ndarray:
-    """k indices spread over range(n) (all of them when k >= n): a fit set that covers the route."""
-    if k >= n:
-        return np.arange(n)
-    return np.unique(np.linspace(0, n - 1, k).round().astype(np.int64))
-
-
 def _batches(items: Iterable[np.ndarray], size: int) -> Iterator[list[np.ndarray]]:
     batch: list[np.ndarray] = []
     for item in items:

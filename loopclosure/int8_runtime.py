@@ -29,6 +29,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from loopclosure.cpu import cpu_flags
 from loopclosure.errors import LoopClosureInputError
 from ssmvpr_common.atomic import atomic_write
 
@@ -61,8 +62,6 @@ def int8_available() -> bool:
 
 def cpu_has_vnni() -> bool:
     """u8s8 products saturate in AVX2's vpmaddubsw; ONNX Runtime advises reduce_range without VNNI."""
-    from loopclosure.backbone import cpu_flags
-
     flags = cpu_flags()
     if flags is None:
         return bool(getattr(torch.cpu, "_is_vnni_supported", lambda: False)())

@@ -517,8 +517,9 @@ def fit_pca(
 ) -> None:
     """Fit the PCA codebooks on a reference set or any image folder."""
     from loopclosure.backbone import load_backbone
-    from loopclosure.encoder import Encoder, evenly_spaced
+    from loopclosure.encoder import Encoder
     from loopclosure.images import list_images, read_image
+    from loopclosure.sampling import evenly_spaced
     from ssmvpr_slam.results import output_file
 
     cfg = _config(config, weights, device)
@@ -663,11 +664,10 @@ def optimize(
         KERNEL_NAMES,
         OptimizerSettings,
         initial_poses,
-        loop_classification_scores,
         optimize_graph,
-        trajectory_ate,
     )  # fmt: skip
     from ssmvpr_slam.backend.gtsam_errors import gtsam_reason
+    from ssmvpr_slam.evaluation.graph_metrics import loop_classification_scores, trajectory_ate
     from ssmvpr_slam.evaluation.trajectory_io import write_tum
     from ssmvpr_slam.results import output_dir, staged_results_dir, write_json
 

@@ -57,12 +57,11 @@ from ssmvpr_slam.backend.graph_optimizer import (  # noqa: E402
     SOLVERS,
     OptimizerSettings,
     kernel_solutions,
-    loop_classification_scores,
     optimize_graph,
     refine_and_choose,
-    trajectory_ate,
 )
 from ssmvpr_slam.backend.se3 import make_pose  # noqa: E402
+from ssmvpr_slam.evaluation.graph_metrics import loop_classification_scores, trajectory_ate  # noqa: E402
 
 GRAPHS = ("ring", "ringCity", "manhattan", "sphere2500", "city10000")
 RATES = (0.1, 0.2, 0.3, 0.5)

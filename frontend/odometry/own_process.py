@@ -65,13 +65,13 @@ class _Records(logging.Handler):
 def serve(fd: int) -> None:
     """The child: build the odometry from the first message, then answer one frame at a time."""
     connection = Connection(fd)
-    from frontend.odometry import make_odometry
+    from frontend.odometry.factory import make_in_process  # the child's only odometry import
 
     records = _Records()
     logging.getLogger().addHandler(records)  # warnings and above, the root logger's default
     try:
         config, pose_config = connection.recv()
-        odometry = make_odometry(config, pose_config)
+        odometry = make_in_process(config, pose_config)
     except Exception as exc:
         connection.send(("error", _portable(exc), records.take()))
         return

@@ -493,12 +493,14 @@ def read_ground_truth(
             by_id = dict(zip(gt_graph.ids, chain_odometry(gt_graph)))
         return _in_graph_order(path, graph, by_id)
     if path.suffix.lower() == ".tum":
-        from ssmvpr_slam.evaluation.trajectory_io import read_tum
+        from frontend.poses_io import read_tum
 
         try:
-            stamps, poses = read_tum(path)
+            tum = read_tum(path)
         except ValueError as error:
             raise PoseGraphFileError(str(error)) from None
+        stamps, poses = tum.timestamps, tum.poses
+        assert stamps is not None
         if times is not None:
             index = {round(float(t), 6): k for k, t in enumerate(stamps)}
             missing = [float(t) for t in times if round(float(t), 6) not in index]

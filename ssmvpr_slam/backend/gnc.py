@@ -6,10 +6,22 @@ Gaussian factors (it supplies the robust loss itself) and the indices of the kno
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import gtsam
 import numpy as np
 
 from ssmvpr_slam.backend.config import GncConfig
+
+
+@dataclass(frozen=True)
+class GncResult:
+    """Outcome of the batch GNC pass; handles refer to `add_loop`'s return values."""
+
+    poses: dict[int, np.ndarray]
+    inliers: list[int]
+    outliers: list[int]
+    weights: dict[int, float]
 
 
 def run_gnc(
@@ -18,14 +30,12 @@ def run_gnc(
     initial: gtsam.Values,
     pose_keys: dict[int, int],
     config: GncConfig,
-):
+) -> GncResult:
     """Optimise known-inlier factors plus Gaussian loop factors with GNC.
 
     Returns a `GncResult` with the poses of `pose_keys` (keyframe id -> variable key) and the
     loops classified by handle.
     """
-    from ssmvpr_slam.backend.pose_graph import GncResult
-
     graph = gtsam.NonlinearFactorGraph()
     for factor in known:
         graph.add(factor)

@@ -36,6 +36,7 @@ import numpy as np
 
 from ssmvpr_slam.backend import noise
 from ssmvpr_slam.backend.config import PoseGraphConfig
+from ssmvpr_slam.backend.gnc import GncResult, run_gnc
 from ssmvpr_slam.backend.gtsam_errors import gtsam_reason
 from ssmvpr_slam.backend.se3 import as_pose, relative
 from ssmvpr_slam.errors import SlamError
@@ -107,16 +108,6 @@ class LoopResidual:
     """sqrt(chi2): the quantity the robust kernel sees."""
     weight: float
     """Robust kernel weight at this error (1.0 without a kernel)."""
-
-
-@dataclass(frozen=True)
-class GncResult:
-    """Outcome of the batch GNC pass; handles refer to `add_loop`'s return values."""
-
-    poses: dict[int, np.ndarray]
-    inliers: list[int]
-    outliers: list[int]
-    weights: dict[int, float]
 
 
 @dataclass
@@ -488,7 +479,6 @@ class PoseGraph:
         Odometry and prior factors are known inliers; loop factors enter with their Gaussian
         noise (GNC supplies the robust loss). Does not change the iSAM2 state.
         """
-        from ssmvpr_slam.backend.gnc import run_gnc  # local: keeps the GNC details apart
 
         self._flush()
         if self._prior is None:

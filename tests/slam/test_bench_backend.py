@@ -78,8 +78,8 @@ def test_from_odometry_the_start_with_lower_tls_holds_where_the_other_fails(benc
         optimize_graph,
         refine_and_choose,
         refine_with_gnc,
-        trajectory_ate,
     )  # fmt: skip
+    from ssmvpr_slam.evaluation.graph_metrics import trajectory_ate
 
     ring_city = bench.load_benchmark("ringCity")
     optimum = optimize_graph(ring_city.graph, OptimizerSettings(kernel="none", gnc=False, solver="batch"))

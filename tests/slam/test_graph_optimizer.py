@@ -24,9 +24,9 @@ from ssmvpr_slam.backend.graph_optimizer import (
     initial_poses,
     optimize_graph,
     refine_with_gnc,
-    trajectory_ate,
 )  # fmt: skip
 from ssmvpr_slam.backend.se3 import make_pose, relative, rot_z
+from ssmvpr_slam.evaluation.graph_metrics import trajectory_ate
 
 
 def _circle(

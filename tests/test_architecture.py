@@ -1,0 +1,76 @@
+"""The layering (ARCHITECTURE.md) as import-linter contracts (pyproject.toml, `lint-imports`):
+frontend and loopclosure independent of each other and of the application, ssmvpr_common the
+leaf, no cycle between a package's modules; plus what the contracts do not state: no module at
+all takes part in an import cycle (a package and one of its own modules included)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import grimp
+from importlinter.cli import lint_imports
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("frontend", "loopclosure", "ssmvpr_slam", "ssmvpr_common")
+
+
+def test_the_import_contracts_hold() -> None:
+    assert lint_imports(config_filename=str(ROOT / "pyproject.toml"), no_cache=True, no_logo=True) == 0
+
+
+def _cycles(graph: grimp.ImportGraph) -> list[list[str]]:
+    """Strongly connected groups of more than one module (Tarjan, iteratively)."""
+    modules = sorted(m for m in graph.modules if m.split(".")[0] in PACKAGES)
+    inside = set(modules)
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    on_stack: set[str] = set()
+    groups: list[list[str]] = []
+    for root in modules:
+        if root in index:
+            continue
+        work = [(root, iter(sorted(graph.find_modules_directly_imported_by(root) & inside)))]
+        index[root] = low[root] = len(index)
+        stack.append(root)
+        on_stack.add(root)
+        while work:
+            node, children = work[-1]
+            child = next(children, None)
+            if child is not None:
+                if child not in index:
+                    index[child] = low[child] = len(index)
+                    stack.append(child)
+                    on_stack.add(child)
+                    work.append((child, iter(sorted(graph.find_modules_directly_imported_by(child) & inside))))
+                elif child in on_stack:
+                    low[node] = min(low[node], index[child])
+                continue
+            work.pop()
+            if work:
+                low[work[-1][0]] = min(low[work[-1][0]], low[node])
+            if low[node] == index[node]:
+                group = []
+                while True:
+                    member = stack.pop()
+                    on_stack.discard(member)
+                    group.append(member)
+                    if member == node:
+                        break
+                if len(group) > 1:
+                    groups.append(sorted(group))
+    return groups
+
+
+def test_no_module_takes_part_in_an_import_cycle() -> None:
+    assert _cycles(grimp.build_graph(*PACKAGES)) == []
+
+
+def test_the_cycle_finder_finds_one() -> None:
+    graph = grimp.ImportGraph()
+    for module in ("frontend", "frontend.a", "frontend.b", "frontend.c"):
+        graph.add_module(module)
+    graph.add_import(importer="frontend.a", imported="frontend.b")
+    graph.add_import(importer="frontend.b", imported="frontend.a")
+    graph.add_import(importer="frontend.b", imported="frontend.c")
+    assert _cycles(graph) == [["frontend.a", "frontend.b"]]
