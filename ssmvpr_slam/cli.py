@@ -667,17 +667,18 @@ def optimize(
         optimize_graph,
     )  # fmt: skip
     from ssmvpr_slam.backend.gtsam_errors import gtsam_reason
+    from ssmvpr_slam.errors import OptionError
     from ssmvpr_slam.evaluation.graph_metrics import loop_classification_scores, trajectory_ate
     from ssmvpr_slam.evaluation.trajectory_io import write_tum
     from ssmvpr_slam.results import output_dir, staged_results_dir, write_json
 
     if kernel not in KERNEL_NAMES:
-        raise g2o_io.PoseGraphFileError(f"--kernel: expected one of {', '.join(KERNEL_NAMES)}, got {kernel!r}")
+        raise OptionError(f"--kernel: expected one of {', '.join(KERNEL_NAMES)}, got {kernel!r}")
     if gt_radius is not None:
         if not gt_radius > 0 or not np.isfinite(gt_radius):
-            raise g2o_io.PoseGraphFileError(f"--gt-radius: expected metres > 0, got {gt_radius}")
+            raise OptionError(f"--gt-radius: expected metres > 0, got {gt_radius}")
         if gt is None or gt_edges is not None:
-            raise g2o_io.PoseGraphFileError("--gt-radius: needs --gt, and replaces --gt-edges")
+            raise OptionError("--gt-radius: needs --gt, and replaces --gt-edges")
     base = out if out is not None else Path("results")
     with output_dir(base, "--out"):  # checked before the graph is read
         data = g2o_io.read_pose_graph(graph)

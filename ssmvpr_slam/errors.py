@@ -7,3 +7,7 @@ from ssmvpr_common.errors import SsmvprError
 
 class SlamError(SsmvprError):
     """Root of the errors `ssmvpr_slam` raises on purpose (configuration, outputs, checkpoints)."""
+
+
+class OptionError(SlamError, ValueError):
+    """A command-line option's value, or a combination of options, that cannot be used."""

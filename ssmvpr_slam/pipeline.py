@@ -76,31 +76,27 @@ class StopFlag:
 
 
 class SlamPipeline:
-    """Streams frames into a `SlamSystem` (built here, or handed in with `around`)."""
+    """Streams frames into a `SlamSystem` (handed in, or built from its parts with `build`)."""
 
-    def __init__(
-        self,
-        config: SlamConfig,
-        odometry: Odometry,
-        backbone: Backbone,
-        prior_map: PriorMap | None = None,
-        graph: PoseGraph | None = None,
-    ) -> None:
-        self._use(SlamSystem(config, odometry, backbone, prior_map, graph))
-
-    @classmethod
-    def around(cls, system: SlamSystem) -> SlamPipeline:
-        """A loop feeding an existing system (e.g. one restored from a checkpoint)."""
-        pipeline = cls.__new__(cls)
-        pipeline._use(system)
-        return pipeline
-
-    def _use(self, system: SlamSystem) -> None:
+    def __init__(self, system: SlamSystem) -> None:
+        """A loop feeding `system` (built with `build`, or restored from a checkpoint)."""
         self.system = system
         self.stop = StopFlag()
         self.ending = StreamEnd()
         self.step_error: Exception | None = None  # the exception that ended the loop, for the caller
         self.heap = HeapTrimmer(self.config.pipeline.release_heap_every_keyframes)
+
+    @classmethod
+    def build(
+        cls,
+        config: SlamConfig,
+        odometry: Odometry,
+        backbone: Backbone,
+        prior_map: PriorMap | None = None,
+        graph: PoseGraph | None = None,
+    ) -> SlamPipeline:
+        """A pipeline around a new `SlamSystem` of these parts."""
+        return cls(SlamSystem(config, odometry, backbone, prior_map, graph))
 
     # the system's parts, for callers that inspect a run (tests, benchmarks)
     @property

@@ -54,9 +54,10 @@ def run_log(
     """Stream `log` through SLAM (from `resume`'s checkpoint if given); returns the results
     folder and its metrics."""
     console = console or Console()
+    config = config.model_copy(deep=True)  # resolved for this log below; the caller's config stays as given
     source = open_camera_source(log, config, resume)
     prior = PriorMap.load(prior_map, config.vpr) if prior_map is not None else None  # before the slow part
-    pipeline = SlamPipeline.around(build_system(config, prior))
+    pipeline = SlamPipeline(build_system(config, prior))
     frames = islice(source, config.pipeline.max_frames)  # a resume's replay counts towards the limit
     if resume is not None:
         restore_from_checkpoint(pipeline, resume, log, frames, console)
@@ -80,7 +81,7 @@ def run_log(
 
 def open_camera_source(log: Path, config: SlamConfig, resume: Checkpoint | None = None) -> Source:
     """The log's source, refused without camera images (or, for a resume, when it is not the
-    checkpoint's log); `auto` odometry resolved for it."""
+    checkpoint's log); `auto` odometry resolved for it in `config` (run_log's own copy)."""
     source = open_source(log, config.frontend.source, config.frontend.pose_files)
     topics = source.topics
     if "camera" not in topics:  # places are recognised in images: a run without them finds no loop

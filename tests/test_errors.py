@@ -10,7 +10,7 @@ from loopclosure.errors import LoopClosureError, LoopClosureInputError, WeightsN
 from ssmvpr_common.errors import SsmvprError
 from ssmvpr_slam.checkpoint import CheckpointError
 from ssmvpr_slam.config import ConfigError
-from ssmvpr_slam.errors import SlamError
+from ssmvpr_slam.errors import OptionError, SlamError
 from ssmvpr_slam.results import OutputError
 
 
@@ -23,6 +23,7 @@ from ssmvpr_slam.results import OutputError
         (ConfigError, SlamError, ValueError),
         (OutputError, SlamError, ValueError),
         (CheckpointError, SlamError, ValueError),
+        (OptionError, SlamError, ValueError),
     ],
 )
 def test_every_error_has_its_package_root_and_the_common_one(error: type, package_root: type, builtin: type) -> None:

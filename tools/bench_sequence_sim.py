@@ -74,7 +74,7 @@ def run_traverse(weights: str | None, simulation: SimulationConfig) -> dict[str,
     cfg.pipeline.use_lidar_for_loops = False
     t0 = time.perf_counter()
     with threadpool_limits(limits=1, user_api="blas"):
-        pipeline = SlamPipeline(cfg, make_odometry(cfg.frontend.odometry, cfg.frontend.pose_files),
+        pipeline = SlamPipeline.build(cfg, make_odometry(cfg.frontend.odometry, cfg.frontend.pose_files),
                                 load_backbone(cfg.vpr.backbone))  # fmt: skip
         pipeline.run(TraverseSimulator(cfg.simulation).frames())
     det = pipeline.detector

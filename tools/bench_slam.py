@@ -114,7 +114,7 @@ def main(argv: list[str] | None = None) -> int:
         traverse = {"simulated": sim.route.preset, "laps": sim.route.laps, "max_frames": sim.max_frames,
                     "lidar": sim.lidar.enabled}  # fmt: skip
     backbone = load_backbone(config.vpr.backbone)
-    pipeline = SlamPipeline(config, build_odometry(config), backbone)
+    pipeline = SlamPipeline.build(config, build_odometry(config), backbone)
 
     samples: list[dict[str, float]] = []
     load_before = os.getloadavg()

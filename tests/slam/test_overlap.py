@@ -72,7 +72,7 @@ class Run:
 
 
 def _run(cfg: SlamConfig, frames: list[Frame], backbone: object) -> Run:
-    pipeline = SlamPipeline(cfg, make_odometry(cfg.frontend.odometry), backbone)  # type: ignore[arg-type]
+    pipeline = SlamPipeline.build(cfg, make_odometry(cfg.frontend.odometry), backbone)  # type: ignore[arg-type]
     pipeline.run(iter(frames))
     return Run(pipeline, pipeline.finish())
 
@@ -180,7 +180,7 @@ def test_a_front_end_failure_ends_the_run_with_the_frames_before_it(
 ) -> None:
     cfg = _config(weights_path, overlap=overlap)
     odometry = _FailingOdometry(make_odometry(cfg.frontend.odometry), fail_at=21)
-    pipeline = SlamPipeline(cfg, odometry, backbone)  # type: ignore[arg-type]
+    pipeline = SlamPipeline.build(cfg, odometry, backbone)  # type: ignore[arg-type]
     state = pipeline.run(iter(frames))
     assert isinstance(pipeline.step_error, RuntimeError) and "odometry broke" in str(pipeline.step_error)
     assert state.frames_seen == 21 and len(state.keyframes) == 10  # frames 0, 2, ..., 18
@@ -189,7 +189,7 @@ def test_a_front_end_failure_ends_the_run_with_the_frames_before_it(
 
 def test_a_back_end_failure_stops_the_producer(weights_path: Path, frames: list[Frame], backbone: object) -> None:
     cfg = _config(weights_path, overlap=True)
-    pipeline = SlamPipeline(cfg, make_odometry(cfg.frontend.odometry), backbone)  # type: ignore[arg-type]
+    pipeline = SlamPipeline.build(cfg, make_odometry(cfg.frontend.odometry), backbone)  # type: ignore[arg-type]
     back = pipeline.system.back
     read: list[int] = []
 

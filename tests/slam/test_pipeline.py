@@ -164,7 +164,7 @@ def _run(
         lidar = cfg.backend.registration.lidar  # as confident as a real ICP loop
         graph = WrongLoopGraph(cfg.backend.pose_graph.for_odometry(cfg.frontend.odometry.kind), inject,
                                sigmas6(lidar.rot_sigma, lidar.trans_sigma), cfg.detector.pca_warmup_keyframes)  # fmt: skip
-    pipeline = SlamPipeline(cfg, make_odometry(cfg.frontend.odometry, cfg.frontend.pose_files), backbone,
+    pipeline = SlamPipeline.build(cfg, make_odometry(cfg.frontend.odometry, cfg.frontend.pose_files), backbone,
                             graph=graph)  # type: ignore[arg-type]  # fmt: skip
     pipeline.run(frames)
     cfg.results.plots = plots
@@ -411,7 +411,7 @@ def test_sigint_mid_run_stops_cleanly_and_results_are_consistent(
     main one: the frame source waits until the handler has run, as a Ctrl-C between frames."""
     cfg = slam_config(weights_path, "logged")
     cfg.pipeline.overlap = overlap
-    pipeline = SlamPipeline(cfg, make_odometry(cfg.frontend.odometry), backbone)  # type: ignore[arg-type]
+    pipeline = SlamPipeline.build(cfg, make_odometry(cfg.frontend.odometry), backbone)  # type: ignore[arg-type]
 
     def frames() -> Iterator[Frame]:
         for k, frame in enumerate(camera_frames):
@@ -449,7 +449,7 @@ def test_stop_flag_before_the_first_frame_gives_an_empty_but_valid_run(
     tmp_path: Path, weights_path: Path, backbone: MemoBackbone, camera_frames: list[Frame]
 ) -> None:
     cfg = slam_config(weights_path, "logged")
-    pipeline = SlamPipeline(cfg, make_odometry(cfg.frontend.odometry), backbone)  # type: ignore[arg-type]
+    pipeline = SlamPipeline.build(cfg, make_odometry(cfg.frontend.odometry), backbone)  # type: ignore[arg-type]
 
     def frames() -> Iterator[Frame]:
         pipeline.stop.requested = True  # e.g. SIGTERM while the source was opening
@@ -589,7 +589,9 @@ def test_the_odometry_gate_refuses_loops_its_odometry_puts_too_far_apart_before_
 
 def _second_session(folder: Path, cfg: SlamConfig, backbone: MemoBackbone, frames, prior: Run) -> Run:  # noqa: ANN001
     prior_map = PriorMap.load(prior.folder / "database", cfg.vpr)
-    pipeline = SlamPipeline(cfg, make_odometry(cfg.frontend.odometry, cfg.frontend.pose_files), backbone, prior_map)  # type: ignore[arg-type]
+    pipeline = SlamPipeline.build(
+        cfg, make_odometry(cfg.frontend.odometry, cfg.frontend.pose_files), backbone, prior_map
+    )  # type: ignore[arg-type]
     pipeline.run(frames)
     folder.mkdir(parents=True)
     return _finish_and_write(pipeline, cfg, folder, {"test": folder.name})
