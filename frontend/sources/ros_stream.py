@@ -88,12 +88,14 @@ class RosStreamSource(Source):
         self._rotation_tolerance = (pose_config or PoseFileConfig()).rotation_tolerance
         self._scan_stopped: str | None = None  # why a linear topic scan ended early (cut or corrupt log)
         self._header_clock = self.config.use_header_stamp
+        self._clock_warning: str | None = None
 
     def _choose_streams(self, present: dict[str, str], counts: dict[str, int] | None) -> None:
         """Select each role's topic among `present` ({topic: normalised type}) and the driver."""
         self._roles = self._select_topics(present)
         self.driver = self._pick_driver()
         self._length = counts.get(self._roles[self.driver].name) if counts else None
+        self._header_clock, self._clock_warning = self._choose_clock([t.name for t in self._roles.values()])
 
     @abstractmethod
     def _decoded(self, topics: list[str]) -> Generator[tuple[str, int, Any]]:
@@ -183,7 +185,8 @@ class RosStreamSource(Source):
             self.stats,
         )
         by_topic = {t.name: t for t in self._roles.values()}
-        self._header_clock = self._choose_clock(list(by_topic))
+        if self._clock_warning is not None:
+            self.stats.warn("clock_log_time", self._clock_warning)
         clock = StreamClock(self.stats, cfg.max_time_gap_s)
         failure: str | None = None
         messages = self._decoded(list(by_topic))
@@ -241,10 +244,11 @@ class RosStreamSource(Source):
         stamp = ros_convert.stamp_seconds(header.stamp)
         return stamp if stamp > 0 or log_time < UNSET_STAMP_LOG_TIME_S else None
 
-    def _choose_clock(self, topics: list[str]) -> bool:
-        """One clock for the whole log, from each topic's first message: header stamps when every
-        topic's first stamp is set, else log time for every topic (said once). Frames never mix
-        the two clocks, and a log whose times no writer can hold is refused before any work."""
+    def _choose_clock(self, topics: list[str]) -> tuple[bool, str | None]:
+        """One clock for the whole log, from each topic's first message, chosen when the log is
+        opened: header stamps when every topic's first stamp is set, else log time for every topic
+        (the warning to tell as the log is read). Frames never mix the two clocks, and a log whose
+        times no writer can hold is refused here, before any work."""
         first: dict[str, tuple[float | None, float]] = {}
         counting, self.stats = self.stats, SourceStats(quiet=True)  # the real pass counts and tells
         messages = self._decoded(topics)
@@ -264,12 +268,12 @@ class RosStreamSource(Source):
             self.stats = counting
         header = self.config.use_header_stamp and bool(first)
         unset = sorted(name for name, (stamp, _) in first.items() if stamp is None)
+        warning = None
         if header and unset:
             header = False
-            self.stats.warn(
-                "clock_log_time",
+            warning = (
                 f"{self.path}: header stamps of {', '.join(unset)} start unset (0); every topic is timed "
-                "by log time instead (one clock for the whole log)",
+                "by log time instead (one clock for the whole log)"
             )
         for name, (stamp, logged) in first.items():
             time = stamp if header and stamp is not None else logged
@@ -277,7 +281,7 @@ class RosStreamSource(Source):
             if problem is not None:
                 clock = "header stamp" if header else "log time"
                 raise FrontendInputError(f"{self.path}: {name} {clock}: {problem}; refusing the log")
-        return header
+        return header, warning
 
     def _time(self, decoded: Any, log_time_ns: int) -> float | None:
         """The message's time on the log's clock; None for an unset stamp on a header-stamped log."""

@@ -74,10 +74,8 @@ def test_a_first_stamp_of_zero_never_mixes_clocks(tmp_path: Path) -> None:
 def test_times_no_writer_can_hold_are_refused_before_any_frame(tmp_path: Path) -> None:
     path = tmp_path / "far.mcap"
     _write(path, _pairs(1.8e10, [0.0] + [1.0 + k for k in range(1, 6)]))
-    source = McapSource(path)
-    frames = iter(source)
     with pytest.raises(FrontendInputError, match=r"far\.mcap: /\w+ log time: time 1\.8e\+10 s is outside .*2038"):
-        next(frames)
+        McapSource(path)  # when the log is opened: before the backbone loads, before any frame
 
 
 def test_a_zero_stamp_inside_a_stamped_log_is_a_counted_skip(tmp_path: Path) -> None:
@@ -110,3 +108,13 @@ def test_our_own_logs_start_at_time_zero_on_both_clocks(tmp_path: Path) -> None:
     got = list(source)
     assert [f.timestamp for f in got] == pytest.approx([0.1 * k for k in range(5)])
     assert not source.stats.notes and not source.stats.skipped
+
+
+def test_run_refuses_such_a_log_in_one_line_and_writes_nothing(tmp_path: Path) -> None:
+    """Before: every frame skipped as 'clock went back', then a struct.error writing trajectory.mcap."""
+    from cli_helpers import assert_user_error, invoke
+
+    path = tmp_path / "far.mcap"
+    _write(path, _pairs(1.8e10, [0.0] + [1.0 + k for k in range(1, 6)]))
+    assert_user_error(invoke("run", path, "--out", tmp_path / "out", "--odometry", "kiss-icp"), "far.mcap", "2038")
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
