@@ -15,7 +15,7 @@ from ssmvpr_common.lazy_exports import lazy_exports
 if TYPE_CHECKING:
     from ssmvpr_slam.config import SlamConfig, load_config
     from ssmvpr_slam.errors import SlamError
-    from ssmvpr_slam.result import RunResult
+    from ssmvpr_slam.run_result import RunResult
     from ssmvpr_slam.runner import run_log
     from ssmvpr_slam.system import SlamSystem
 
@@ -25,7 +25,7 @@ _EXPORTS = {
     "SlamConfig": "ssmvpr_slam.config",
     "load_config": "ssmvpr_slam.config",
     "SlamError": "ssmvpr_slam.errors",
-    "RunResult": "ssmvpr_slam.result",
+    "RunResult": "ssmvpr_slam.run_result",
     "run_log": "ssmvpr_slam.runner",
     "SlamSystem": "ssmvpr_slam.system",
 }

@@ -59,8 +59,8 @@ from ssmvpr_slam.backend.se3 import DEFAULT_ROTATION_TOLERANCE, as_pose
 from ssmvpr_slam.backend.two_view import ReducedImage
 from ssmvpr_slam.config import ResultsConfig, SlamConfig
 from ssmvpr_slam.errors import SlamError
-from ssmvpr_slam.result import Keyframe, LoopRecord, RunResult, StreamEnd, frozen_array
-from ssmvpr_slam.results import RunFolder, switch_link
+from ssmvpr_slam.run_folder import RunFolder, switch_link
+from ssmvpr_slam.run_result import Keyframe, LoopRecord, RunResult, StreamEnd, frozen_array
 from ssmvpr_slam.writers import prior_gt, write_config, write_database, write_loop_csv, write_trajectories
 
 log = logging.getLogger(__name__)

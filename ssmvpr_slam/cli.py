@@ -246,7 +246,7 @@ def vpr_eval(
     out: OutOpt = None,
 ) -> None:
     """Recognition on a VPR benchmark: PR curves, AUC, recall@N, timings (the paper's protocol)."""
-    from ssmvpr_slam.results import output_dir
+    from ssmvpr_slam.run_folder import output_dir
     from ssmvpr_slam.vpr.evaluate import run_vpr_eval
 
     cfg = _config(config, weights, device, out)
@@ -325,7 +325,7 @@ def loop_eval(
     """Loop-closure detection benchmark through the detector `run` builds: precision and recall at its
     decision, maximum recall at 100% precision, PR curve (metrics.json, loops.csv, pr.png)."""
     from ssmvpr_slam.loop_eval.runner import LoopEvalInputs, run_loop_eval
-    from ssmvpr_slam.results import output_dir
+    from ssmvpr_slam.run_folder import output_dir
 
     cfg = _config(config, weights, device, out)
     inputs = LoopEvalInputs(tuple(sequences), gt, gt_poses, gt_matrix, tolerance, radius, spacing, tuple(rear or ()))
@@ -349,7 +349,7 @@ def simulate(
 ) -> None:
     """Render a loopy city traverse (camera, LiDAR, ground truth, drifting odometry) to MCAP."""
     from frontend.simulation.config import SimulationConfig
-    from ssmvpr_slam.results import output_file
+    from ssmvpr_slam.run_folder import output_file
     from ssmvpr_slam.runner import simulate_to_mcap
 
     cfg = _config(config)
@@ -414,7 +414,7 @@ def run(
     out: OutOpt = None,
 ) -> None:
     """Process a logged traverse end to end: odometry, SSM-VPR loops, iSAM2, evaluation."""
-    from ssmvpr_slam.results import output_dir
+    from ssmvpr_slam.run_folder import output_dir
     from ssmvpr_slam.runner import run_log
 
     if resume is not None:
@@ -440,7 +440,7 @@ def _resume(log: Path, folder: Path, weights: Path | None, device: str | None, r
     where the weights are and which device runs them may change."""
     from ssmvpr_slam.checkpoint import CheckpointError, load_checkpoint
     from ssmvpr_slam.config import settings_variables
-    from ssmvpr_slam.results import check_writable
+    from ssmvpr_slam.run_folder import check_writable
     from ssmvpr_slam.runner import run_log
 
     given = [name for name, value in refused.items() if value is not None]
@@ -478,7 +478,7 @@ def demo(
 ) -> None:
     """Simulate the default loopy traverse, run it, evaluate, and print before/after (`-c quick`: a
     short one, a few minutes). The log is kept in the user cache and reused."""
-    from ssmvpr_slam.results import output_dir, output_file
+    from ssmvpr_slam.run_folder import output_dir, output_file
     from ssmvpr_slam.runner import run_log, simulate_to_mcap
     from ssmvpr_slam.simulated_logs import simulated_log_path
 
@@ -520,7 +520,7 @@ def fit_pca(
     from loopclosure.encoder import Encoder
     from loopclosure.images import list_images, read_image
     from loopclosure.sampling import evenly_spaced
-    from ssmvpr_slam.results import output_file
+    from ssmvpr_slam.run_folder import output_file
 
     cfg = _config(config, weights, device)
     with output_file(output, "--output"):

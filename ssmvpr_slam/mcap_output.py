@@ -28,7 +28,7 @@ import numpy as np
 from frontend.config import McapWriterConfig
 from frontend.sources import ros_convert, ros_msgdefs
 from frontend.sources.mcap_writer import McapFrameWriter
-from ssmvpr_slam.result import RunResult
+from ssmvpr_slam.run_result import RunResult
 
 FRAME = "map"
 ODOMETRY_PATH = "/slam/odometry/path"

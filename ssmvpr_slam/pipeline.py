@@ -37,7 +37,7 @@ from ssmvpr_slam.backend.pose_graph import PoseGraph
 from ssmvpr_slam.config import SlamConfig
 from ssmvpr_slam.heap import HeapTrimmer
 from ssmvpr_slam.prior_map import PriorMap
-from ssmvpr_slam.result import RunResult, StreamEnd
+from ssmvpr_slam.run_result import RunResult, StreamEnd
 from ssmvpr_slam.system import KeyframeInput, RunState, SlamSystem
 
 log = logging.getLogger(__name__)

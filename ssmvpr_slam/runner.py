@@ -34,11 +34,11 @@ from ssmvpr_slam.checkpoint import (
     log_fingerprint,
 )
 from ssmvpr_slam.config import SlamConfig
+from ssmvpr_slam.evaluation.run_report import RunReport, evaluate
 from ssmvpr_slam.pipeline import SlamPipeline
 from ssmvpr_slam.prior_map import PriorMap
-from ssmvpr_slam.report import RunReport, evaluate
-from ssmvpr_slam.result import RunResult, StreamEnd
-from ssmvpr_slam.results import RunFolder, staged_results_dir
+from ssmvpr_slam.run_folder import RunFolder, staged_results_dir
+from ssmvpr_slam.run_result import RunResult, StreamEnd
 from ssmvpr_slam.system import RunState, SlamSystem
 from ssmvpr_slam.writers import write_results
 

@@ -43,7 +43,7 @@ from ssmvpr_slam.backend.two_view import reduce_image
 from ssmvpr_slam.config import SlamConfig
 from ssmvpr_slam.mcap_output import thumbnail_jpeg
 from ssmvpr_slam.prior_map import PriorMap
-from ssmvpr_slam.result import (
+from ssmvpr_slam.run_result import (
     Keyframe,
     LoopRecord,
     RunResult,

@@ -25,11 +25,11 @@ import numpy as np
 from ssmvpr_common.atomic import atomic_write_text
 from ssmvpr_slam.backend.g2o_io import write_g2o
 from ssmvpr_slam.config import SlamConfig, dump_config
+from ssmvpr_slam.evaluation.run_report import RunReport
 from ssmvpr_slam.evaluation.trajectory_io import write_kitti, write_tum
 from ssmvpr_slam.prior_map import save_map
-from ssmvpr_slam.report import RunReport
-from ssmvpr_slam.result import Keyframe, LoopRecord, RunResult, has_ground_truth
-from ssmvpr_slam.results import write_json
+from ssmvpr_slam.run_folder import write_json
+from ssmvpr_slam.run_result import Keyframe, LoopRecord, RunResult, has_ground_truth
 
 LOOP_COLUMNS = [
     "query_kf", "match_kf", "score", "stage1_score", "column_shift", "yaw_guess_rad", "gate_accepted",

@@ -11,7 +11,7 @@ from ssmvpr_common.errors import SsmvprError
 from ssmvpr_slam.checkpoint import CheckpointError
 from ssmvpr_slam.config import ConfigError
 from ssmvpr_slam.errors import OptionError, SlamError
-from ssmvpr_slam.results import OutputError
+from ssmvpr_slam.run_folder import OutputError
 
 
 @pytest.mark.parametrize(

@@ -82,7 +82,7 @@ def main(argv: list[str] | None = None) -> int:
     from loopclosure.backbone import load_backbone
     from ssmvpr_slam.config import load_config
     from ssmvpr_slam.pipeline import SlamPipeline
-    from ssmvpr_slam.result import latency_summary
+    from ssmvpr_slam.run_result import latency_summary
     from ssmvpr_slam.runner import build_odometry
     from ssmvpr_slam.system import RunState
 

@@ -27,7 +27,7 @@ from ssmvpr_slam.loop_eval import score, truth
 from ssmvpr_slam.loop_eval.log_frames import images_of_log, keyframes_of
 from ssmvpr_slam.loop_eval.stream import ImagePair, StreamOutcome, images_of, path_positions, stream, travelled
 from ssmvpr_slam.loop_eval.truth import LoopTruth, LoopTruthError
-from ssmvpr_slam.results import staged_results_dir, write_json
+from ssmvpr_slam.run_folder import staged_results_dir, write_json
 
 
 @dataclass(frozen=True)

@@ -34,7 +34,7 @@ from loopclosure.spatial import spatial_scores
 from ssmvpr_common.atomic import atomic_write_text
 from ssmvpr_slam.config import SlamConfig, dump_config
 from ssmvpr_slam.prior_map import encoder_signature
-from ssmvpr_slam.results import staged_results_dir, write_json
+from ssmvpr_slam.run_folder import staged_results_dir, write_json
 
 
 @dataclass

@@ -108,7 +108,7 @@ def test_two_optimize_calls_keep_both_results(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("command", ["run", "vpr_eval", "loop_eval", "optimize"])
 def test_each_command_has_its_own_latest_link(tmp_path: Path, command: str) -> None:
-    from ssmvpr_slam.results import staged_results_dir
+    from ssmvpr_slam.run_folder import staged_results_dir
 
     with staged_results_dir(tmp_path, "run") as first:
         (first.path / "x").write_text("run")

@@ -31,10 +31,10 @@ from loopclosure.detector import LoopProposal
 from loopclosure.encoder import Encoder, PlaceCodes
 from loopclosure.pca import Codebooks, PCAProjection
 from ssmvpr_slam.config import load_config
+from ssmvpr_slam.evaluation.run_report import evaluate
 from ssmvpr_slam.prior_map import PriorMap, save_map
-from ssmvpr_slam.report import evaluate
-from ssmvpr_slam.result import Keyframe, LoopRecord, RunResult
-from ssmvpr_slam.results import staged_results_dir
+from ssmvpr_slam.run_folder import staged_results_dir
+from ssmvpr_slam.run_result import Keyframe, LoopRecord, RunResult
 
 
 def _tree(folder: Path) -> set[str]:

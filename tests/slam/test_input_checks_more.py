@@ -44,7 +44,7 @@ from ssmvpr_slam.backend.two_view import ReducedImage
 from ssmvpr_slam.checkpoint import CheckpointError, CheckpointMeta, load_checkpoint, write_checkpoint
 from ssmvpr_slam.config import load_config
 from ssmvpr_slam.prior_map import PriorMap, save_map
-from ssmvpr_slam.result import Keyframe, LoopRecord, RunResult, StreamEnd
+from ssmvpr_slam.run_result import Keyframe, LoopRecord, RunResult, StreamEnd
 
 N = 5  # keyframes of the made-up run
 FRAMES_SEEN = 12
@@ -490,7 +490,7 @@ def test_resume_checks_the_folder_is_writable_before_any_replay(
     import errno
     import tempfile
 
-    import ssmvpr_slam.results as results
+    import ssmvpr_slam.run_folder as results
 
     copy = _copy(valid_checkpoint, tmp_path)
     real = tempfile.TemporaryFile

@@ -12,7 +12,7 @@ from kiss_icp.voxelization import voxel_down_sample
 
 from ssmvpr_slam import checkpoint
 from ssmvpr_slam.backend.kept_scan import MAX_RANGE_M, KeptScan, keep_scan
-from ssmvpr_slam.result import Keyframe, RunResult
+from ssmvpr_slam.run_result import Keyframe, RunResult
 
 
 def _street_scan(n: int, seed: int) -> np.ndarray:

@@ -6,7 +6,7 @@ import numpy as np
 
 from loopclosure.detector import LoopProposal
 from ssmvpr_slam.backend.loop_registration import LoopRegistration
-from ssmvpr_slam.result import LoopRecord
+from ssmvpr_slam.run_result import LoopRecord
 from ssmvpr_slam.system import loop_to_carry
 
 

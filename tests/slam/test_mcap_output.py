@@ -12,7 +12,7 @@ from mcap_ros2.decoder import DecoderFactory
 
 from loopclosure.detector import LoopProposal
 from ssmvpr_slam import mcap_output
-from ssmvpr_slam.result import Keyframe, LoopRecord, RunResult
+from ssmvpr_slam.run_result import Keyframe, LoopRecord, RunResult
 
 N = 12
 

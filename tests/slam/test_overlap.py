@@ -26,7 +26,7 @@ from loopclosure.backbone import load_backbone
 from ssmvpr_slam.backend.two_view import ReducedImage
 from ssmvpr_slam.config import SlamConfig, load_config
 from ssmvpr_slam.pipeline import SlamPipeline
-from ssmvpr_slam.result import RunResult
+from ssmvpr_slam.run_result import RunResult
 
 pytestmark = pytest.mark.slow
 

@@ -44,11 +44,11 @@ from loopclosure.errors import LoopClosureInputError
 from ssmvpr_slam.backend.noise import sigmas6
 from ssmvpr_slam.config import SlamConfig, load_config
 from ssmvpr_slam.evaluation.metrics import ate
+from ssmvpr_slam.evaluation.run_report import evaluate
 from ssmvpr_slam.evaluation.trajectory_io import read_kitti, read_tum
 from ssmvpr_slam.pipeline import SlamPipeline
 from ssmvpr_slam.prior_map import PriorMap
-from ssmvpr_slam.report import evaluate
-from ssmvpr_slam.result import RunResult
+from ssmvpr_slam.run_result import RunResult
 from ssmvpr_slam.writers import LOOP_COLUMNS, write_results
 
 pytestmark = pytest.mark.slow

@@ -1,7 +1,7 @@
 """What a SLAM run produced, as plain frozen records: the input of evaluation and the writers.
 
 `SlamSystem.finish()` builds one `RunResult`; nothing downstream changes it. Evaluation
-(`ssmvpr_slam.report.evaluate`) turns it into a `RunReport`, and the writers
+(`ssmvpr_slam.evaluation.run_report.evaluate`) turns it into a `RunReport`, and the writers
 (`ssmvpr_slam.writers`) turn both into files. Keeping the result immutable is what lets a
 writer run twice, or a checkpoint be written while the run goes on, without side effects.
 """

@@ -30,7 +30,7 @@ from ssmvpr_slam.evaluation.metrics import (
     kitti_relative_error,
     rpe,
 )
-from ssmvpr_slam.result import LoopRecord, RunResult
+from ssmvpr_slam.run_result import LoopRecord, RunResult
 
 CAMERAS = ("front", "rear")
 
