@@ -190,7 +190,7 @@ class Backbone:
             else:
                 self._int8 = self._build_int8(calibration_images)
         else:
-            # NHWC: oneDNN's fast convolutions (fp32 on this CPU, quiet: 89 -> 66 ms per image at batch 1)
+            # NHWC: oneDNN's fast convolutions (the measured gain: tools/bench_backbone.py, docs/benchmarks.md)
             self.net.to(dtype=self._dtype, memory_format=torch.channels_last)  # type: ignore[call-overload]  # torch's stub lacks memory_format
             # conv1_1 stays fp32 (0.6 % of the FLOPs): a bf16 image and conv1_1 made two thirds of
             # bf16's error (relative L2 of conv4_2 and conv5_2: 1.0 % -> 0.35 % with it in fp32).

@@ -176,8 +176,8 @@ class LidarRegistrationConfig(_Strict):
     seed_search: Literal["first_acceptable", "best"] = Field(
         "first_acceptable",
         description="first_acceptable: seeds nearest the guess first; the first seed, and any that screens at "
-        "early_stop_inlier_ratio, is refined at once, and the first that passes acceptance ends the search (demo "
-        "log: 143 -> 78 ms a loop, same 305 decisions; docs/slam_demo.md). Where a scene has an acceptable "
+        "early_stop_inlier_ratio, is refined at once, and the first that passes acceptance ends the search (faster "
+        "for the same decisions: docs/slam_demo.md). Where a scene has an acceptable "
         "alias (a half-turn symmetric hall) it takes the one nearest the guess. best: screen every seed, refine "
         "the refine_top_k best, keep the best",
     )
