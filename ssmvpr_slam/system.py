@@ -16,7 +16,6 @@ pose graph). The pipeline may run the front half in a thread of its own, ahead o
 from __future__ import annotations
 
 import logging
-import math
 import time
 from collections import Counter
 from collections.abc import Iterator, Sequence
@@ -35,12 +34,11 @@ from loopclosure.detector import LoopDetector, LoopProposal
 from loopclosure.encoder import Encoder
 from ssmvpr_slam.backend.g2o_io import from_pose_graph
 from ssmvpr_slam.backend.kept_scan import KeptScan, keep_scan
-from ssmvpr_slam.backend.loop_consistency import LoopPose, support
-from ssmvpr_slam.backend.loop_registration import LoopRegistrar, LoopRegistration, build_local_map, carry_loop
+from ssmvpr_slam.backend.loop_registration import LoopRegistrar, LoopRegistration
 from ssmvpr_slam.backend.pose_graph import PoseGraph, PoseGraphError
-from ssmvpr_slam.backend.se3 import yaw_of
 from ssmvpr_slam.backend.two_view import reduce_image
 from ssmvpr_slam.config import SlamConfig
+from ssmvpr_slam.loop_policy import LoopPolicy
 from ssmvpr_slam.mcap_output import thumbnail_jpeg
 from ssmvpr_slam.prior_map import PriorMap
 from ssmvpr_slam.run_result import (
@@ -119,6 +117,7 @@ class SlamSystem:
         self.detector = build_detector(config, backbone, database)
         self.detector.links_from_decisions = False  # a loop's places become one once it is registered (`back`)
         self.registrar = LoopRegistrar(config.backend.registration)
+        self.loop_policy = LoopPolicy(config, self.registrar, self.detector, prior_map)
         self.graph = (
             graph
             if graph is not None
@@ -305,123 +304,8 @@ class SlamSystem:
         return keep_scan(points, lidar.voxel_size * lidar.map_downsample_factor)
 
     def _register(self, kf: Keyframe, proposal: LoopProposal) -> LoopRegistration:
-        """ICP against a local map around the match when both have scans, else a place prior;
-        none when the odometry puts the two keyframes too far apart (`odometry_gate`) or a
-        recent ICP loop of the same revisit spaces this one out."""
-        if proposal.prior_map:
-            return self._register_to_map(kf, proposal)
-        match = self.state.keyframes[proposal.match_id]
-        gate = self.config.backend.registration.odometry_gate
-        if gate.max_heading_deg is not None:
-            odometry_yaw = yaw_of(np.linalg.inv(match.odom_pose)[:3, :3] @ kf.odom_pose[:3, :3])
-            off = abs(math.degrees(math.remainder(proposal.yaw_guess - odometry_yaw, 2.0 * math.pi)))
-            if off > gate.max_heading_deg:
-                return self.registrar.turned(proposal.yaw_guess, odometry_yaw)
-        if self.config.frontend.odometry.kind in gate.sources:
-            offset = float(np.linalg.norm(kf.odom_pose[:3, 3] - match.odom_pose[:3, 3]))
-            travelled = self.detector.travelled_since(proposal.match_place)
-            if offset > gate.limit(travelled):
-                return self.registrar.implausible(offset, travelled)
-        if kf.scan is not None and match.scan is not None:
-            lidar = self.config.backend.registration.lidar
-            recent = self._carried(kf, match, lidar.loop_spacing_keyframes - 1)
-            if recent is not None:  # registered a moment ago: the odometry carries it here
-                record, carried = recent
-                return self.registrar.spaced(carried, record.proposal.query_id, record.proposal.match_id)
-            half = lidar.local_map_half_window
-            window = self.state.keyframes[max(0, match.id - half) : match.id + half + 1]
-            with_scans = [(k.scan.points, k.odom_pose) for k in window if k.scan is not None]
-            local_map = build_local_map(
-                [scan for scan, _ in with_scans], [pose for _, pose in with_scans], match.odom_pose, lidar.max_range
-            )
-            seed = self._carried(kf, match, lidar.carry_loop_keyframes)
-            return self.registrar.register_scans(
-                kf.scan.points, local_map, proposal.yaw_guess, None if seed is None else seed[1]
-            )
-        return self._checked(kf, proposal, self._register_images(kf, match, proposal))
-
-    def _register_images(self, kf: Keyframe, match: Keyframe, proposal: LoopProposal) -> LoopRegistration:
-        if proposal.camera == "rear":  # the rear image saw what the match's forward camera saw
-            if kf.rear_image is None:
-                return self.registrar.yaw_prior(proposal.yaw_guess, "rear camera match: no rear image kept")
-            if match.image is None:
-                return self.registrar.yaw_prior(proposal.yaw_guess, "the matched keyframe kept no image")
-            return self.registrar.register_images(
-                kf.rear_image, match.image, proposal.yaw_guess, query_yaw_offset=math.pi
-            )
-        if kf.image is None or match.image is None:
-            return self.registrar.yaw_prior(proposal.yaw_guess, "a keyframe kept no image")
-        return self.registrar.register_images(kf.image, match.image, proposal.yaw_guess)
-
-    def _checked(self, kf: Keyframe, proposal: LoopProposal, registration: LoopRegistration) -> LoopRegistration:
-        """A loop no geometry verified (a yaw prior) becomes a factor only as
-        `two_view.on_geometry_failure` says: with `consistent`, once enough earlier loops of its
-        revisit agree with it under odometry (`loop_consistency`), else it is refused."""
-        registration_config = self.config.backend.registration
-        if registration.method != "yaw_prior" or registration_config.two_view.on_geometry_failure != "consistent":
-            return registration
-        loop = self._loop_pose(proposal, registration.T_mq)
-        if loop is None:
-            return self.registrar.unverified(registration, 0)
-        earlier = [
-            e
-            for r in self.state.loops
-            if r.proposal.accepted
-            and r.proposal.prior_map == proposal.prior_map
-            and r.registration is not None
-            and r.registration.method in _POSED_METHODS
-            and (e := self._loop_pose(r.proposal, r.registration.T_mq)) is not None
-        ]
-        agreeing = support(loop, earlier, registration_config.consistency)
-        if agreeing < registration_config.consistency.min_support:
-            return self.registrar.unverified(registration, agreeing)
-        return self.registrar.confirmed(registration, agreeing)
-
-    def _loop_pose(self, proposal: LoopProposal, T_mq: np.ndarray) -> LoopPose | None:
-        """The loop's ends for the consistency check (None: a prior-map place without a pose)."""
-        kfs, detector = self.state.keyframes, self.detector
-        if proposal.prior_map:
-            pose = self.prior_map.pose(proposal.match_place) if self.prior_map is not None else None
-            if pose is None:
-                return None
-            match_pose, match_travelled = pose, math.nan
-        else:
-            match_pose = kfs[proposal.match_id].odom_pose
-            match_travelled = detector.travelled_at(detector.prior_places + proposal.match_id)
-        return LoopPose(
-            proposal.query_id, proposal.match_place if proposal.prior_map else proposal.match_id,
-            kfs[proposal.query_id].odom_pose, match_pose, T_mq,
-            detector.travelled_at(detector.prior_places + proposal.query_id), match_travelled,
-        )  # fmt: skip
-
-    def _carried(self, kf: Keyframe, match: Keyframe, reach: int) -> tuple[LoopRecord, np.ndarray] | None:
-        """A recent accepted ICP loop of this revisit (see `loop_to_carry`) and its T_mq moved
-        to (match, kf) by odometry, else None. Read from the recorded loops, so a run resumed
-        from its checkpoint carries on as the uninterrupted one."""
-        record = loop_to_carry(self.state.loops, kf.id, match.id, reach)
-        if record is None:
-            return None
-        assert record.registration is not None  # checked by loop_to_carry
-        kfs, q, m = self.state.keyframes, record.proposal.query_id, record.proposal.match_id
-        moved = carry_loop(record.registration.T_mq, kfs[m].odom_pose, kfs[q].odom_pose, match.odom_pose, kf.odom_pose)
-        return record, moved
-
-    def _register_to_map(self, kf: Keyframe, proposal: LoopProposal) -> LoopRegistration:
-        """ICP against the prior map's scans around the place, else the visual place prior."""
-        place = proposal.match_place
-        pose = self.prior_map.pose(place) if self.prior_map is not None else None
-        if pose is None or self.prior_map is None:
-            reason = "prior place has no pose in its map (its session was never anchored)"
-            return LoopRegistration(np.eye(4), False, reason, np.nan, np.nan)
-        lidar = self.config.backend.registration.lidar
-        parts = self.prior_map.neighbourhood(place, lidar.local_map_half_window)
-        if kf.scan is not None and parts:
-            scans, poses = zip(*parts)
-            local_map = build_local_map(scans, poses, pose, lidar.max_range)
-            return self.registrar.register_scans(kf.scan.points, local_map, proposal.yaw_guess)
-        return self._checked(
-            kf, proposal, self.registrar.yaw_prior(proposal.yaw_guess, "prior-map place: no scans to align")
-        )
+        """How the accepted proposal becomes a registration: `ssmvpr_slam.loop_policy`."""
+        return self.loop_policy.register(kf, proposal, self.state.keyframes, self.state.loops)
 
     # ---- the end --------------------------------------------------------------------------
     @property
@@ -569,38 +453,10 @@ def build_detector(config: SlamConfig, backbone: Backbone, database: PlaceDataba
     return LoopDetector(config.vpr, config.detector, Encoder(config.vpr, backbone), database)
 
 
-# registrations whose T_mq says where the loop puts its two keyframes (a poor ICP alignment and an
-# implausible loop do not)
-_POSED_METHODS = frozenset({"icp", "two_view_essential", "two_view_homography", "yaw_prior", "unverified", "spaced"})
-
-
 def _has_pixels(image: np.ndarray) -> bool:
     """An image with at least one row and one column (a 0xN array makes every stage fail)."""
     shape = np.shape(image)
     return len(shape) >= 2 and shape[0] > 0 and shape[1] > 0
-
-
-def _session_icp_loop(record: LoopRecord) -> bool:
-    """An accepted ICP loop between two of the session's keyframes (what `_carried` carries on)."""
-    reg = record.registration
-    return reg is not None and reg.accepted and reg.method == "icp" and not record.proposal.prior_map
-
-
-def loop_to_carry(loops: Sequence[LoopRecord], query_id: int, match_id: int, reach: int) -> LoopRecord | None:
-    """The latest accepted ICP loop q -> m of the session with q at most `reach` keyframes before
-    `query_id` and m within `reach` of `match_id`: the same revisit, a little further back.
-    `loops` are in query order (as recorded, and as a resume replays them).
-
-    Not simply the latest loop: where a street was driven twice before, a revisit's matches
-    alternate between the two earlier visits (the demo's reverse streets: 533 -> 353,
-    534 -> 115, 540 -> 348), so the latest loop often belongs to the other one."""
-    for record in reversed(loops):
-        q, m = record.proposal.query_id, record.proposal.match_id
-        if query_id - q > reach:
-            return None
-        if q < query_id and abs(match_id - m) <= reach and _session_icp_loop(record):
-            return record
-    return None
 
 
 def _odometry_stats(odometry: Odometry) -> dict[str, Any]:

@@ -6,8 +6,8 @@ import numpy as np
 
 from loopclosure.detector import LoopProposal
 from ssmvpr_slam.backend.loop_registration import LoopRegistration
+from ssmvpr_slam.loop_policy import loop_to_carry
 from ssmvpr_slam.run_result import LoopRecord
-from ssmvpr_slam.system import loop_to_carry
 
 
 def record(q: int, m: int, *, accepted: bool = True, method: str = "icp", prior_map: bool = False) -> LoopRecord:
