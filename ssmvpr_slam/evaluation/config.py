@@ -23,7 +23,7 @@ class TrajectoryMetricsConfig(_Strict):
     )
     rpe_all_pairs: bool = Field(
         False,
-        description="pairs start at every pose, not every rpe_delta-th (evo all_pairs); the report does not read it",
+        description="pairs start at every pose, not every rpe_delta-th (evo all_pairs)",
     )
     drift_segment_m: float = Field(100.0, gt=0, description="segment length for drift per 100 m")
     kitti_lengths_m: list[float] = Field(

@@ -227,8 +227,8 @@ def _trajectory_report(
     return TrajectoryReport(
         ate_odometry=ate(gt, odom, cfg.alignment),
         ate_optimised=ate(gt, optimised, cfg.alignment),
-        rpe_odometry=rpe(gt, odom, cfg.rpe_delta, cfg.rpe_unit),
-        rpe_optimised=rpe(gt, optimised, cfg.rpe_delta, cfg.rpe_unit),
+        rpe_odometry=rpe(gt, odom, cfg.rpe_delta, cfg.rpe_unit, cfg.rpe_all_pairs),
+        rpe_optimised=rpe(gt, optimised, cfg.rpe_delta, cfg.rpe_unit, cfg.rpe_all_pairs),
         drift_odometry=drift_per_100m(gt, odom, cfg.drift_segment_m),
         kitti_odometry=kitti_relative_error(gt, odom, lengths=lengths, step_frames=step),
         kitti_optimised=kitti_relative_error(gt, optimised, lengths=lengths, step_frames=step),

@@ -89,3 +89,17 @@ def test_json_is_strict_a_non_finite_number_is_null(tmp_path: Path) -> None:
     path = tmp_path / "m.json"
     write_json(path, {"ate": float("inf"), "ratio": np.float64("nan"), "rows": [1.5, np.array([np.inf, 2.0])]})
     assert json_module.loads(path.read_text()) == {"ate": None, "ratio": None, "rows": [1.5, [None, 2.0]]}
+
+
+def test_rpe_all_pairs_is_read_by_the_report() -> None:
+    """evaluation.trajectory.rpe_all_pairs: pairs from every pose (evo's all_pairs), not every delta-th."""
+    config = load_config()
+    config.evaluation.trajectory.rpe_delta = 3
+    poses = np.tile(np.eye(4), (10, 1, 1))
+    poses[:, 0, 3] = np.arange(10.0)
+    kfs = tuple(Keyframe(k, k, float(k), poses[k], poses[k], poses[k], None) for k in range(10))
+    result = RunResult(kfs, (), np.arange(10.0), poses, poses)
+    every_third = evaluate(result, config.evaluation).trajectory.rpe_odometry  # type: ignore[union-attr]
+    config.evaluation.trajectory.rpe_all_pairs = True
+    every_pose = evaluate(result, config.evaluation).trajectory.rpe_odometry  # type: ignore[union-attr]
+    assert (len(every_third.pairs), len(every_pose.pairs)) == (3, 7)
