@@ -655,12 +655,10 @@ def optimize(
 ) -> None:
     """Optimise a g2o / TORO pose graph robustly; write optimised.g2o, TUM and metrics.json into a new
     optimize_<stamp> folder (and latest-optimize)."""
-    from ssmvpr_slam.optimize import OptimizeRequest, run_optimize
+    from ssmvpr_slam.optimize import run_optimize
 
-    request = OptimizeRequest(
-        graph, gt, gt_edges, gt_radius, times, kernel, gnc, check, refine, batch, from_odometry, out
-    )
-    run_optimize(request, console)
+    run_optimize(graph, console, gt=gt, gt_edges=gt_edges, gt_radius=gt_radius, times=times, kernel=kernel, gnc=gnc,
+                 check=check, refine=refine, batch=batch, from_odometry=from_odometry, out=out)  # fmt: skip
 
 
 def main() -> None:  # pragma: no cover - console script entry

@@ -245,7 +245,7 @@ def settings_variables(environ: dict[str, str] | None = None) -> list[str]:
         parts = tuple(key.upper().removeprefix("SSMVPR_").split("__"))
         if not key.upper().startswith("SSMVPR_") or parts[0] not in sections:
             continue
-        if any(parts == allowed[: len(parts)] and len(parts) == len(allowed) for allowed in RESUME_MAY_CHANGE):
+        if parts in RESUME_MAY_CHANGE:
             continue
         found.append(key)
     return found
@@ -309,16 +309,16 @@ def _read_with_base(path: Path, seen: tuple[Path, ...] = ()) -> dict[str, Any]:
     ):
         raise ConfigError(f"config {path}: preset: {base!r}: a preset is a name ({', '.join(available_presets())}), "
                           "never a file; to build on a file of your own, copy its keys in")  # fmt: skip
-    base_path = _preset_path(base, f"config {path}: preset:")
+    base_path = _preset_path(base, f"config {path}: preset:", chained=True)
     if base_path.resolve() in seen or base_path.resolve() == path.resolve():
         raise ConfigError(f"config {path}: preset {base!r} is part of a preset cycle")
     return _merge(_read_with_base(base_path, (*seen, path.resolve())), data)
 
 
-def _preset_path(name: str, referrer: str) -> Path:
+def _preset_path(name: str, referrer: str, chained: bool = False) -> Path:
+    """The preset's file; chained: named by a file's `preset:` key, which takes names only."""
     path = PRESETS_DIR / f"{name}.yaml"
     if not path.is_file():
-        chained = referrer.endswith("preset:")  # a file's `preset:` key takes names only
         what = "is not a preset" if chained else "is neither a file nor a preset"
         raise ConfigError(f"{referrer}{'' if chained else ':'} {name!r} {what} ({', '.join(available_presets())})")
     return path

@@ -28,12 +28,10 @@ _POSED_METHODS = frozenset({"icp", "two_view_essential", "two_view_homography", 
 class LoopPolicy:
     """`register(kf, proposal, keyframes, loops)`: the registration of one accepted proposal."""
 
-    def __init__(
-        self, config: SlamConfig, registrar: LoopRegistrar, detector: LoopDetector, prior_map: PriorMap | None
-    ) -> None:
+    def __init__(self, config: SlamConfig, detector: LoopDetector, prior_map: PriorMap | None) -> None:
         self.registration_config = config.backend.registration
         self.odometry_kind = config.frontend.odometry.kind
-        self.registrar = registrar
+        self.registrar = LoopRegistrar(self.registration_config)
         self.detector = detector
         self.prior_map = prior_map
 

@@ -3,7 +3,7 @@ given, written as a new results folder. The command line (cli.py) only parses th
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -20,35 +20,24 @@ from ssmvpr_slam.evaluation.trajectory_io import write_tum
 from ssmvpr_slam.run_folder import output_dir, staged_results_dir, write_json
 
 
-@dataclass(frozen=True)
-class OptimizeRequest:
-    """What `optimize` was asked (the CLI's options, validated here)."""
-
-    graph: Path
-    gt: Path | None = None
-    gt_edges: Path | None = None
-    gt_radius: float | None = None
-    times: Path | None = None
-    kernel: str = "dcs"
-    gnc: bool = True
-    check: bool = True
-    refine: bool = True
-    batch: bool | None = None
-    from_odometry: bool = False
-    out: Path | None = None
-
-
-def run_optimize(request: OptimizeRequest, console: Console) -> tuple[Path, dict[str, Any]]:
-    """Solve, judge and write; returns (the results folder, its metrics)."""
-    graph, gt, gt_edges, gt_radius, times = (
-        request.graph,
-        request.gt,
-        request.gt_edges,
-        request.gt_radius,
-        request.times,
-    )
-    kernel, gnc, check, refine, batch = request.kernel, request.gnc, request.check, request.refine, request.batch
-    from_odometry, out = request.from_odometry, request.out
+def run_optimize(
+    graph: Path,
+    console: Console,
+    *,
+    gt: Path | None = None,
+    gt_edges: Path | None = None,
+    gt_radius: float | None = None,
+    times: Path | None = None,
+    kernel: str = "dcs",
+    gnc: bool = True,
+    check: bool = True,
+    refine: bool = True,
+    batch: bool | None = None,
+    from_odometry: bool = False,
+    out: Path | None = None,
+) -> tuple[Path, dict[str, Any]]:
+    """Solve, judge and write (the options are the CLI's, validated here); returns (the results
+    folder, its metrics)."""
     if kernel not in KERNEL_NAMES:
         raise OptionError(f"--kernel: expected one of {', '.join(KERNEL_NAMES)}, got {kernel!r}")
     if gt_radius is not None:

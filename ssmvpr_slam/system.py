@@ -34,7 +34,7 @@ from loopclosure.detector import LoopDetector, LoopProposal
 from loopclosure.encoder import Encoder
 from ssmvpr_slam.backend.g2o_io import from_pose_graph
 from ssmvpr_slam.backend.kept_scan import KeptScan, keep_scan
-from ssmvpr_slam.backend.loop_registration import LoopRegistrar, LoopRegistration
+from ssmvpr_slam.backend.loop_registration import LoopRegistration
 from ssmvpr_slam.backend.pose_graph import PoseGraph, PoseGraphError
 from ssmvpr_slam.backend.two_view import reduce_image
 from ssmvpr_slam.config import SlamConfig
@@ -116,8 +116,7 @@ class SlamSystem:
         database = prior_map.database.copy() if prior_map is not None else None
         self.detector = build_detector(config, backbone, database)
         self.detector.links_from_decisions = False  # a loop's places become one once it is registered (`back`)
-        self.registrar = LoopRegistrar(config.backend.registration)
-        self.loop_policy = LoopPolicy(config, self.registrar, self.detector, prior_map)
+        self.loop_policy = LoopPolicy(config, self.detector, prior_map)
         self.graph = (
             graph
             if graph is not None

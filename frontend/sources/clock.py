@@ -43,9 +43,10 @@ def read_times(path: Path) -> np.ndarray:
         raise FrontendInputError(f"{path}: unreadable ({error})") from None
     if times.ndim != 1 or not np.all(np.isfinite(times)):
         raise FrontendInputError(f"{path}: need one finite time per line")
-    bad = np.flatnonzero((times < 0.0) | (times > MAX_TIME_S))
-    if len(bad):
-        raise FrontendInputError(f"{path} line {bad[0] + 1}: {time_problem(float(times[bad[0]]))}; refusing the times")
+    for line, time in enumerate(times.tolist(), start=1):
+        problem = time_problem(time)
+        if problem is not None:
+            raise FrontendInputError(f"{path} line {line}: {problem}; refusing the times")
     return times
 
 

@@ -128,8 +128,7 @@ class FolderSource(Source):
         self._gaps = [line for line, path in enumerate(at) if path is None]
         if extra:
             self._unpaired = extra
-            kept = set(self.images) - set(extra)
-            self.images = [p for p in self.images if p in kept]
+            self.images = [p for p in self.images if p not in extra]
             if not self.images:
                 return None
         return np.array([frame_number(p) for p in self.images])

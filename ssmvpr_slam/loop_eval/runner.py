@@ -59,6 +59,7 @@ class Prepared:
     names: tuple[str, ...]  # one per frame: a file name, or LOG#frame
     positions: np.ndarray  # (N, 3) metres, for the exclusion window
     truth: LoopTruth
+    from_log: bool = False  # one log, judged by its own ground-truth poses
 
 
 def is_log(path: Path) -> bool:
@@ -145,7 +146,7 @@ def _prepare_log(inputs: LoopEvalInputs, config: SlamConfig) -> Prepared:
     positions = keyframes.poses[:, :3, 3]
     passes = (partial(images_of_log, keyframes, config),)
     return Prepared(passes, (len(positions),), tuple(keyframes.names()), positions,
-                    _truth_from_positions(positions, inputs, config))  # fmt: skip
+                    _truth_from_positions(positions, inputs, config), from_log=True)  # fmt: skip
 
 
 def compute_metrics(outcome: StreamOutcome, loop_truth: LoopTruth, config: SlamConfig, n_passes: int) -> dict[str, Any]:
@@ -250,7 +251,7 @@ def run_loop_eval(
         passes = [read() for read in prepared.passes]
         outcome = stream(config, backbone, passes, prepared.positions, lambda: progress.advance(task))
     metrics = compute_metrics(outcome, loop_truth, config, len(passes))
-    from_log = len(inputs.sequences) == 1 and is_log(inputs.sequences[0])
+    from_log = prepared.from_log
     by_poses = from_log or inputs.gt_poses is not None
     metrics["inputs"] = {
         "sequences": [str(s) for s in inputs.sequences],
