@@ -52,6 +52,7 @@ from loopclosure.database import PlaceDatabase
 from loopclosure.detector import LoopProposal
 from loopclosure.errors import LoopClosureInputError
 from ssmvpr_common.atomic import atomic_write_bytes, atomic_write_text
+from ssmvpr_common.text_files import read_text
 from ssmvpr_slam.backend.kept_scan import KeptScan
 from ssmvpr_slam.backend.loop_registration import LoopRegistration
 from ssmvpr_slam.backend.noise import check_sigmas
@@ -387,7 +388,7 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
     run_folder = folder.parent
     try:
         meta = CheckpointMeta(record["log"], record["log_fingerprint"], record["prior_map"], record["name"])
-        config_text = (folder / "config.yaml").read_text(encoding="utf-8")
+        config_text = read_text(folder / "config.yaml", CheckpointError)
         arrays = _load_npz(folder / "keyframes.npz")
         tolerance = _rotation_tolerance(config_text)
         n = _check_keyframe_arrays(folder / "keyframes.npz", arrays, record, tolerance)
@@ -395,8 +396,6 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
         loops = tuple(_loop_record(d) for d in record["loops"])
         detector_state = _load_npz(folder / "detector.npz")
         database = PlaceDatabase.load(folder / "database")
-    except UnicodeDecodeError as exc:  # the one text file read here (a ValueError: before the next clause)
-        raise CheckpointError(f"{folder / 'config.yaml'}: not UTF-8 text ({exc.reason})") from None
     except (KeyError, TypeError, ValueError) as exc:
         if isinstance(exc, (CheckpointError, LoopClosureInputError)):
             raise

@@ -20,6 +20,7 @@ from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, Settings
 from frontend.config import FrontendConfig
 from frontend.simulation.config import SimulationConfig
 from loopclosure.config import DetectorConfig, SequenceMatchConfig, VPRConfig
+from ssmvpr_common.text_files import read_text
 from ssmvpr_slam.backend.config import BackendConfig
 from ssmvpr_slam.errors import SlamError
 from ssmvpr_slam.evaluation.config import EvaluationConfig
@@ -131,14 +132,9 @@ class SlamConfig(BaseSettings):
 
 
 def _read_yaml(path: Path) -> dict[str, Any]:
+    text = read_text(path, ConfigError)  # a file that cannot be read, or is not UTF-8 text: one line naming it
     try:
-        data = yaml.safe_load(path.read_text()) or {}
-    except OSError as exc:
-        raise ConfigError(f"cannot read config {path}: {exc.strerror}") from None
-    except UnicodeDecodeError as exc:
-        raise ConfigError(
-            f"config {path} is not UTF-8 text (byte 0x{exc.object[exc.start]:02x} at offset {exc.start})"
-        ) from None
+        data = yaml.safe_load(text) or {}
     except yaml.YAMLError as exc:
         raise ConfigError(f"config {path} is not valid YAML: {exc}".splitlines()[0]) from None
     if not isinstance(data, dict):
