@@ -235,6 +235,11 @@ class RouteConfig(_Model):
         2.0, ge=0.0, description="gaussian sigma smoothing a poses file's path (recorded poses jitter)"
     )
     file_heading_smoothing_m: float = Field(2.0, ge=0.0, description="poses-file routes only")
+    crossings: list[list[tuple[int, int]]] | None = Field(
+        None,
+        description="passes of a street-grid route as crossings (i, j), each pass starting where the last ended "
+        "(replaces the preset's passes; `laps` is ignored): how sessions of one city take different routes",
+    )
 
     @field_validator("preset")
     @classmethod
@@ -245,9 +250,25 @@ class RouteConfig(_Model):
             raise ValueError(f"route preset {v!r} is neither a known preset {ROUTE_PRESETS} nor an existing poses file")
         return v
 
+    @field_validator("crossings")
+    @classmethod
+    def _check_crossings(cls, v: list[list[tuple[int, int]]] | None) -> list[list[tuple[int, int]]] | None:
+        if v is None:
+            return v
+        if not v or any(len(p) < 2 for p in v):
+            raise ValueError("crossings: every pass needs at least two crossings")
+        for before, after in zip(v, v[1:]):
+            if tuple(before[-1]) != tuple(after[0]):
+                raise ValueError(f"crossings: a pass starts at {after[0]}, not where the last ended ({before[-1]})")
+        for p in v:
+            for a, b in zip(p, p[1:]):
+                if (a[0] != b[0]) == (a[1] != b[1]):
+                    raise ValueError(f"crossings: {a} -> {b} is not along one street of the grid")
+        return v
+
     @property
     def is_file(self) -> bool:
-        return self.preset not in ROUTE_PRESETS
+        return self.preset not in ROUTE_PRESETS and self.crossings is None
 
 
 class CameraConfig(_Model):
@@ -412,6 +433,16 @@ class SimulationConfig(_Model):
         5.0, gt=0.0, description="frames per second (and LiDAR sweeps, unless lidar.scan_period_s)"
     )
     start_time_s: float = Field(0.0, ge=0.0, description="timestamp of the first frame")
+    session_seed: int | None = Field(
+        None, ge=0, le=2**32 - 1,
+        description="seed of what differs between sessions in one city (route weave and speed, traffic, sensor "
+        "noise, odometry drift); None: `seed`. The city, its terrain and the sensors' calibration follow `seed`",
+    )  # fmt: skip
+    city_route: RouteConfig | None = Field(
+        None,
+        description="the streets the city is laid along (a route covering them all); None: the vehicle's own route. "
+        "Sessions of one city share it, so each drives its own route through the same buildings",
+    )
     max_frames: int | None = Field(None, ge=1, description="stop early")
     city: CityConfig = CityConfig()
     route: RouteConfig = RouteConfig()

@@ -177,8 +177,10 @@ def grid_node(cfg_pitch: float, i: int, j: int) -> np.ndarray:
 
 
 def preset_waypoints(cfg: RouteConfig, pitch_m: float) -> list[np.ndarray]:
-    """Crossings of each pass of a preset route, as world xy arrays."""
-    if cfg.preset == "block_grid":
+    """Crossings of each pass of a preset route (or of `cfg.crossings`), as world xy arrays."""
+    if cfg.crossings is not None:
+        passes = [[(int(i), int(j)) for i, j in p] for p in cfg.crossings]
+    elif cfg.preset == "block_grid":
         passes = [_LOOP_A] * cfg.laps + [_LOOP_B]
     elif cfg.preset == "figure_eight":
         passes = [_EIGHT] * cfg.laps
@@ -202,8 +204,10 @@ def build_route(
     seed: int,
     pitch_m: float,
     route_file: RouteFile | None = None,
+    terrain_seed: int | None = None,
 ) -> Route:
-    """Build the dense route. ``pitch_m`` is the street-grid pitch of preset routes.
+    """Build the dense route. ``pitch_m`` is the street-grid pitch of preset routes;
+    ``terrain_seed`` (default ``seed``) shapes the hills, which every session of a city shares.
 
     A poses file contributes its path and height profile; its orientations and timestamps are
     not used: the heading follows the path and the vehicle drives it with the configured speed
@@ -274,8 +278,9 @@ def build_route(
     pass_starts = s_l[marks[first_index]]
     pass_starts[0] = 0.0
     t = speed_profile(s, yaw, cfg, speed_phases)
-    z = terrain_height(cfg, seed, xy)
-    centre_xyz = np.column_stack([centre, terrain_height(cfg, seed, centre)])
+    hills = seed if terrain_seed is None else terrain_seed
+    z = terrain_height(cfg, hills, xy)
+    centre_xyz = np.column_stack([centre, terrain_height(cfg, hills, centre)])
     return Route(s=s, xy=xy, yaw=yaw, t=t, pass_starts=pass_starts, z=z, centre=centre_xyz)
 
 

@@ -56,12 +56,16 @@ class TraverseSimulator:
             if cfg.route.is_file
             else None
         )
-        self.route: Route = build_route(cfg.route, cfg.seed, cfg.city.pitch_m, self.route_file)
-        self.city: City = build_city(cfg.city, cfg.seed, self.route.centre, cfg.traffic)
+        self.session_seed = cfg.seed if cfg.session_seed is None else cfg.session_seed
+        self.route: Route = build_route(
+            cfg.route, self.session_seed, cfg.city.pitch_m, self.route_file, terrain_seed=cfg.seed
+        )
+        streets = self.route.centre if cfg.city_route is None else self._city_streets(cfg)
+        self.city: City = build_city(cfg.city, cfg.seed, streets, cfg.traffic)
         lane = cfg.traffic.oncoming_lane_offset_m
         if lane is None:
             lane = _FILE_ONCOMING_LANE_M if self.route_file is not None else -cfg.route.lane_offset_m
-        self.traffic = Traffic(self.city, self.route.centre, cfg.traffic, lane, cfg.seed)
+        self.traffic = Traffic(self.city, self.route.centre, cfg.traffic, lane, self.session_seed)
         # Frame k ends its LiDAR sweep at route time scan_period + k / frame_rate (the first
         # sweep starts when the vehicle sets off); frames run until the route ends.
         dt = 1.0 / cfg.frame_rate_hz
@@ -87,6 +91,17 @@ class TraverseSimulator:
     def __len__(self) -> int:
         return len(self.times)
 
+    @staticmethod
+    def _city_streets(cfg: SimulationConfig) -> np.ndarray:
+        """The centre line of `city_route`: the streets every session of the city drives among."""
+        assert cfg.city_route is not None
+        city_file = (
+            read_route_file(cfg.city_route.preset, cfg.city_route.poses_format, cfg.city_route.poses_frame)
+            if cfg.city_route.is_file
+            else None
+        )
+        return build_route(cfg.city_route, cfg.seed, cfg.city.pitch_m, city_file).centre
+
     # -- poses ---------------------------------------------------------------------------------
 
     def gt_pose(self, k: int) -> np.ndarray:
@@ -106,7 +121,7 @@ class TraverseSimulator:
     def _integrate_odometry(self) -> np.ndarray:
         """Dead-reckoned planar poses from the true increments with the configured errors."""
         od = self.config.odometry
-        rng = np.random.default_rng([self.config.seed, _STREAM_ODOM])
+        rng = np.random.default_rng([self.session_seed, _STREAM_ODOM])
         g = self.xy_yaw
         out = np.empty_like(g)
         out[0] = g[0]
@@ -139,7 +154,8 @@ class TraverseSimulator:
         """What stands in the street at frame k: the city's walls with the parked cars of that
         moment, plus the oncoming traffic."""
         t = float(self.route_times[k])
-        return Scene.of(self.city, self.city.active_segments(t), self.traffic.scene_part(t, self.xy_yaw[k, :2]))
+        parked_at = self.config.start_time_s + t  # the clock of the city: sessions at other hours see other cars
+        return Scene.of(self.city, self.city.active_segments(parked_at), self.traffic.scene_part(t, self.xy_yaw[k, :2]))
 
     def render_image(self, k: int, scene: Scene | None = None, rear: bool = False) -> np.ndarray | None:
         """The forward camera's image of frame k, or the rear camera's (None when it has none)."""
@@ -149,7 +165,7 @@ class TraverseSimulator:
         app = self.config.appearances[self.appearance_name(k)]
         # the rear camera's noise is its own stream, so adding it leaves the forward images as they were
         rng = np.random.default_rng(
-            [self.config.seed, _STREAM_IMAGE, k, 1] if rear else [self.config.seed, _STREAM_IMAGE, k]
+            [self.session_seed, _STREAM_IMAGE, k, 1] if rear else [self.session_seed, _STREAM_IMAGE, k]
         )
         sign = -1.0 if rear else 1.0  # looking backwards, the road ahead of the lens falls as the car climbs
         return self.camera.render(
@@ -168,7 +184,7 @@ class TraverseSimulator:
     def render_scan(self, k: int, scene: Scene | None = None) -> tuple[np.ndarray, np.ndarray] | tuple[None, None]:
         if self.lidar is None:
             return None, None
-        rng = np.random.default_rng([self.config.seed, _STREAM_LIDAR, k])
+        rng = np.random.default_rng([self.session_seed, _STREAM_LIDAR, k])
         zs: float | np.ndarray
         if self.config.lidar.motion_distortion:  # every column from where the vehicle was then
             t = self.route_times[k] - self.lidar.period + self.lidar.col_times
