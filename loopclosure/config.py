@@ -366,6 +366,11 @@ class RearCameraConfig(_Strict):
     simulator's demo traverse)."""
 
     enabled: bool = Field(default=True, description="Query with the rear image when a keyframe has one.")
+    keep_codes: bool = Field(
+        default=False,
+        description="Keep each keyframe's rear-image codes beside the places (saved with the database as rear/): "
+        "a later session driving a street the other way is recognised against them (`map` sets it).",
+    )
     direction: Literal["forward", "reverse", "both"] = Field(
         default="reverse", description="Sequence direction of the rear camera's matches (reverse: the street "
         "driven the other way)."

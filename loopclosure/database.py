@@ -359,6 +359,36 @@ class PlaceDatabase:
             )
         return list(range(first, len(self)))
 
+    def codes_of(self, places: np.ndarray | list[int]) -> PlaceCodes:
+        """The stored codes of `places` as float32, as `add` took them (within the storage's precision)."""
+        index = np.asarray(places, dtype=np.int64)
+        if index.size and (index.min() < 0 or index.max() >= len(self)):
+            raise LoopClosureInputError(f"places {index.min()}..{index.max()} outside a database of {len(self)}")
+        return PlaceCodes(
+            np.asarray(self.stage1[index], dtype=np.float32), np.asarray(self.stage2[index], dtype=np.float32)
+        )
+
+    @classmethod
+    def merged(
+        cls, parts: list[PlaceDatabase], config: DatabaseConfig | None = None
+    ) -> tuple[PlaceDatabase, list[int]]:
+        """One database of every place of `parts`, in order, and the index each part starts at.
+        The parts must share their codebooks: codes of other projections are not comparable."""
+        if not parts:
+            raise LoopClosureInputError("no databases to merge")
+        first = parts[0]
+        out = cls(first.codebooks, config or first.config)
+        starts = []
+        for k, part in enumerate(parts):
+            if not part.codebooks.same_as(first.codebooks):
+                raise LoopClosureInputError(
+                    f"database {k} of those merged was encoded with other codebooks: its codes are not comparable"
+                )
+            starts.append(len(out))
+            if len(part):
+                out.add(part.codes_of(np.arange(len(part))), list(part.places))
+        return out, starts
+
     def copy(self) -> PlaceDatabase:
         """An independent database holding the same places, in RAM: a session grows its own copy
         of a prior map, so the loaded map (and what is reported of it) stays as it was read."""

@@ -86,8 +86,9 @@ class DetectorTimings:
 
 class LoopDetector:
     def __init__(
-        self, vpr: VPRConfig, config: DetectorConfig, encoder: Encoder, database: PlaceDatabase | None = None
+        self, vpr: VPRConfig, config: DetectorConfig, encoder: Encoder | None, database: PlaceDatabase | None = None
     ) -> None:
+        """encoder: None for a detector that only matches stored codes (`match_stored`)."""
         check_search_device(vpr.filtering)  # before the first frame, not after the PCA warm-up
         if config.decision == "calibrated" and vpr.filtering.num_candidates < MIN_CALIBRATED_CANDIDATES:
             log.warning(
@@ -97,10 +98,12 @@ class LoopDetector:
             )  # fmt: skip
         self.vpr = vpr
         self.config = config
-        self.encoder = encoder
+        self._encoder = encoder
         self.database = database
-        if database is not None:
+        if database is not None and encoder is not None:
             encoder.codebooks = database.codebooks
+        # the rear image's codes of each keyframe (`rear.keep_codes`), by keyframe id as PlaceInfo.frame_id
+        self.rear_database: PlaceDatabase | None = None
         self.prior_places = len(database) if database is not None else 0
         self._recognizer = Recognizer(vpr, database) if database is not None else None
         self.gate = SequenceGate(config.gate)
@@ -224,6 +227,35 @@ class LoopDetector:
         self._join_places(self.prior_places + proposal.query_id, proposal.match_place)
 
     @property
+    def encoder(self) -> Encoder:
+        if self._encoder is None:
+            raise RuntimeError("this LoopDetector has no encoder: it matches stored codes only (match_stored)")
+        return self._encoder
+
+    def mark_segments(self, starts: list[int]) -> None:
+        """The database's places from each of `starts` on continue no path before them (the
+        sessions a merged map is made of): no sequence runs across one."""
+        self._segment_starts = sorted({0, *(int(s) for s in starts)})
+
+    def match_stored(self, front: PlaceCodes, keyframe_id: int, rear: PlaceCodes | None = None) -> LoopProposal | None:
+        """Recognise a keyframe from codes stored by its own session (front, and rear when kept)
+        with the same stages, sequences and decision as `process`, without adding it as a place:
+        how one session's keyframes are matched against another's places."""
+        self.timings = DetectorTimings()
+        if self.database is None:
+            raise RuntimeError("match_stored: the detector has no places to match against")
+        return self._recognise(front, keyframe_id, rear)
+
+    def _recognise(self, front: PlaceCodes, keyframe_id: int, rear: PlaceCodes | None) -> LoopProposal | None:
+        """One keyframe's proposal: its forward codes, and its rear codes when it has them."""
+        proposal = self._query(front, keyframe_id)
+        if rear is not None:
+            proposal = _preferred(proposal, self._query(rear, keyframe_id, rear=True))
+        elif self.config.rear.enabled:
+            self.rear_sequence.reset()  # a keyframe without its rear image breaks the rear sequence
+        return proposal
+
+    @property
     def ready(self) -> bool:
         """Codebooks exist and places are being matched (the PCA warm-up is over)."""
         return self.database is not None
@@ -267,11 +299,12 @@ class LoopDetector:
             return None
         codes = self.encoder.project(raw)
         self.timings.backbone = time.perf_counter() - start
-        proposal = self._query(codes[0], keyframe_id)
-        if use_rear:
-            proposal = _preferred(proposal, self._query(codes[1], keyframe_id, rear=True))
-        elif self.config.rear.enabled:
-            self.rear_sequence.reset()  # a keyframe without its rear image breaks the rear sequence
+        rear_codes = codes[1] if use_rear else None
+        if rear_codes is not None and self.config.rear.keep_codes:
+            if self.rear_database is None:
+                self.rear_database = PlaceDatabase(self.database.codebooks, self.vpr.database)
+            self.rear_database.add(rear_codes, PlaceInfo(frame_id=keyframe_id, timestamp=timestamp))
+        proposal = self._recognise(codes[0], keyframe_id, rear_codes)
         self._add(codes[0], info)
         return proposal
 

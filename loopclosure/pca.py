@@ -107,6 +107,12 @@ class Codebooks:
     stage1: PCAProjection
     stage2: PCAProjection
 
+    def same_as(self, other: Codebooks) -> bool:
+        """Both projections equal: codes made with either are comparable."""
+        mine = {**self.stage1.to_arrays("stage1_"), **self.stage2.to_arrays("stage2_")}
+        theirs = {**other.stage1.to_arrays("stage1_"), **other.stage2.to_arrays("stage2_")}
+        return mine.keys() == theirs.keys() and all(np.array_equal(mine[k], theirs[k]) for k in mine)
+
     def save(self, path: str | Path) -> None:
         arrays = {**self.stage1.to_arrays("stage1_"), **self.stage2.to_arrays("stage2_")}
         buffer = io.BytesIO()

@@ -586,3 +586,35 @@ def test_what_a_save_would_refuse_is_refused_when_added(codebooks, tmp_path):
     wide = PlaceDatabase(codebooks, DatabaseConfig(stage2_dtype="float32"))
     wide.add(PlaceCodes(codes.stage1, codes.stage2 * 0 + 70000.0))  # float32 storage holds them
     assert len(db) == len(wide) == 3
+
+
+def test_merged_keeps_every_place_in_order_and_says_where_each_part_starts(codebooks):
+    """`map` matches a session against the others' places through one merged database: the
+    codes and records of each part come back unchanged, at the offset it reports."""
+    a, b = PlaceDatabase(codebooks), PlaceDatabase(codebooks)
+    a.add(_codes(3, seed=1), _infos(3))
+    b.add(_codes(4, seed=2), _infos(4, start=3))
+    merged, starts = PlaceDatabase.merged([a, PlaceDatabase(codebooks), b])
+    assert starts == [0, 3, 3] and len(merged) == 7
+    np.testing.assert_array_equal(merged.codes_of([3, 6]).stage1, b.codes_of([0, 3]).stage1)
+    np.testing.assert_array_equal(merged.codes_of(np.arange(3)).stage2, a.codes_of(np.arange(3)).stage2)
+    np.testing.assert_allclose(a.codes_of(np.arange(3)).stage1, _codes(3, seed=1).stage1, atol=1e-2)
+    assert [p.name for p in merged.places] == [f"p{k}" for k in range(7)]
+
+
+def test_merged_refuses_parts_encoded_with_other_codebooks(codebooks):
+    other = Codebooks(_projection(30, D1, 7), _projection(20, D2, 8))
+    a, b = PlaceDatabase(codebooks), PlaceDatabase(other)
+    a.add(_codes(2))
+    b.add(_codes(2))
+    assert codebooks.same_as(Codebooks(_projection(30, D1, 1), _projection(20, D2, 2)))
+    assert not codebooks.same_as(other)
+    with pytest.raises(LoopClosureInputError, match="other codebooks"):
+        PlaceDatabase.merged([a, b])
+
+
+def test_codes_of_refuses_places_it_does_not_hold(codebooks):
+    db = PlaceDatabase(codebooks)
+    db.add(_codes(2))
+    with pytest.raises(LoopClosureInputError, match="outside a database of 2"):
+        db.codes_of([0, 2])
