@@ -15,7 +15,10 @@ probability WRONG_LOOP_RATE, as confident as ICP loops): 8 loops 22-59 m off, AT
 clean -> 1.220 m (measured on the current simulator, where the clean run gives 1.199 m). kiss-icp (180
 frames, 16x512 LiDAR): ATE 0.227 m -> 0.223 m, 14 ICP loops, precision 1.0, each within
 0.21 m / 0.4 deg of the true relative pose. The thresholds keep a clear margin on these.
-Runtime ~90 s on 2 shared cores, most of it the 105 VGG16 passes.
+The kiss-icp traverse is rendered once, and kiss-icp runs over it once (the `kiss` run): the
+runs after it that change only what happens to the loops (spacing, the gate, a second session)
+replay that run's odometry (poses and deskewed scans, frame by frame), as the logged runs share
+one backbone pass.
 """
 
 from __future__ import annotations
@@ -38,6 +41,7 @@ from wrong_loops import WrongLoopGraph
 from frontend.config import KeyframeConfig
 from frontend.frame import Frame
 from frontend.odometry import make_odometry
+from frontend.odometry.base import Odometry, OdometryStats
 from frontend.simulation import SimulationConfig, TraverseSimulator
 from loopclosure.backbone import load_backbone
 from loopclosure.errors import LoopClosureInputError
@@ -92,6 +96,61 @@ class MemoBackbone:
         if name == "backbone":  # not set yet (a copy being made): no endless lookup
             raise AttributeError(name)
         return getattr(self.backbone, name)
+
+
+def _scan_key(frame: Frame) -> bytes:
+    assert frame.points is not None
+    return hashlib.sha1(frame.index.to_bytes(8, "little") + np.ascontiguousarray(frame.points).tobytes()).digest()
+
+
+class OdometryTape:
+    """What one odometry gave over a traverse, frame by frame, keyed by each frame's scan: the
+    pose and the deskewed scan (`last_scan`, which a keyframe keeps for loop ICP)."""
+
+    def __init__(self) -> None:
+        self.poses: list[tuple[bytes, np.ndarray | None, np.ndarray | None]] = []
+
+
+class RecordedOdometry:
+    """The real odometry, what it gives recorded on `tape`."""
+
+    def __init__(self, odometry: Odometry, tape: OdometryTape) -> None:
+        self.odometry, self.tape = odometry, tape
+        self.stats = odometry.stats
+
+    def update(self, frame: Frame) -> np.ndarray:
+        pose = self.odometry.update(frame)
+        scan = getattr(self.odometry, "last_scan", None)
+        self.tape.poses.append((_scan_key(frame), _copy(pose), _copy(scan)))
+        return pose
+
+    def __getattr__(self, name: str):  # noqa: ANN204  # the rest of the odometry's API
+        if name == "odometry":  # not set yet: no endless lookup
+            raise AttributeError(name)
+        return getattr(self.odometry, name)
+
+
+class ReplayedOdometry:
+    """The recorded poses and deskewed scans given again for the same frames in the same order (a
+    frame that is not the recorded one fails the test): kiss-icp's output, without running it again."""
+
+    def __init__(self, tape: OdometryTape) -> None:
+        assert tape.poses, "nothing recorded to replay"
+        self.tape, self.stats = tape, OdometryStats()
+        self.last_scan: np.ndarray | None = None
+
+    def update(self, frame: Frame) -> np.ndarray:
+        k = self.stats.updates
+        assert k < len(self.tape.poses), f"frame {frame.index}: past the {len(self.tape.poses)} recorded"
+        key, pose, scan = self.tape.poses[k]
+        assert key == _scan_key(frame), f"frame {frame.index} is not the recorded frame {k}"
+        self.stats.updates += 1
+        self.last_scan = _copy(scan)
+        return _copy(pose)  # type: ignore[return-value]
+
+
+def _copy(array: np.ndarray | None) -> np.ndarray | None:
+    return None if array is None else np.array(array, copy=True)
 
 
 def slam_config(weights_path: Path, odometry: str) -> SlamConfig:
@@ -155,17 +214,19 @@ def _run(
     folder: Path,
     cfg: SlamConfig,
     backbone: MemoBackbone,
-    frames,
+    frames,  # noqa: ANN001
     inject: float = 0.0,
-    plots: bool = False,  # noqa: ANN001
+    plots: bool = False,
+    odometry: Odometry | None = None,
 ) -> Run:
     graph = None
     if inject:
         lidar = cfg.backend.registration.lidar  # as confident as a real ICP loop
         graph = WrongLoopGraph(cfg.backend.pose_graph.for_odometry(cfg.frontend.odometry.kind), inject,
                                sigmas6(lidar.rot_sigma, lidar.trans_sigma), cfg.detector.pca_warmup_keyframes)  # fmt: skip
-    pipeline = SlamPipeline.build(cfg, make_odometry(cfg.frontend.odometry, cfg.frontend.pose_files), backbone,
-                            graph=graph)  # type: ignore[arg-type]  # fmt: skip
+    if odometry is None:
+        odometry = make_odometry(cfg.frontend.odometry, cfg.frontend.pose_files)
+    pipeline = SlamPipeline.build(cfg, odometry, backbone, graph=graph)  # type: ignore[arg-type]
     pipeline.run(frames)
     cfg.results.plots = plots
     folder.mkdir(parents=True)
@@ -210,14 +271,33 @@ def open_gate(tmp_path_factory, weights_path, backbone, camera_frames, clean) ->
 
 
 @pytest.fixture(scope="module")
-def kiss(tmp_path_factory, weights_path, backbone, clean) -> Run:  # noqa: ANN001
-    return _kiss_run(tmp_path_factory, "kiss", slam_config(weights_path, "kiss_icp"), backbone)
+def lidar_frames() -> list[Frame]:
+    """The traverse with LiDAR, rendered once (~110 MB of scans and images) for the kiss-icp runs."""
+    return list(TraverseSimulator(simulation(KISS_FRAMES, lidar=True)).frames())
 
 
-def _kiss_run(tmp_path_factory, name: str, cfg: SlamConfig, backbone: MemoBackbone) -> Run:  # noqa: ANN001
-    """The kiss-icp traverse (rendered again: its scans and images are too large to keep) under `cfg`."""
-    frames = TraverseSimulator(simulation(KISS_FRAMES, lidar=True)).frames()
-    return _run(tmp_path_factory.mktemp("slam") / name, cfg, backbone, frames)
+@pytest.fixture(scope="module")
+def kiss_tape() -> OdometryTape:
+    """kiss-icp's poses over `lidar_frames`, recorded by the `kiss` run."""
+    return OdometryTape()
+
+
+@pytest.fixture(scope="module")
+def kiss(tmp_path_factory, weights_path, backbone, clean, lidar_frames, kiss_tape) -> Run:  # noqa: ANN001
+    cfg = slam_config(weights_path, "kiss_icp")
+    odometry = RecordedOdometry(make_odometry(cfg.frontend.odometry, cfg.frontend.pose_files), kiss_tape)
+    run = _run(tmp_path_factory.mktemp("slam") / "kiss", cfg, backbone, iter(lidar_frames), odometry=odometry)
+    assert len(kiss_tape.poses) == KISS_FRAMES
+    return run
+
+
+def _kiss_run(tmp_path_factory, name: str, cfg: SlamConfig, backbone: MemoBackbone, lidar_frames: list[Frame],
+              kiss_tape: OdometryTape) -> Run:  # noqa: ANN001  # fmt: skip
+    """The kiss-icp traverse again under `cfg`, its odometry the `kiss` run's (replayed)."""
+    odometry = ReplayedOdometry(kiss_tape)
+    run = _run(tmp_path_factory.mktemp("slam") / name, cfg, backbone, iter(lidar_frames), odometry=odometry)
+    assert odometry.stats.updates == KISS_FRAMES  # every frame replayed, each the recorded one
+    return run
 
 
 def _decisions(run: Run) -> list[tuple[int, int, bool]]:
@@ -497,11 +577,11 @@ def test_kiss_icp_run_closes_loops_by_icp_without_harm(kiss: Run) -> None:
 
 
 @pytest.fixture(scope="module")
-def spaced(tmp_path_factory, weights_path, backbone, kiss) -> Run:  # noqa: ANN001
+def spaced(tmp_path_factory, weights_path, backbone, kiss, lidar_frames, kiss_tape) -> Run:  # noqa: ANN001
     """The kiss-icp run again, its ICP loops registered at least LOOP_SPACING keyframes apart."""
     cfg = slam_config(weights_path, "kiss_icp")
     cfg.backend.registration.lidar.loop_spacing_keyframes = LOOP_SPACING
-    return _kiss_run(tmp_path_factory, "spaced", cfg, backbone)
+    return _kiss_run(tmp_path_factory, "spaced", cfg, backbone, lidar_frames, kiss_tape)
 
 
 def test_loop_spacing_registers_fewer_loops_and_judges_the_spaced_with_them(spaced: Run, kiss: Run) -> None:
@@ -543,12 +623,12 @@ def test_loop_spacing_registers_fewer_loops_and_judges_the_spaced_with_them(spac
 
 
 @pytest.fixture(scope="module")
-def gated(tmp_path_factory, weights_path, backbone, kiss) -> Run:  # noqa: ANN001
+def gated(tmp_path_factory, weights_path, backbone, kiss, lidar_frames, kiss_tape) -> Run:  # noqa: ANN001
     """The kiss-icp run again with an odometry gate too tight for most of its (right) loops."""
     cfg = slam_config(weights_path, "kiss_icp")
     cfg.backend.registration.odometry_gate.base_m = TIGHT_GATE_M
     cfg.backend.registration.odometry_gate.per_m_travelled = 0.0
-    return _kiss_run(tmp_path_factory, "gated", cfg, backbone)
+    return _kiss_run(tmp_path_factory, "gated", cfg, backbone, lidar_frames, kiss_tape)
 
 
 def test_the_odometry_gate_refuses_loops_its_odometry_puts_too_far_apart_before_registering(
@@ -587,11 +667,12 @@ def test_the_odometry_gate_refuses_loops_its_odometry_puts_too_far_apart_before_
 # ------------------------------------------------------------------------ prior map (--map)
 
 
-def _second_session(folder: Path, cfg: SlamConfig, backbone: MemoBackbone, frames, prior: Run) -> Run:  # noqa: ANN001
+def _second_session(folder: Path, cfg: SlamConfig, backbone: MemoBackbone, frames, prior: Run,  # noqa: ANN001
+                    odometry: Odometry | None = None) -> Run:  # fmt: skip
     prior_map = PriorMap.load(prior.folder / "database", cfg.vpr)
-    pipeline = SlamPipeline.build(
-        cfg, make_odometry(cfg.frontend.odometry, cfg.frontend.pose_files), backbone, prior_map
-    )  # type: ignore[arg-type]
+    if odometry is None:
+        odometry = make_odometry(cfg.frontend.odometry, cfg.frontend.pose_files)
+    pipeline = SlamPipeline.build(cfg, odometry, backbone, prior_map)  # type: ignore[arg-type]
     pipeline.run(frames)
     folder.mkdir(parents=True)
     return _finish_and_write(pipeline, cfg, folder, {"test": folder.name})
@@ -607,10 +688,13 @@ def second_logged(tmp_path_factory, weights_path, backbone, camera_frames, clean
 
 
 @pytest.fixture(scope="module")
-def second_kiss(tmp_path_factory, weights_path, backbone, kiss) -> Run:  # noqa: ANN001
-    frames = TraverseSimulator(simulation(KISS_FRAMES, lidar=True)).frames()
-    return _second_session(tmp_path_factory.mktemp("slam") / "second_kiss", slam_config(weights_path, "kiss_icp"),
-                           backbone, frames, kiss)  # fmt: skip
+def second_kiss(tmp_path_factory, weights_path, backbone, kiss, lidar_frames, kiss_tape) -> Run:  # noqa: ANN001
+    """The kiss-icp traverse again (its odometry the `kiss` run's, replayed) against that run's map."""
+    odometry = ReplayedOdometry(kiss_tape)
+    run = _second_session(tmp_path_factory.mktemp("slam") / "second_kiss", slam_config(weights_path, "kiss_icp"),
+                          backbone, iter(lidar_frames), kiss, odometry)  # fmt: skip
+    assert odometry.stats.updates == KISS_FRAMES
+    return run
 
 
 def test_saved_map_holds_every_place_with_pose_and_ground_truth(clean: Run) -> None:
