@@ -336,27 +336,45 @@ def loop_eval(
 @app.command(
     "simulate",
     epilog=_examples(
-        "ssmvpr-slam simulate --out demo.mcap", "ssmvpr-slam simulate --out short.mcap --frames 200 --seed 3"
+        "ssmvpr-slam simulate --out demo.mcap",
+        "ssmvpr-slam simulate --out short.mcap --frames 200 --seed 3",
+        "ssmvpr-slam simulate --sessions 4 --out city/   (city/session0.mcap .. session3.mcap, for `map`)",
     ),
 )
 @friendly_errors
 def simulate(
-    out: Annotated[Path, typer.Option("--out", "-o", help="MCAP file to write.")] = Path("demo.mcap"),
-    frames: Annotated[int | None, typer.Option(help="Stop after this many frames.")] = None,
+    out: Annotated[Path, typer.Option("--out", "-o", help="MCAP file to write (a folder with --sessions).")] = Path(
+        "demo.mcap"
+    ),
+    frames: Annotated[int | None, typer.Option(help="Stop after this many frames (of each session).")] = None,
     seed: Annotated[int | None, typer.Option(help="Seed of city textures, noise and drift.")] = None,
+    sessions: Annotated[
+        int | None,
+        typer.Option(help="Sessions of one city instead of one traverse: own routes, starts, light and traffic."),
+    ] = None,
+    first_session: Annotated[
+        int, typer.Option("--first-session", help="Number of the first of --sessions (a later day of the fleet).")
+    ] = 0,
     sim_config: Annotated[Path | None, typer.Option("--sim-config", help="SimulationConfig YAML.")] = None,
     config: ConfigOpt = None,
 ) -> None:
     """Render a loopy city traverse (camera, LiDAR, ground truth, drifting odometry) to MCAP."""
     from frontend.simulation.config import SimulationConfig
-    from ssmvpr_slam.run_folder import output_file
-    from ssmvpr_slam.runner import simulate_to_mcap
+    from ssmvpr_slam.run_folder import output_dir, output_file
+    from ssmvpr_slam.runner import simulate_sessions, simulate_to_mcap
 
     cfg = _config(config)
     if sim_config is not None:
         cfg.simulation = SimulationConfig.from_yaml(sim_config)
     updates = {k: v for k, v in {"max_frames": frames, "seed": seed}.items() if v is not None}
     cfg.simulation = _validated_update(cfg.simulation, updates)
+    if sessions is not None:
+        if sessions < 1 or first_session < 0:
+            raise typer.BadParameter("--sessions must be >= 1 and --first-session >= 0")
+        with output_dir(out, "--out"):
+            written = simulate_sessions(cfg, out, sessions, first_session, console)
+        console.print(f"wrote {len(written)} sessions into [bold]{escape(str(out))}[/bold]")
+        return
     with output_file(out, "--out"):
         simulate_to_mcap(cfg, out, console)
     console.print(f"wrote [bold]{escape(str(out))}[/bold]")
@@ -457,6 +475,54 @@ def _resume(log: Path, folder: Path, weights: Path | None, device: str | None, r
     cfg = _config(str(checkpoint.config_path), weights, device, checkpoint.run_folder.parent)
     prior_map = Path(checkpoint.meta.prior_map) if checkpoint.meta.prior_map else None
     run_log(log, cfg, prior_map, console, name=checkpoint.meta.name, resume=checkpoint)
+
+
+@app.command(
+    "map",
+    epilog=_examples(
+        "ssmvpr-slam map day1.mcap day2.mcap day3.mcap --weights $W --workers 2",
+        "ssmvpr-slam map --map results/latest-map --add day4.mcap   (a new session joins; the graph is solved again)",
+        "ssmvpr-slam map logs/*.mcap --ray-address auto   (on a running Ray cluster)",
+        "ssmvpr-slam run day5.mcap --map results/latest-map   (a new session localises in the map)",
+    ),
+)
+@friendly_errors
+def map_command(
+    logs: Annotated[
+        list[Path] | None,
+        typer.Argument(help="Logs, one session each (MCAP, ROS bag, KITTI folder, image folder with poses)."),
+    ] = None,
+    add: Annotated[
+        list[Path] | None, typer.Option("--add", help="A log to add as a session (with --map); may be repeated.")
+    ] = None,
+    map_dir: Annotated[
+        Path | None,
+        typer.Option("--map", help="A map folder from `map`: its sessions are kept and the new ones join them."),
+    ] = None,
+    workers: Annotated[int | None, typer.Option(help="Ray workers, each holding the backbone (map.workers).")] = None,
+    ray_address: Annotated[
+        str | None, typer.Option("--ray-address", help="A running Ray cluster ('auto', host:port); default: local.")
+    ] = None,
+    config: ConfigOpt = None,
+    weights: WeightsOpt = None,
+    device: DeviceOpt = None,
+    out: OutOpt = None,
+) -> None:
+    """Many logs, one map: sessions run in parallel on Ray, joined by cross-session loops, solved as one graph."""
+    from ssmvpr_slam.errors import OptionError
+    from ssmvpr_slam.multi_session.runner import map_logs
+    from ssmvpr_slam.run_folder import output_dir
+
+    every = [*(logs or []), *(add or [])]
+    if add and map_dir is None:
+        raise OptionError("--add needs --map: the map folder the sessions join")
+    if not every:
+        raise OptionError("no logs: give the logs to map (or --map DIR --add LOG)")
+    cfg = _config(config, weights, device, out)
+    if workers is not None:
+        cfg.map = _validated_update(cfg.map, {"workers": workers})
+    with output_dir(cfg.results.out_dir, _out_option(out)):
+        map_logs(every, cfg, console, add_to=map_dir, ray_address=ray_address)
 
 
 @app.command(

@@ -72,6 +72,35 @@ class ResultsConfig(BaseModel):
     )
 
 
+class MapConfig(BaseModel):
+    """`map`: many sessions (logs) into one map through the loops between them."""
+
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+    workers: int = Field(default=1, ge=1, description="Ray workers, each holding the backbone once (--workers).")
+    worker_cpus: float = Field(default=1.0, gt=0, description="CPUs Ray reserves for each worker.")
+    worker_gpus: float = Field(
+        default=0.0, ge=0, description="GPUs Ray reserves for each worker (0: CPU; set it where Ray sees GPUs)."
+    )
+    task_retries: int = Field(
+        default=1, ge=0, description="Times a session whose worker died (killed, out of memory) is run again."
+    )
+    codebook_images_per_session: int = Field(
+        default=24, ge=1, description="Images of each log the shared PCA codebooks are fitted on (no codebooks given)."
+    )
+    codebook_frame_stride: int = Field(
+        default=4, ge=1, description="Frames between those images, from each log's start."
+    )
+    min_agreeing_loops: int = Field(
+        default=3, ge=1, description="Verified loops between two sessions that must agree on where one lies in "
+        "the other's frame before the two are joined (fewer: kept apart, never forced together).",
+    )  # fmt: skip
+    agree_translation_m: float = Field(
+        default=3.0, gt=0, description="Two loops agree when the session offsets they imply differ by less than this."
+    )
+    agree_yaw_deg: float = Field(default=5.0, gt=0, description="... and by less than this in heading.")
+
+
 class PipelineConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
@@ -117,6 +146,7 @@ class SlamConfig(BaseSettings):
     evaluation: EvaluationConfig = EvaluationConfig()
     pipeline: PipelineConfig = PipelineConfig()
     results: ResultsConfig = ResultsConfig()
+    map: MapConfig = MapConfig()
 
     @classmethod
     def settings_customise_sources(

@@ -27,6 +27,10 @@ from ssmvpr_common.atomic import atomic_write_bytes
 from ssmvpr_common.poses import pose_problem
 
 SCANS_FILE = "scans.npz"
+MAP_MANIFEST = "map.json"
+"""A merged map's manifest (`ssmvpr-slam map`); its places are in its database/ folder."""
+REAR_FOLDER = "rear"
+"""Subfolder of a saved map holding its keyframes' rear-image codes (`detector.rear.keep_codes`)."""
 POSE_TOLERANCE = {"map_pose": 1e-4, "gt_pose": 1e-3}
 """max |R^T R - I| of a place's saved poses (a reflection is refused whatever the tolerance): a map pose must pass the pose graph's default
 `rotation_tolerance` to anchor a loop (a run saves it orthonormal to ~1e-12); ground truth is held to what the
@@ -58,6 +62,19 @@ class PriorMap:
     scans: dict[int, np.ndarray] = field(default_factory=dict)
     gt_poses: dict[int, np.ndarray] = field(default_factory=dict)
     folder: Path | None = None
+    rear: PlaceDatabase | None = None  # rear-image codes by keyframe id, where the session kept them
+
+    def session_starts(self) -> list[int]:
+        """Places where another session of a merged map (`ssmvpr-slam map`) begins: no path runs
+        from the place before to it."""
+        places = self.database.places
+        return [
+            k for k in range(1, len(places)) if places[k].extra.get("session") != places[k - 1].extra.get("session")
+        ]
+
+    def rear_codes_by_keyframe(self) -> dict[int, int]:
+        """Keyframe id -> row of `rear`, for the keyframes whose rear codes were kept."""
+        return {} if self.rear is None else {info.frame_id: i for i, info in enumerate(self.rear.places)}
 
     def __len__(self) -> int:
         return len(self.database)
@@ -75,8 +92,11 @@ class PriorMap:
 
     @classmethod
     def load(cls, folder: str | Path, vpr: VPRConfig) -> PriorMap:
-        """Read a saved database folder; refuses one written with other encoder settings."""
+        """Read a saved database folder (or a merged map's folder, whose database/ it reads);
+        refuses one written with other encoder settings."""
         folder = Path(folder)
+        if (folder / MAP_MANIFEST).is_file():
+            folder = folder / "database"
         database = PlaceDatabase.load(folder)
         saved = database.extra.get("encoder")
         wanted = encoder_signature(vpr)
@@ -104,7 +124,10 @@ class PriorMap:
                 f"prior map {folder}: none of its {len(database)} places has a map pose, so no loop to it "
                 "can correct anything (a vpr-eval database?); pass a SLAM run's results/run_<stamp>/database"
             )
-        return cls(database, poses, _load_scans(folder / SCANS_FILE, len(database)), gt, folder)
+        rear = PlaceDatabase.load(folder / REAR_FOLDER) if (folder / REAR_FOLDER / MANIFEST).is_file() else None
+        if rear is not None and not rear.codebooks.same_as(database.codebooks):
+            raise LoopClosureInputError(f"{folder / REAR_FOLDER}: rear codes made with other codebooks than the map's")
+        return cls(database, poses, _load_scans(folder / SCANS_FILE, len(database)), gt, folder, rear)
 
 
 def save_map(

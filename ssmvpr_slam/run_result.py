@@ -135,6 +135,7 @@ class RunResult:
     ending: StreamEnd = StreamEnd()
     pose_graph: PoseGraphData | None = None  # odometry and session loop factors, for g2o
     database: PlaceDatabase | None = None  # the session's place database (prior places first)
+    rear_database: PlaceDatabase | None = None  # rear-image codes by keyframe id (detector.rear.keep_codes)
     session_places: Mapping[int, int] = field(default_factory=dict)  # keyframe id -> database place
     prior_map: PriorMap | None = None  # as loaded; never changed by the run
     graph_recoveries: tuple[str, ...] = ()  # iSAM2 steps the pose graph had to work around (PoseGraph.recoveries)

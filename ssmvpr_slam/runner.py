@@ -22,7 +22,7 @@ from frontend.errors import FrontendInputError
 from frontend.frame import Frame
 from frontend.odometry import Odometry, choose_odometry, make_odometry
 from frontend.sources import Source, open_source
-from loopclosure.backbone import load_backbone
+from loopclosure.backbone import Backbone, load_backbone
 from loopclosure.errors import LoopClosureInputError
 from ssmvpr_slam.checkpoint import (
     Checkpoint,
@@ -50,14 +50,15 @@ def run_log(
     console: Console | None = None,
     name: str = "run",
     resume: Checkpoint | None = None,
+    backbone: Backbone | None = None,
 ) -> tuple[Path, dict[str, Any]]:
     """Stream `log` through SLAM (from `resume`'s checkpoint if given); returns the results
-    folder and its metrics."""
+    folder and its metrics. backbone: one already loaded (a `map` worker runs many logs with it)."""
     console = console or Console()
     config = config.model_copy(deep=True)  # resolved for this log below; the caller's config stays as given
     source = open_camera_source(log, config, resume)
     prior = PriorMap.load(prior_map, config.vpr) if prior_map is not None else None  # before the slow part
-    pipeline = SlamPipeline(build_system(config, prior))
+    pipeline = SlamPipeline(build_system(config, prior, backbone))
     frames = islice(source, config.pipeline.max_frames)  # a resume's replay counts towards the limit
     if resume is not None:
         restore_from_checkpoint(pipeline, resume, log, frames, console)
@@ -99,9 +100,11 @@ def open_camera_source(log: Path, config: SlamConfig, resume: Checkpoint | None 
     return source
 
 
-def build_system(config: SlamConfig, prior: PriorMap | None) -> SlamSystem:
-    """The core with its odometry and backbone (the slow part: the weights load here)."""
-    return SlamSystem(config, build_odometry(config), load_backbone(config.vpr.backbone, progress=True), prior)
+def build_system(config: SlamConfig, prior: PriorMap | None, backbone: Backbone | None = None) -> SlamSystem:
+    """The core with its odometry and backbone (the slow part: the weights load here, unless given)."""
+    if backbone is None:
+        backbone = load_backbone(config.vpr.backbone, progress=True)
+    return SlamSystem(config, build_odometry(config), backbone, prior)
 
 
 def build_odometry(config: SlamConfig) -> Odometry:
@@ -296,4 +299,17 @@ def simulate_to_mcap(config: SlamConfig, out: Path, console: Console) -> Path:
     return out
 
 
-__all__ = ["run_log", "simulate_to_mcap"]
+def simulate_sessions(config: SlamConfig, folder: Path, count: int, first: int, console: Console) -> list[Path]:
+    """`count` sessions of the configured city (`frontend.simulation.sessions`) as
+    `folder/session<k>.mcap`, numbered from `first`."""
+    from frontend.simulation.sessions import city_sessions
+
+    folder.mkdir(parents=True, exist_ok=True)
+    written = []
+    for k, simulation in enumerate(city_sessions(config.simulation, count, first), start=first):
+        session = config.model_copy(update={"simulation": simulation})
+        written.append(simulate_to_mcap(session, folder / f"session{k}.mcap", console))
+    return written
+
+
+__all__ = ["run_log", "simulate_sessions", "simulate_to_mcap"]

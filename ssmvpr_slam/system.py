@@ -115,6 +115,8 @@ class SlamSystem:
         # the session grows its own copy: the prior map stays as it was loaded
         database = prior_map.database.copy() if prior_map is not None else None
         self.detector = build_detector(config, backbone, database)
+        if prior_map is not None:  # no sequence runs from one session of a merged map into the next
+            self.detector.mark_segments([*prior_map.session_starts(), len(prior_map)])
         self.detector.links_from_decisions = False  # a loop's places become one once it is registered (`back`)
         self.loop_policy = LoopPolicy(config, self.detector, prior_map)
         self.graph = (
@@ -372,6 +374,7 @@ class SlamSystem:
             ending=ending,
             pose_graph=pose_graph,
             database=self.detector.database,
+            rear_database=self.detector.rear_database,
             session_places=self.session_places(),
             prior_map=self.prior_map,
             graph_recoveries=tuple(

@@ -27,7 +27,7 @@ from ssmvpr_slam.backend.g2o_io import write_g2o
 from ssmvpr_slam.config import SlamConfig, dump_config
 from ssmvpr_slam.evaluation.run_report import RunReport
 from ssmvpr_slam.evaluation.trajectory_io import write_kitti, write_tum
-from ssmvpr_slam.prior_map import save_map
+from ssmvpr_slam.prior_map import REAR_FOLDER, save_map
 from ssmvpr_slam.run_folder import write_json
 from ssmvpr_slam.run_result import Keyframe, LoopRecord, RunResult, has_ground_truth
 
@@ -151,6 +151,8 @@ def write_database(folder: Path, result: RunResult, config: SlamConfig, poses: n
     gt = {places[k.id]: k.gt_pose for k in kfs if k.id in places and k.gt_pose is not None}
     if result.prior_map is not None:  # carry the prior places' scans into the grown map
         scans.update(result.prior_map.scans)
+    if result.rear_database is not None and len(result.rear_database):  # first: the manifest below is the last write
+        result.rear_database.save(folder / REAR_FOLDER)
     save_map(folder, result.database, config.vpr, map_poses, scans, gt)
 
 

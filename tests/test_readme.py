@@ -35,7 +35,7 @@ def shown_subcommands() -> list[str]:
 
 
 def test_the_readme_shows_the_main_commands() -> None:
-    assert {"run", "loop-eval", "vpr-eval", "demo", "simulate", "optimize"} <= set(shown_subcommands())
+    assert {"run", "loop-eval", "vpr-eval", "demo", "simulate", "optimize", "map"} <= set(shown_subcommands())
 
 
 @pytest.mark.parametrize("command", shown_subcommands())

@@ -679,3 +679,50 @@ def test_too_few_candidates_for_the_calibrated_decision_is_one_warning(caplog: p
         LoopDetector(few, DetectorConfig(decision="absolute"), Encoder(few, FakeBackbone()))  # type: ignore[arg-type]
     warnings = [r.getMessage() for r in caplog.records if "num_candidates" in r.getMessage()]
     assert len(warnings) == 1 and "vpr.filtering.num_candidates is 15" in warnings[0]
+
+
+# ------------------------------------------------------------------ stored codes (`map`)
+
+
+def test_another_sessions_stored_codes_are_recognised_as_its_images_would_be(codebooks: str) -> None:
+    """A session's keyframes matched later from their stored codes (front, and rear kept with
+    `rear.keep_codes`) against another session's places get the proposals their images would,
+    without becoming places; a seam between two merged sessions stops sequences across it."""
+    mapped = detector(codebooks=codebooks, keyframes=5)
+    feed(mapped, list(range(30)), 0)
+    session = detector(codebooks=codebooks, keyframes=5)
+    session.config.rear.keep_codes = True
+    # this session drives places 8..12 forward, then back down 25..22 (rear images), among new places
+    fronts, rears = [500, 8, 9, 10, 11, 12, 501, 502, 503, 504], [None, 600, 601, 602, 603, 604, 25, 24, 23, 22]
+    direct = detector(mapped.database.copy(), keyframes=5)
+    by_images = [direct.process(scene(f), 100 + k, rear_image=None if r is None else scene(r))
+                 for k, (f, r) in enumerate(zip(fronts, rears))]  # fmt: skip
+    drive_back(session, 0, fronts, rears)
+    assert session.rear_database is not None
+    assert [p.frame_id for p in session.rear_database.places] == list(range(1, 10))  # none in keyframe 0's warm-up
+    stored = LoopDetector(VPR, mapped.config, None, mapped.database.copy())
+    rows = {p.frame_id: i for i, p in enumerate(session.rear_database.places)}
+    by_codes = []
+    for k in range(len(fronts)):
+        rear = session.rear_database.codes_of([rows[k]]) if k in rows else None
+        by_codes.append(stored.match_stored(session.database.codes_of([k]), 100 + k, rear))
+    assert len(stored.database) == 30  # queries only
+    accepted = [(p.camera, p.match_id) for p in by_codes if p is not None and p.accepted]
+    assert accepted == [("front", 10), ("front", 11), ("front", 12), ("rear", 23), ("rear", 22)]
+    assert accepted == [(p.camera, p.match_id) for p in by_images if p is not None and p.accepted]
+    with pytest.raises(RuntimeError, match="stored codes only"):
+        stored.process(scene(1), 999)
+
+
+def test_no_sequence_runs_across_a_seam_between_merged_sessions(codebooks: str) -> None:
+    mapped = detector(codebooks=codebooks, keyframes=5)
+    feed(mapped, list(range(20)), 0)
+    query_codes = mapped.database.codes_of(np.arange(8, 14))  # places 8..13 again
+    joined = LoopDetector(VPR, mapped.config, None, mapped.database.copy())
+    seamed = LoopDetector(VPR, mapped.config, None, mapped.database.copy())
+    seamed.mark_segments([11])  # as if places 11.. were another session's
+    through = [joined.match_stored(query_codes[k], 100 + k) for k in range(6)]
+    cut = [seamed.match_stored(query_codes[k], 100 + k) for k in range(6)]
+    assert [p.match_id for p in through if p is not None and p.accepted] == [10, 11, 12, 13]
+    # at 11 and 12 the sequence would reach back across the seam: it starts again after it
+    assert [p.match_id for p in cut if p is not None and p.accepted] == [10, 13]

@@ -1,0 +1,118 @@
+"""One session's keyframes recognised among the other sessions' places, and verified.
+
+The query session's stored codes go through the same detector as within a session: stage I
+against every other session's places (one merged database, with a seam at each session's
+start so no sequence runs across two), stage II, the sequence matcher and the calibrated
+decision, its runner-up model seeded with what wrong matches scored on every session's stream,
+the query session's own last (it weighs most). The forward camera finds streets driven the same way; the rear codes, where the
+session kept them, find streets driven the other way. Each accepted proposal is registered
+with ICP of the query keyframe's kept scan against a local map of the matched session's scans
+around the place, in that session's frame: the relative start poses of two sessions are
+unknown, so nothing but the images and the scans says where a loop puts them.
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from loopclosure.database import PlaceDatabase
+from loopclosure.detector import PLACE_LINKS_KEY, RUNNER_UPS_KEY, LoopDetector, LoopProposal
+from ssmvpr_slam.backend.loop_registration import LoopRegistrar, LoopRegistration, build_local_map
+from ssmvpr_slam.config import SlamConfig
+from ssmvpr_slam.multi_session.session_map import SessionMap
+
+
+@dataclass(frozen=True)
+class CrossLoop:
+    """Keyframe `query_kf` of session `query` recognised as keyframe `match_kf` of session `match`
+    (indices into the map's session list), with the registration that verified it (or not)."""
+
+    query: int
+    query_kf: int
+    match: int
+    match_kf: int
+    proposal: LoopProposal
+    registration: LoopRegistration
+
+    @property
+    def verified(self) -> bool:
+        return self.registration.accepted
+
+    @property
+    def information(self) -> np.ndarray:
+        """6x6 information of the loop factor (Pose3 tangent order), from the registration's sigmas."""
+        return np.diag(1.0 / np.square(self.registration.sigmas))
+
+
+def find_cross_loops(query_index: int, sessions: list[SessionMap], config: SlamConfig) -> list[CrossLoop]:
+    """Accepted proposals of session `query_index`'s keyframes among the other sessions' places,
+    each with its registration (accepted or not)."""
+    query = sessions[query_index]
+    others = [k for k in range(len(sessions)) if k != query_index]
+    if not others:
+        return []
+    merged, starts = PlaceDatabase.merged([sessions[k].places.database for k in others], config.vpr.database)
+    merged.extra[RUNNER_UPS_KEY] = _runner_ups([sessions[k] for k in others] + [query])
+    links: list[list[int]] = []
+    for start, k in zip(starts, others):  # a place the other session visited twice is one place
+        pairs = sessions[k].places.database.extra.get(PLACE_LINKS_KEY) or []
+        links.extend([start + int(a), start + int(b)] for a, b in pairs)
+    merged.extra[PLACE_LINKS_KEY] = links
+    detector = LoopDetector(config.vpr, config.detector, None, merged)
+    detector.mark_segments(starts)
+    detector.links_from_decisions = False  # the query keyframes are never places here
+    registrar = LoopRegistrar(config.backend.registration)
+    rear_rows = query.places.rear_codes_by_keyframe()
+    front_codes = query.places.database
+    out = []
+    for kf in range(len(query)):
+        rear = None
+        if query.places.rear is not None and kf in rear_rows:
+            rear = query.places.rear.codes_of([rear_rows[kf]])
+        proposal = detector.match_stored(front_codes.codes_of([kf]), kf, rear)
+        if proposal is None or not proposal.accepted:
+            continue
+        which = bisect.bisect_right(starts, proposal.match_place) - 1
+        match_index, match_kf = others[which], proposal.match_place - starts[which]
+        registration = register_cross_loop(query, kf, sessions[match_index], match_kf, proposal, registrar, config)
+        out.append(CrossLoop(query_index, kf, match_index, match_kf, proposal, registration))
+    return out
+
+
+def _runner_ups(sessions: list[SessionMap]) -> dict[str, list[float]]:
+    """The sessions' saved runner-up scores per camera, the last session's last: the decision
+    judges a winner by what wrong matches scored in this city, the query session's own stream
+    weighing most (the model keeps the newest); a short session borrows the others' warm-up."""
+    out: dict[str, list[float]] = {"front": [], "rear": []}
+    for session in sessions:
+        saved = session.places.database.extra.get(RUNNER_UPS_KEY) or {}
+        for camera in out:
+            out[camera].extend(float(v) for v in saved.get(camera, []))
+    return out
+
+
+def register_cross_loop(
+    query: SessionMap,
+    query_kf: int,
+    match: SessionMap,
+    match_kf: int,
+    proposal: LoopProposal,
+    registrar: LoopRegistrar,
+    config: SlamConfig,
+) -> LoopRegistration:
+    """ICP of the query keyframe's scan against the matched session's scans around the place."""
+    lidar = config.backend.registration.lidar
+    scan = query.places.scans.get(query_kf)
+    anchor = match.places.pose(match_kf)
+    parts = match.places.neighbourhood(match_kf, lidar.local_map_half_window)
+    if scan is None or anchor is None or not parts:
+        # no geometry to check it with: a loop between sessions is never taken on the images alone
+        why = "no kept scans on both sides to verify a cross-session loop"
+        return LoopRegistration(np.eye(4), False, why, math.nan, math.nan, method="unverified")
+    scans, poses = zip(*parts)
+    local_map = build_local_map(scans, poses, anchor, lidar.max_range)
+    return registrar.register_scans(scan, local_map, proposal.yaw_guess)

@@ -1,0 +1,341 @@
+"""`map`: many logs into one map. Reads top to bottom as its steps:
+
+1. start Ray (local, or the cluster at `--ray-address`) and the workers;
+2. the shared PCA codebooks (given, the earlier map's with `--add`, or fitted on every log);
+3. each log as a session, in parallel on the workers; a log that fails is reported by name;
+4. each session's keyframes matched against the other sessions' places (Ray tasks);
+5. sessions joined where enough verified loops agree (`linking`); one graph per map, solved
+   robustly; sessions left apart are separate maps;
+6. evaluation against the ground truth, when the sessions have it in one world frame;
+7. the merged map written into a staging folder and published as one unit.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import time
+from collections import deque
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from rich.console import Console
+from rich.markup import escape
+from rich.table import Table
+
+from ssmvpr_common.errors import SsmvprError
+from ssmvpr_common.text_files import read_text
+from ssmvpr_slam.backend.graph_optimizer import OptimizationResult
+from ssmvpr_slam.config import SlamConfig
+from ssmvpr_slam.errors import SlamError
+from ssmvpr_slam.multi_session.cross_loops import CrossLoop, find_cross_loops
+from ssmvpr_slam.multi_session.evaluation import evaluate_map, loop_distance
+from ssmvpr_slam.multi_session.linking import SessionLinks, link_sessions
+from ssmvpr_slam.multi_session.merged_graph import (
+    CrossEdge,
+    MapGraph,
+    build_map_graph,
+    cross_edge_inliers,
+    solve_map_graph,
+)
+from ssmvpr_slam.multi_session.session_map import SessionMap
+from ssmvpr_slam.multi_session.workers import SessionOutcome, remote_worker
+from ssmvpr_slam.multi_session.writer import (
+    plot_map,
+    write_config,
+    write_cross_loops,
+    write_manifest,
+    write_map_database,
+    write_map_graph,
+    write_trajectories,
+)
+from ssmvpr_slam.prior_map import MAP_MANIFEST
+from ssmvpr_slam.run_folder import staged_results_dir
+
+
+class MapError(SlamError, ValueError):
+    """A map that cannot be made or extended (no session succeeded, a map folder that is not one)."""
+
+
+def session_name(index: int, log: Path) -> str:
+    """`s<index>_<log stem>`, in characters any file system takes."""
+    stem = re.sub(r"[^A-Za-z0-9_.-]+", "_", log.stem if log.suffix else log.name).strip("._") or "log"
+    return f"s{index}_{stem[:40]}"
+
+
+def read_manifest(folder: Path) -> dict[str, Any]:
+    """An earlier map's manifest (`map --add`); its session folders must still be there."""
+    import json
+
+    path = folder / MAP_MANIFEST
+    if not path.is_file():
+        raise MapError(f"{folder}: not a map folder (no {MAP_MANIFEST}); pass the folder `map` wrote")
+    try:
+        manifest = json.loads(read_text(path, MapError))
+        sessions = manifest["sessions"]
+        missing = [s["name"] for s in sessions if s["folder"] is not None and not (folder / s["folder"]).is_dir()]
+    except (ValueError, KeyError, TypeError) as exc:
+        raise MapError(f"{path}: not a map manifest ({type(exc).__name__}: {exc})") from None
+    if missing:
+        raise MapError(f"{folder}: the results of sessions {', '.join(missing)} are missing from sessions/")
+    return manifest
+
+
+def start_ray(config: SlamConfig, address: str | None) -> bool:
+    """Connect to the cluster at `address`, or start a local Ray; True when this call started it."""
+    try:
+        import ray
+    except ImportError:
+        raise MapError("`map` runs on Ray: pip install 'ssmvpr-slam[map]' (or pip install ray)") from None
+    if ray.is_initialized():
+        return False
+    os.environ.setdefault("RAY_AUTH_MODE", "disabled")  # a local instance for this process alone
+    kwargs: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False, "configure_logging": False}
+    if address:
+        ray.init(address=address, **kwargs)
+    else:
+        cpus = max(config.map.workers * config.map.worker_cpus, float(os.cpu_count() or 1))
+        ray.init(num_cpus=int(np.ceil(cpus)), **kwargs)
+    return True
+
+
+def run_sessions(
+    config: SlamConfig, jobs: list[tuple[int, str, str]], codebooks: Path, out_dir: Path, console: Console
+) -> list[SessionOutcome]:
+    """Every (index, name, log) as a session on the workers, each worker taking the next when
+    free; a worker that died for good is replaced and its session reported failed."""
+    import ray
+    from ray.exceptions import RayActorError, RayTaskError
+
+    workers = [remote_worker(config) for _ in range(min(config.map.workers, len(jobs)))]
+    pending = deque(jobs)
+    running: dict[Any, tuple[int, tuple[int, str, str]]] = {}
+
+    def submit(w: int) -> None:
+        job = pending.popleft()
+        running[workers[w].run_session.remote(*job, str(codebooks), str(out_dir))] = (w, job)
+
+    for w in range(len(workers)):
+        if pending:
+            submit(w)
+    outcomes = []
+    while running:
+        done, _ = ray.wait(list(running), num_returns=1)
+        w, (index, name, log) = running.pop(done[0])
+        try:
+            outcome = ray.get(done[0])
+        except RayActorError as exc:  # killed beyond its retries: a fresh worker takes the next session
+            outcome = SessionOutcome(index, name, log, error=f"its worker died ({type(exc).__name__})")
+            workers[w] = remote_worker(config)
+        except RayTaskError as exc:
+            cause = exc.cause if exc.cause is not None else exc
+            outcome = SessionOutcome(index, name, log, error=f"{type(cause).__name__}: {cause}")
+        outcomes.append(outcome)
+        if outcome.error is None:
+            console.print(f"session {escape(name)}: {outcome.keyframes} keyframes in {outcome.seconds:.0f} s")
+        else:
+            console.print(f"[red]session {escape(name)} ({escape(log)}) failed:[/red] {escape(outcome.error)}")
+        if pending:
+            submit(w)
+    return sorted(outcomes, key=lambda o: o.index)
+
+
+def _cross_loops_task(query: int, folders: list[tuple[str, str, str]], config: SlamConfig) -> list[CrossLoop]:
+    sessions = [SessionMap.load(name, log, Path(folder), config.vpr) for name, log, folder in folders]
+    return find_cross_loops(query, sessions, config)
+
+
+def all_cross_loops(sessions: list[SessionMap], config: SlamConfig) -> list[CrossLoop]:
+    """Every session's keyframes against the others' places, one Ray task per session."""
+    import ray
+
+    folders = [(s.name, s.log, str(s.folder)) for s in sessions]
+    task = ray.remote(_cross_loops_task).options(num_cpus=config.map.worker_cpus)
+    futures = [task.remote(k, folders, config) for k in range(len(sessions))]
+    return [loop for part in ray.get(futures) for loop in part]
+
+
+@dataclass
+class MainMap:
+    """The main map's graph, its solved poses (graph id order) and the solve (None: one session)."""
+
+    graph: MapGraph
+    poses: np.ndarray
+    result: OptimizationResult | None
+
+
+def solve_maps(
+    sessions: list[SessionMap], loops: list[CrossLoop], links: SessionLinks
+) -> tuple[dict[int, np.ndarray], dict[int, bool], MainMap]:
+    """Each component solved: poses by session (in its component's frame), whether each linked
+    cross loop stayed in the graph, and the main map's graph and solution."""
+    poses: dict[int, np.ndarray] = {}
+    in_graph: dict[int, bool] = {}
+    main: MainMap | None = None
+    kept = sorted(links.kept)
+    edges = [CrossEdge.of(loops[k]) for k in kept]
+    for position, component in enumerate(links.components):
+        if len(component) == 1:  # nothing joins it: its own run's solution, in its own frame
+            poses[component[0]] = sessions[component[0]].poses
+            if position == 0:
+                graph = build_map_graph(component, sessions, links.frames, [])
+                main = MainMap(graph, graph.graph.poses, None)
+            continue
+        graph = build_map_graph(component, sessions, links.frames, edges)
+        result = solve_map_graph(graph)
+        for s in component:
+            poses[s] = graph.session_poses(result.poses, s, len(sessions[s]))
+        in_graph.update({kept[e]: inlier for e, inlier in cross_edge_inliers(graph, result).items()})
+        if position == 0:
+            main = MainMap(graph, result.poses, result)
+    assert main is not None  # there is always a first component
+    return poses, in_graph, main
+
+
+def map_logs(
+    logs: list[Path],
+    config: SlamConfig,
+    console: Console | None = None,
+    add_to: Path | None = None,
+    ray_address: str | None = None,
+) -> tuple[Path, dict[str, Any]]:
+    """Make a map of `logs` (added to the map at `add_to`, if given); returns its folder and metrics."""
+    console = console or Console()
+    started = time.perf_counter()
+    previous = read_manifest(add_to) if add_to is not None else None
+    earlier = previous["sessions"] if previous else []
+    if not logs:
+        raise MapError("no logs given: `map` needs at least one log (two to merge anything)")
+    jobs = [(len(earlier) + k, session_name(len(earlier) + k, log), str(log)) for k, log in enumerate(logs)]
+    with staged_results_dir(config.results.out_dir, "map") as staged:
+        folder = staged.path
+        sessions_dir = folder / "sessions"
+        sessions_dir.mkdir()
+        codebooks = folder / "codebooks.npz"
+        records = []
+        if previous is not None and add_to is not None:
+            shutil.copyfile(add_to / previous["codebooks"], codebooks)
+            for s in earlier:  # hard links: the earlier sessions' results are not copied, nor changed
+                if s["folder"] is not None:  # (a session that failed stays on record, without results)
+                    shutil.copytree(add_to / s["folder"], folder / s["folder"], copy_function=os.link, symlinks=True)
+                records.append(dict(s))
+        elif config.detector.codebooks is not None:
+            shutil.copyfile(config.detector.codebooks, codebooks)
+        owns_ray = start_ray(config, ray_address)
+        try:
+            import ray
+
+            if not codebooks.exists():
+                with console.status(f"fitting the shared PCA codebooks on {len(logs)} logs"):
+                    fitter = remote_worker(config)
+                    ray.get(fitter.fit_codebooks.remote([str(p) for p in logs], str(codebooks)))
+                    ray.kill(fitter)
+            outcomes = run_sessions(config, jobs, codebooks, sessions_dir, console)
+            for outcome in outcomes:
+                relative = None if outcome.folder is None else str(Path(outcome.folder).relative_to(folder))
+                records.append({"name": outcome.name, "log": outcome.log, "folder": relative, "error": outcome.error,
+                                "keyframes": outcome.keyframes, "seconds": outcome.seconds})  # fmt: skip
+            _remove_leftovers(sessions_dir, [o.folder for o in outcomes] + [r["folder"] for r in records])
+            sessions = _load_sessions(records, folder, config, console)
+            if not sessions:
+                raise MapError("no session succeeded: nothing to map (see the errors above)")
+            with console.status(f"matching {len(sessions)} sessions against each other"):
+                loops = all_cross_loops(sessions, config) if len(sessions) > 1 else []
+        finally:
+            if owns_ray:
+                ray.shutdown()
+        links = link_sessions(loops, sessions, config.map)
+        poses, in_graph, main = solve_maps(sessions, loops, links)
+        members = links.components[0]
+        metrics = evaluate_map(sessions, members, poses, loops, in_graph, config.evaluation.loops)
+        metrics["sessions"] = len(records)  # the failed ones count: they were asked for
+        metrics["merged_fraction"] = len(members) / len(records)
+        metrics["wall_s"] = time.perf_counter() - started
+        metrics["maps"] = [[sessions[s].name for s in c] for c in links.components]
+        metrics["session_results"] = records
+        metrics["links"] = [
+            {"sessions": [sessions[link.a].name, sessions[link.b].name], "loops": len(link.loops),
+             "disagreeing": len(link.disagreeing)}
+            for link in links.links
+        ]  # fmt: skip
+        metrics["unjoined_pairs"] = [
+            {"sessions": [sessions[a].name, sessions[b].name], "verified_loops": n}
+            for (a, b), n in links.unjoined_pairs.items()
+        ]
+        result = main.result
+        if result is not None:
+            metrics["main_map_solve"] = {"loops": result.n_loops, "outliers": result.n_outliers,
+                                         "seconds": result.seconds, "check_error": result.check_error}  # fmt: skip
+        truth = [s.gt_poses() for s in sessions]
+        distances = [loop_distance(loop, truth) for loop in loops]
+        name_of = {s.name: k for k, s in enumerate(sessions)}
+        component_of = {s: c for c, comp in enumerate(links.components) for s in comp}
+        for record in records:
+            k = name_of.get(record["name"])
+            record["map"] = None if k is None else component_of[k]
+            record["frame_in_map"] = None if k is None else links.frames[k].tolist()
+        write_map_database(folder / "database", sessions, members, poses, loops, in_graph, config)
+        write_trajectories(folder / "trajectories", sessions, poses)
+        write_map_graph(folder / "map.g2o", main.graph, main.poses)
+        write_cross_loops(folder / "cross_session_loops.csv", sessions, loops, links.kept, in_graph, distances)
+        write_config(folder, config)
+        if config.results.plots:
+            plot_map(folder / "map_top_view.png", sessions, poses, loops, in_graph, config)
+        from ssmvpr_slam.run_folder import write_json
+
+        write_json(folder / "metrics.json", metrics)
+        write_manifest(folder, {"codebooks": codebooks.name, "sessions": records, "maps": metrics["maps"]})
+    assert staged.final is not None
+    print_map_summary(console, metrics, staged.final)
+    return staged.final, metrics
+
+
+def _remove_leftovers(sessions_dir: Path, folders: list[str | None]) -> None:
+    """What a worker that died mid-session left in `sessions/` (a staging folder, half-written
+    results): only the sessions' published results folders (and their `latest` links) stay."""
+    keep = {Path(f).name for f in folders if f is not None}
+    for entry in sessions_dir.iterdir():
+        if entry.is_dir() and not entry.is_symlink() and entry.name not in keep:
+            shutil.rmtree(entry, ignore_errors=True)
+
+
+def _load_sessions(
+    records: list[dict[str, Any]], folder: Path, config: SlamConfig, console: Console
+) -> list[SessionMap]:
+    """The sessions that produced a map; one whose results cannot be merged is reported and left out."""
+    sessions = []
+    for record in records:
+        if record["error"] is not None:
+            continue
+        try:
+            sessions.append(SessionMap.load(record["name"], record["log"], folder / record["folder"], config.vpr))
+        except SsmvprError as exc:
+            record["error"] = str(exc)
+            console.print(f"[red]session {escape(record['name'])} left out:[/red] {escape(str(exc))}")
+    return sessions
+
+
+def print_map_summary(console: Console, metrics: dict[str, Any], folder: Path) -> None:
+    table = Table(title="ssmvpr-slam map")
+    table.add_column("metric")
+    table.add_column("value", justify="right")
+    failed = [r["name"] for r in metrics["session_results"] if r["error"] is not None]
+    table.add_row("sessions / merged into the map", f"{metrics['sessions']} / {metrics['sessions_merged']}")
+    if failed:
+        table.add_row("sessions failed", ", ".join(failed))
+    table.add_row("maps (sessions each)", " + ".join(str(len(m)) for m in metrics["maps"]))
+    loops = metrics["cross_session_loops"]
+    table.add_row("cross-session loops accepted / verified / in graph",
+                  f"{loops['proposed_accepted']} / {loops['verified']} / {loops['in_graph']}")  # fmt: skip
+    fmt = lambda v: "n/a" if v is None else f"{v:.3f}"  # noqa: E731
+    if "cross_session_recall" in metrics:
+        table.add_row("cross-session loop precision / recall",
+                      f"{fmt(metrics['cross_session_precision'])} / {fmt(metrics['cross_session_recall'])}")  # fmt: skip
+    if "ate_merged_m" in metrics:
+        table.add_row("ATE RMSE of the map (one alignment)", f"{metrics['ate_merged_m']:.2f} m")
+    table.add_row("wall time", f"{metrics['wall_s']:.0f} s")
+    console.print(table)
+    console.print(f"map in [bold]{escape(str(folder))}[/bold]")
