@@ -370,7 +370,9 @@ def simulate(
     cfg.simulation = _validated_update(cfg.simulation, updates)
     if sessions is not None:
         if sessions < 1 or first_session < 0:
-            raise typer.BadParameter("--sessions must be >= 1 and --first-session >= 0")
+            from ssmvpr_slam.errors import OptionError
+
+            raise OptionError(f"--sessions must be >= 1 and --first-session >= 0, got {sessions} and {first_session}")
         with output_dir(out, "--out"):
             written = simulate_sessions(cfg, out, sessions, first_session, console)
         console.print(f"wrote {len(written)} sessions into [bold]{escape(str(out))}[/bold]")

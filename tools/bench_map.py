@@ -2,7 +2,7 @@
 """Many sessions, one map: simulate N sessions of one city, run `map` on them, print JSON.
 
     python tools/bench_map.py --sessions 4 [--frames-per-session F] [--workers W] [--config PRESET]
-                              [--weights FILE] [--out DIR] [--ray-address ADDR]
+                              [--weights FILE] [--out DIR] [--ray-address ADDR] [--then-add]
 
 Each session drives its own loop of the city's street grid (`frontend.simulation.sessions`),
 from its own start, by day or at dusk, with its own traffic and odometry drift; the ground truth
@@ -12,7 +12,8 @@ sessions, sessions_merged, cross_session_precision, cross_session_recall, ate_me
 alignment for the whole map), ate_oracle_m (the same sessions joined by perfect cross-session
 loops: `ssmvpr_slam.multi_session.evaluation.oracle_ate`), wall_s (the `map` call, simulation
 excluded), plus keyframes, keyframes_per_second_per_worker, the per-session ATE in the map and
-of each session's own run, and the loop counts.
+of each session's own run, and the loop counts. --then-add: one more session of the city is run
+in the merged map (`run --map`: its prior-map loops) and then added to it (`map --add`).
 """
 
 from __future__ import annotations
@@ -29,12 +30,25 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from rich.console import Console  # noqa: E402
 
 from frontend.simulation.sessions import city_sessions  # noqa: E402
-from ssmvpr_slam.config import load_config  # noqa: E402
+from ssmvpr_slam.config import SlamConfig, load_config  # noqa: E402
 from ssmvpr_slam.multi_session.evaluation import oracle_ate  # noqa: E402
 from ssmvpr_slam.multi_session.runner import map_logs  # noqa: E402
 from ssmvpr_slam.multi_session.session_map import SessionMap  # noqa: E402
-from ssmvpr_slam.runner import simulate_to_mcap  # noqa: E402
+from ssmvpr_slam.runner import run_log, simulate_to_mcap  # noqa: E402
 from ssmvpr_slam.simulated_logs import simulated_log_path  # noqa: E402
+
+
+def localise_and_add(log: Path, folder: Path, config: SlamConfig, console: Console) -> dict[str, object]:
+    """One more session: `run --map` in the merged map, then `map --map ... --add`."""
+    start = time.perf_counter()
+    _, run_metrics = run_log(log, config, folder, console, name="run")
+    localised = {"seconds": time.perf_counter() - start, "prior_map_loops": run_metrics.get("prior_map_loops"),
+                 "ate_optimised_m": run_metrics.get("ate_optimised", {}).get("rmse")}  # fmt: skip
+    start = time.perf_counter()
+    _, metrics = map_logs([log], config, console, add_to=folder)
+    merged = {key: metrics.get(key) for key in ("sessions", "sessions_merged", "cross_session_precision",
+                                                "cross_session_recall", "ate_merged_m", "maps")}  # fmt: skip
+    return {"run_map": localised, "map_add": {**merged, "wall_s": time.perf_counter() - start}}
 
 
 def main() -> None:
@@ -47,6 +61,8 @@ def main() -> None:
     parser.add_argument("--weights", default=None)
     parser.add_argument("--out", type=Path, default=None, help="where the map goes (default: a temporary folder)")
     parser.add_argument("--ray-address", default=None)
+    parser.add_argument("--then-add", action="store_true",
+                        help="then one more session of the city: localised in the map (run --map), then merged (--add)")  # fmt: skip
     args = parser.parse_args()
     if args.sessions < 1 or args.workers < 1:
         parser.error("--sessions and --workers must be >= 1")
@@ -60,13 +76,14 @@ def main() -> None:
     config = load_config(args.config, overrides)
     console = Console(stderr=True)
     logs = []
-    for simulation in city_sessions(config.simulation, args.sessions):
+    for simulation in city_sessions(config.simulation, args.sessions + int(args.then_add)):
         session = config.model_copy(update={"simulation": simulation})
         path = simulated_log_path(session)
         if not path.exists():
             path.parent.mkdir(parents=True, exist_ok=True)
             simulate_to_mcap(session, path, console)
         logs.append(path)
+    later = logs.pop() if args.then_add else None
     with tempfile.TemporaryDirectory(prefix="bench_map_") as scratch:
         config.results.out_dir = str(args.out or scratch)
         start = time.perf_counter()
@@ -76,6 +93,7 @@ def main() -> None:
         sessions = [SessionMap.load(r["name"], r["log"], folder / r["folder"], config.vpr) for r in records]
         lidar = config.backend.registration.lidar
         oracle = oracle_ate(sessions, config.evaluation.loops.revisit_radius, lidar.rot_sigma, lidar.trans_sigma)
+        added = None if later is None else localise_and_add(later, folder, config, console)
     keyframes = sum(len(s) for s in sessions)
     session_seconds = sum(r["seconds"] for r in records)
     out = {
@@ -98,6 +116,8 @@ def main() -> None:
         "links": metrics["links"],
         "failed": [r["name"] for r in metrics["session_results"] if r["error"] is not None],
     }
+    if added is not None:
+        out["next_session"] = added
     print(json.dumps(out, indent=2))
 
 
