@@ -20,8 +20,14 @@ SHARED = Path(os.environ.get("SSMVPR_SHARED", Path(__file__).resolve().parents[2
 
 @pytest.fixture(scope="session")
 def shared_dir() -> Path:
+    """The real benchmarks and weights (`../shared`, or $SSMVPR_SHARED). Without them the tests
+    that read them are skipped, saying why; where they must be there (CI exports
+    SSMVPR_REQUIRE_SHARED=1), their absence fails instead of skipping."""
     if not SHARED.is_dir():
-        pytest.fail(f"shared data folder not found at {SHARED}; set SSMVPR_SHARED")
+        message = f"shared data folder not found at {SHARED} (set SSMVPR_SHARED to where it is)"
+        if os.environ.get("SSMVPR_REQUIRE_SHARED") == "1":
+            pytest.fail(message)
+        pytest.skip(message)
     return SHARED
 
 
