@@ -10,6 +10,7 @@ line, stay with the caller: each package names its inputs in its own error class
 from __future__ import annotations
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 TUM_COLUMNS = 8
 KITTI_COLUMNS = 12
@@ -27,38 +28,13 @@ def data_lines(text: str) -> list[tuple[int, list[str]]]:
 
 
 def quaternion_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a unit quaternion given as (qx, qy, qz, qw)."""
-    x, y, z, w = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
+    """Rotation matrix of a quaternion given as (qx, qy, qz, qw), normalised first."""
+    return Rotation.from_quat(np.asarray(q, dtype=np.float64)).as_matrix()
 
 
 def matrix_to_quaternion(rotation: np.ndarray) -> np.ndarray:
-    """(qx, qy, qz, qw) of a rotation matrix, with qw >= 0 (Shepperd's method)."""
-    r = np.asarray(rotation, dtype=np.float64)
-    trace = np.trace(r)
-    diag = np.diag(r)
-    # Pivot on the largest of (w, x, y, z) for numerical stability.
-    k = int(np.argmax([trace, *diag]))
-    if k == 0:
-        s = 2.0 * np.sqrt(1.0 + trace)
-        q = [(r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s, s / 4]
-    elif k == 1:
-        s = 2.0 * np.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2])
-        q = [s / 4, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s, (r[2, 1] - r[1, 2]) / s]
-    elif k == 2:
-        s = 2.0 * np.sqrt(1.0 - r[0, 0] + r[1, 1] - r[2, 2])
-        q = [(r[0, 1] + r[1, 0]) / s, s / 4, (r[1, 2] + r[2, 1]) / s, (r[0, 2] - r[2, 0]) / s]
-    else:
-        s = 2.0 * np.sqrt(1.0 - r[0, 0] - r[1, 1] + r[2, 2])
-        q = [(r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, s / 4, (r[1, 0] - r[0, 1]) / s]
-    quat = np.array(q)
-    quat /= np.linalg.norm(quat)
+    """(qx, qy, qz, qw) of a rotation matrix, with qw >= 0 (one sign for one rotation)."""
+    quat = Rotation.from_matrix(np.asarray(rotation, dtype=np.float64)).as_quat()
     return -quat if quat[3] < 0 else quat
 
 
