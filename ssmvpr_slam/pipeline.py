@@ -38,7 +38,8 @@ from ssmvpr_slam.config import SlamConfig
 from ssmvpr_slam.heap import HeapTrimmer
 from ssmvpr_slam.prior_map import PriorMap
 from ssmvpr_slam.run_result import RunResult, StreamEnd
-from ssmvpr_slam.system import KeyframeInput, RunState, SlamSystem
+from ssmvpr_slam.run_state import KeyframeInput, RunState
+from ssmvpr_slam.system import SlamSystem
 
 log = logging.getLogger(__name__)
 _POLL_S = 0.1  # how often a waiting thread looks at the other side's state (stop, cancel)

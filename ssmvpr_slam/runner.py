@@ -39,7 +39,8 @@ from ssmvpr_slam.pipeline import SlamPipeline
 from ssmvpr_slam.prior_map import PriorMap
 from ssmvpr_slam.run_folder import RunFolder, staged_results_dir
 from ssmvpr_slam.run_result import RunResult, StreamEnd
-from ssmvpr_slam.system import RunState, SlamSystem
+from ssmvpr_slam.run_state import RunState
+from ssmvpr_slam.system import SlamSystem
 from ssmvpr_slam.writers import write_results
 
 

@@ -20,7 +20,7 @@ import time
 from collections import Counter
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field, replace
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -50,48 +50,9 @@ from ssmvpr_slam.run_result import (
     frozen_array,
     keyframe_poses,
 )
+from ssmvpr_slam.run_state import FrontCounts, KeyframeInput, RunState
 
 log = logging.getLogger(__name__)
-
-
-@dataclass
-class RunState:
-    """What the system has accumulated so far (read it for progress; change it never).
-
-    frames_seen / frames_skipped count the frames whose effects are in the state: with the
-    stages overlapped the front end may be a few keyframes ahead, and a checkpoint must not
-    count frames whose keyframes it does not hold."""
-
-    keyframes: list[Keyframe] = field(default_factory=list)
-    loops: list[LoopRecord] = field(default_factory=list)
-    frames_seen: int = 0
-    frames_skipped: Counter[str] = field(default_factory=Counter)
-    rear_keyframes: int = 0  # keyframes queried with a rear image too
-    times: StageTimes = field(default_factory=StageTimes)
-
-
-@dataclass
-class FrontCounts:
-    """The front half's own counters (frames read, skipped, keyframes selected)."""
-
-    frames_seen: int = 0
-    frames_skipped: Counter[str] = field(default_factory=Counter)
-    keyframes: int = 0
-    seconds: float = 0.0  # front-end time since the last keyframe (odometry, selection, keeping)
-
-
-@dataclass(frozen=True)
-class KeyframeInput:
-    """A keyframe as the front half hands it to the back half: what the run keeps of it, the
-    full images the detector encodes once (dropped after that), and the front's counts up to
-    and including its frame."""
-
-    keyframe: Keyframe
-    image: np.ndarray
-    rear_image: np.ndarray | None
-    frames_seen: int
-    frames_skipped: dict[str, int]
-    front_seconds: float
 
 
 class SlamSystem:

@@ -83,8 +83,8 @@ def main(argv: list[str] | None = None) -> int:
     from ssmvpr_slam.config import load_config
     from ssmvpr_slam.pipeline import SlamPipeline
     from ssmvpr_slam.run_result import latency_summary
+    from ssmvpr_slam.run_state import RunState
     from ssmvpr_slam.runner import build_odometry
-    from ssmvpr_slam.system import RunState
 
     config = load_config(args.config)
     if args.weights:
