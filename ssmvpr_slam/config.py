@@ -79,8 +79,11 @@ class MapConfig(BaseModel):
 
     workers: int = Field(default=1, ge=1, description="Ray workers, each holding the backbone once (--workers).")
     worker_cpus: float = Field(default=1.0, gt=0, description="CPUs Ray reserves for each worker.")
-    worker_gpus: float = Field(
-        default=0.0, ge=0, description="GPUs Ray reserves for each worker (0: CPU; set it where Ray sees GPUs)."
+    worker_gpus: float | None = Field(
+        default=None,
+        ge=0,
+        description="GPUs Ray reserves for each worker; None: where Ray sees GPUs, they are shared among the "
+        "workers (at most one each), else 0 (the backbone runs on the CPU).",
     )
     task_retries: int = Field(
         default=1, ge=0, description="Times a session whose worker died (killed, out of memory) is run again."

@@ -110,13 +110,20 @@ class SessionWorker:
                               seconds=time.perf_counter() - start)  # fmt: skip
 
 
+def worker_gpus(config: SlamConfig, cluster_gpus: float) -> float:
+    """GPUs per worker: as configured, else the cluster's shared among the workers (at most one each)."""
+    if config.map.worker_gpus is not None:
+        return config.map.worker_gpus
+    return min(1.0, cluster_gpus / config.map.workers) if cluster_gpus > 0 else 0.0
+
+
 def remote_worker(config: SlamConfig) -> Any:
     """A `SessionWorker` as a Ray actor with the map's resources and retries."""
     import ray
 
     actor = ray.remote(SessionWorker).options(
         num_cpus=config.map.worker_cpus,
-        num_gpus=config.map.worker_gpus,
+        num_gpus=worker_gpus(config, float(ray.cluster_resources().get("GPU", 0.0))),
         max_restarts=config.map.task_retries,
         max_task_retries=config.map.task_retries,
     )

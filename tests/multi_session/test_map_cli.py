@@ -43,3 +43,14 @@ def test_simulate_sessions_writes_one_log_per_session_in_one_world(tmp_path: Pat
     # two loops of one grid, started at two crossings: 1 from (3, 1), 2 from (1, 0) (30 m blocks)
     assert np.linalg.norm(starts[0][:2] - starts[1][:2]) > 50.0
     assert_user_error(invoke("simulate", "--sessions", 0, "--out", tmp_path / "none"), "--sessions")
+
+
+def test_workers_take_the_gpus_ray_sees_unless_told() -> None:
+    from ssmvpr_slam.multi_session.workers import worker_gpus
+
+    config = load_config(None, {"map": {"workers": 4}})
+    assert worker_gpus(config, 0.0) == 0.0  # no GPU: the backbone on the CPU
+    assert worker_gpus(config, 2.0) == 0.5  # two GPUs shared by four workers
+    assert worker_gpus(config.model_copy(update={"map": config.map.model_copy(update={"workers": 1})}), 8.0) == 1.0
+    told = load_config(None, {"map": {"workers": 4, "worker_gpus": 0.0}})
+    assert worker_gpus(told, 2.0) == 0.0
