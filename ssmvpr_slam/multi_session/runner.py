@@ -233,7 +233,9 @@ def map_logs(
                     fitter = remote_worker(config)
                     ray.get(fitter.fit_codebooks.remote([str(p) for p in logs], str(codebooks)))
                     ray.kill(fitter)
-            outcomes = run_sessions(config, jobs, codebooks, sessions_dir, console)
+            workers = min(config.map.workers, len(jobs))
+            with console.status(f"running {len(jobs)} session(s) on {workers} Ray worker(s)"):
+                outcomes = run_sessions(config, jobs, codebooks, sessions_dir, console)
             for outcome in outcomes:
                 relative = None if outcome.folder is None else str(Path(outcome.folder).relative_to(folder))
                 records.append({"name": outcome.name, "log": outcome.log, "folder": relative, "error": outcome.error,
