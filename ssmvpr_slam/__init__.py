@@ -3,7 +3,7 @@
 The core without I/O and the runner around it import from here (torch, gtsam and kiss-icp load
 on first use):
 
-    from ssmvpr_slam import SlamSystem, load_config, run_log
+    from ssmvpr_slam import SlamSystem, load_config, map_logs, run_log
 """
 
 from __future__ import annotations
@@ -15,6 +15,7 @@ from ssmvpr_common.lazy_exports import lazy_exports
 if TYPE_CHECKING:
     from ssmvpr_slam.config import SlamConfig, load_config
     from ssmvpr_slam.errors import SlamError
+    from ssmvpr_slam.multi_session.runner import map_logs
     from ssmvpr_slam.run_result import RunResult
     from ssmvpr_slam.runner import run_log
     from ssmvpr_slam.system import SlamSystem
@@ -27,6 +28,7 @@ _EXPORTS = {
     "SlamError": "ssmvpr_slam.errors",
     "RunResult": "ssmvpr_slam.run_result",
     "run_log": "ssmvpr_slam.runner",
+    "map_logs": "ssmvpr_slam.multi_session.runner",
     "SlamSystem": "ssmvpr_slam.system",
 }
 __all__ = [
@@ -35,6 +37,7 @@ __all__ = [
     "SlamError",
     "SlamSystem",
     "load_config",
+    "map_logs",
     "run_log",
 ]
 
