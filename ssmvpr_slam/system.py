@@ -21,7 +21,6 @@ from collections import Counter
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import replace
-from typing import Any
 
 import numpy as np
 
@@ -32,7 +31,6 @@ from loopclosure.backbone import Backbone
 from loopclosure.database import PlaceDatabase
 from loopclosure.detector import LoopDetector, LoopProposal
 from loopclosure.encoder import Encoder
-from ssmvpr_slam.backend.g2o_io import from_pose_graph
 from ssmvpr_slam.backend.kept_scan import KeptScan, keep_scan
 from ssmvpr_slam.backend.loop_registration import LoopRegistration
 from ssmvpr_slam.backend.pose_graph import PoseGraph, PoseGraphError
@@ -41,14 +39,13 @@ from ssmvpr_slam.config import SlamConfig
 from ssmvpr_slam.loop_policy import LoopPolicy
 from ssmvpr_slam.mcap_output import thumbnail_jpeg
 from ssmvpr_slam.prior_map import PriorMap
+from ssmvpr_slam.result_assembly import assemble_result, odometry_stats_of
 from ssmvpr_slam.run_result import (
     Keyframe,
     LoopRecord,
     RunResult,
     StageTimes,
     StreamEnd,
-    frozen_array,
-    keyframe_poses,
 )
 from ssmvpr_slam.run_state import FrontCounts, KeyframeInput, RunState
 
@@ -305,59 +302,13 @@ class SlamSystem:
                      odometry_stats: bool = True) -> RunResult:  # fmt: skip
         """odometry_stats: False while the front half may still be updating them (a checkpoint,
         which does not save them)."""
-        state = self.state
-        kfs = tuple(state.keyframes)
-        stamps, odom = keyframe_poses(kfs)
-        optimised, pose_graph = odom, None
-        in_map: np.ndarray | None = odom
-        if kfs:
-            optimised = frozen_array([by_id[k.id] for k in kfs])
-            in_map = self._in_map_frame(optimised)
-            pose_graph = from_pose_graph(self.graph, optimised)
-        loops = tuple(
-            replace(r, dropped=True) if r.factor_handle is not None and r.factor_handle not in final else r
-            for r in state.loops
-        )
         self.detector.annotate_database()  # a map saved from this result seeds the next session's decisions
-        return RunResult(
-            keyframes=kfs,
-            loops=loops,
-            stamps=stamps,
-            odometry=odom,
-            optimised=optimised,
-            in_map_frame=in_map,
-            anchored=self.graph.anchor() is not None if kfs else False,
-            frames_seen=state.frames_seen,
-            frames_skipped=dict(state.frames_skipped),
-            rear_keyframes=state.rear_keyframes,
-            timings=tuple(dict(r) for r in state.times.rows),
-            odometry_stats=_odometry_stats(self.odometry) if odometry_stats else {},
-            ending=ending,
-            pose_graph=pose_graph,
-            database=self.detector.database,
-            rear_database=self.detector.rear_database,
-            session_places=self.session_places(),
-            prior_map=self.prior_map,
-            graph_recoveries=tuple(
-                f"{self._frames_of(r.keyframes)}: {r.what}" if r.keyframes else r.what for r in self.graph.recoveries
-            ),
+        recoveries = tuple(
+            f"{self._frames_of(r.keyframes)}: {r.what}" if r.keyframes else r.what for r in self.graph.recoveries
         )
-
-    def _in_map_frame(self, optimised: np.ndarray) -> np.ndarray | None:
-        """Poses in the map frame: the session's own without a prior map, the prior map's once
-        a map loop anchored the session, None if it never was."""
-        if self.prior_map is None:
-            return optimised
-        anchor = self.graph.anchor()
-        return None if anchor is None else frozen_array(np.linalg.inv(anchor) @ optimised)
-
-    def session_places(self) -> dict[int, int]:
-        """Keyframe id -> database place index of this session's places."""
-        database = self.detector.database
-        if database is None:
-            return {}
-        first = self.detector.prior_places
-        return {database.places[i].frame_id: i for i in range(first, len(database))}
+        stats = odometry_stats_of(self.odometry) if odometry_stats else {}
+        return assemble_result(self.state, self.detector, self.graph, self.prior_map, by_id, final, ending, stats,
+                               recoveries)  # fmt: skip
 
     # ---- resuming from a checkpoint: plain data in, no files --------------------------------
     def detector_state(self) -> dict[str, np.ndarray] | None:
@@ -420,13 +371,3 @@ def _has_pixels(image: np.ndarray) -> bool:
     """An image with at least one row and one column (a 0xN array makes every stage fail)."""
     shape = np.shape(image)
     return len(shape) >= 2 and shape[0] > 0 and shape[1] > 0
-
-
-def _odometry_stats(odometry: Odometry) -> dict[str, Any]:
-    stats = getattr(odometry, "stats", None)
-    if stats is None:
-        return {}
-    return {
-        k: (Counter(v) if isinstance(v, Counter) else set(v) if isinstance(v, set) else v)
-        for k, v in vars(stats).items()
-    }
