@@ -85,7 +85,13 @@ def main() -> None:
         logs.append(path)
     later = logs.pop() if args.then_add else None
     with tempfile.TemporaryDirectory(prefix="bench_map_") as scratch:
-        config.results.out_dir = str(args.out or scratch)
+        named = []  # each session named by its number (`map` names a session after its log)
+        for k, path in enumerate([*logs, *([later] if later else [])]):
+            link = Path(scratch) / f"session{k}.mcap"
+            link.symlink_to(path)
+            named.append(link)
+        logs, later = named[: len(logs)], (named[-1] if later else None)
+        config.results.out_dir = str(args.out or Path(scratch) / "out")
         start = time.perf_counter()
         folder, metrics = map_logs(logs, config, console, ray_address=args.ray_address)
         wall = time.perf_counter() - start
