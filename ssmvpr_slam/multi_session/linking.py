@@ -7,7 +7,8 @@ aligned (a look-alike street corner) says something else. A pair is joined only 
 least `min_agreeing_loops` loops agree, and only those loops go into the graph: two sessions
 that met through one or two lone loops stay apart, reported as separate maps, never forced
 together. Joined pairs make connected components; each is one map, in the frame of its
-first session.
+first session, and every verified loop between two of its sessions goes into its graph, where
+the robust solve judges it (`graph_loops`).
 """
 
 from __future__ import annotations
@@ -43,10 +44,21 @@ class SessionLinks:
 
     links: list[SessionLink]
     kept: set[int]
+    """The loops that agreed on a join (the `linked` column of cross_session_loops.csv)."""
     components: list[list[int]]
     frames: dict[int, np.ndarray] = field(default_factory=dict)
     unjoined_pairs: dict[tuple[int, int], int] = field(default_factory=dict)
     """Pairs with verified loops too few or too scattered to join them: how many loops."""
+
+
+def graph_loops(loops: list[CrossLoop], links: SessionLinks) -> list[int]:
+    """The loops that go into the graphs: every verified loop between two sessions of one map,
+    not only those that agreed on the join. The agreement decides *whether* two sessions are one
+    map (and gives the graph its start); within a map the robust solve decides which loops hold.
+    (Loops of one street stretch agree with each other; a second stretch, further along either
+    session's drift, implies a slightly other offset, yet its loops are as right.)"""
+    component = {s: c for c, members in enumerate(links.components) for s in members}
+    return [k for k, loop in enumerate(loops) if loop.verified and component[loop.query] == component[loop.match]]
 
 
 def loop_offset(loop: CrossLoop, sessions: list[SessionMap]) -> tuple[int, int, np.ndarray]:

@@ -33,7 +33,7 @@ from ssmvpr_slam.config import SlamConfig
 from ssmvpr_slam.errors import SlamError
 from ssmvpr_slam.multi_session.cross_loops import CrossLoop, find_cross_loops
 from ssmvpr_slam.multi_session.evaluation import evaluate_map, loop_distance
-from ssmvpr_slam.multi_session.linking import SessionLinks, link_sessions
+from ssmvpr_slam.multi_session.linking import SessionLinks, graph_loops, link_sessions
 from ssmvpr_slam.multi_session.merged_graph import (
     CrossEdge,
     MapGraph,
@@ -175,7 +175,7 @@ def solve_maps(
     poses: dict[int, np.ndarray] = {}
     in_graph: dict[int, bool] = {}
     main: MainMap | None = None
-    kept = sorted(links.kept)
+    kept = graph_loops(loops, links)
     edges = [CrossEdge.of(loops[k]) for k in kept]
     for position, component in enumerate(links.components):
         if len(component) == 1:  # nothing joins it: its own run's solution, in its own frame

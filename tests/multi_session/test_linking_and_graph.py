@@ -16,7 +16,7 @@ from ssmvpr_slam.backend.se3 import invert, make_pose, rot_z
 from ssmvpr_slam.config import MapConfig
 from ssmvpr_slam.evaluation.metrics import ate
 from ssmvpr_slam.multi_session.cross_loops import CrossLoop
-from ssmvpr_slam.multi_session.linking import link_sessions
+from ssmvpr_slam.multi_session.linking import graph_loops, link_sessions
 from ssmvpr_slam.multi_session.merged_graph import CrossEdge, build_map_graph, cross_edge_inliers, solve_map_graph
 from ssmvpr_slam.multi_session.session_map import SessionMap
 
@@ -137,3 +137,17 @@ def test_vertex_ids_of_two_sessions_are_never_consecutive(street):
     graph = build_map_graph([0, 1], sessions, {0: np.eye(4), 1: np.eye(4)}, [])
     assert graph.vertex(1, 0) - graph.vertex(0, len(sessions[0]) - 1) == 2
     assert len(graph.graph.odometry) == len(sessions[0]) + len(sessions[1]) - 2
+
+
+def test_every_verified_loop_within_a_map_goes_to_its_graph_and_none_across_maps(street):
+    """The agreement joins the sessions; the graph then takes every verified loop between them,
+    the disagreeing ones too (the robust solve judges them), and none to a session left apart."""
+    worlds, sessions = street
+    third = _session("c", _world_poses(500.0, 10))
+    loops = _true_loops(worlds, [(1, k, 0, 20 + k) for k in range(0, 20, 4)])
+    shifted = _loop(1, 2, 0, 22, make_pose(rot_z(0.0), np.array([0.0, 5.0, 0.0])))  # verified, disagreeing
+    lone = _loop(2, 0, 0, 3, np.eye(4))  # one verified loop to a third session: not enough to join it
+    every = [*loops, shifted, lone]
+    links = link_sessions(every, [*sessions, third], MapConfig())
+    assert links.components == [[0, 1], [2]] and links.kept == {0, 1, 2, 3, 4}
+    assert graph_loops(every, links) == [0, 1, 2, 3, 4, 5]
