@@ -21,7 +21,7 @@ import numpy as np
 
 from loopclosure.database import PlaceDatabase
 from loopclosure.detector import PLACE_LINKS_KEY, RUNNER_UPS_KEY, LoopDetector, LoopProposal
-from ssmvpr_slam.backend.loop_registration import LoopRegistrar, LoopRegistration, build_local_map
+from ssmvpr_slam.backend.loop_registration import LoopRegistrar, LoopRegistration, build_local_map, carry_loop
 from ssmvpr_slam.config import SlamConfig
 from ssmvpr_slam.multi_session.session_map import SessionMap
 
@@ -68,7 +68,7 @@ def find_cross_loops(query_index: int, sessions: list[SessionMap], config: SlamC
     registrar = LoopRegistrar(config.backend.registration)
     rear_rows = query.places.rear_codes_by_keyframe()
     front_codes = query.places.database
-    out = []
+    out: list[CrossLoop] = []
     for kf in range(len(query)):
         rear = None
         if query.places.rear is not None and kf in rear_rows:
@@ -78,9 +78,29 @@ def find_cross_loops(query_index: int, sessions: list[SessionMap], config: SlamC
             continue
         which = bisect.bisect_right(starts, proposal.match_place) - 1
         match_index, match_kf = others[which], proposal.match_place - starts[which]
-        registration = register_cross_loop(query, kf, sessions[match_index], match_kf, proposal, registrar, config)
+        match = sessions[match_index]
+        guess = _carried(out, query, kf, match, match_index, match_kf, config)
+        registration = register_cross_loop(query, kf, match, match_kf, proposal, registrar, config, guess)
         out.append(CrossLoop(query_index, kf, match_index, match_kf, proposal, registration))
     return out
+
+
+def _carried(
+    found: list[CrossLoop], query: SessionMap, kf: int, match: SessionMap, match_index: int, match_kf: int,
+    config: SlamConfig,
+) -> np.ndarray | None:  # fmt: skip
+    """The guess for T_mq from the latest verified loop of the same revisit (the same other
+    session, both ends a few keyframes back), each end carried by its own session's poses: ICP
+    then starts where that loop left off instead of screening every yaw seed from zero (what a
+    session does within itself, `carry_loop_keyframes`)."""
+    reach = config.backend.registration.lidar.carry_loop_keyframes
+    for loop in reversed(found):
+        if kf - loop.query_kf > reach:
+            return None
+        if loop.match == match_index and loop.verified and abs(match_kf - loop.match_kf) <= reach:
+            return carry_loop(loop.registration.T_mq, match.poses[loop.match_kf], query.poses[loop.query_kf],
+                              match.poses[match_kf], query.poses[kf])  # fmt: skip
+    return None
 
 
 def _runner_ups(sessions: list[SessionMap]) -> dict[str, list[float]]:
@@ -103,8 +123,10 @@ def register_cross_loop(
     proposal: LoopProposal,
     registrar: LoopRegistrar,
     config: SlamConfig,
+    guess: np.ndarray | None = None,
 ) -> LoopRegistration:
-    """ICP of the query keyframe's scan against the matched session's scans around the place."""
+    """ICP of the query keyframe's scan against the matched session's scans around the place
+    (from `guess`, a carried T_mq, first when there is one)."""
     lidar = config.backend.registration.lidar
     scan = query.places.scans.get(query_kf)
     anchor = match.places.pose(match_kf)
@@ -115,4 +137,4 @@ def register_cross_loop(
         return LoopRegistration(np.eye(4), False, why, math.nan, math.nan, method="unverified")
     scans, poses = zip(*parts)
     local_map = build_local_map(scans, poses, anchor, lidar.max_range)
-    return registrar.register_scans(scan, local_map, proposal.yaw_guess)
+    return registrar.register_scans(scan, local_map, proposal.yaw_guess, guess)
