@@ -78,7 +78,12 @@ class MapConfig(BaseModel):
     model_config = ConfigDict(extra="forbid", validate_assignment=True)
 
     workers: int = Field(default=1, ge=1, description="Ray workers, each holding the backbone once (--workers).")
-    worker_cpus: float = Field(default=1.0, gt=0, description="CPUs Ray reserves for each worker.")
+    worker_cpus: float | None = Field(
+        default=None,
+        gt=0,
+        description="CPUs Ray reserves for each worker (its torch threads); None: the CPUs Ray sees shared "
+        "among the workers (at least one each).",
+    )
     worker_gpus: float | None = Field(
         default=None,
         ge=0,

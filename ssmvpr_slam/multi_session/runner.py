@@ -97,8 +97,8 @@ def start_ray(config: SlamConfig, address: str | None) -> bool:
     if address:
         ray.init(address=address, **kwargs)
     else:
-        cpus = max(config.map.workers * config.map.worker_cpus, float(os.cpu_count() or 1))
-        ray.init(num_cpus=int(np.ceil(cpus)), **kwargs)
+        wanted = config.map.workers * (config.map.worker_cpus or 1.0)
+        ray.init(num_cpus=int(np.ceil(max(wanted, float(os.cpu_count() or 1)))), **kwargs)
     return True
 
 
@@ -153,7 +153,7 @@ def all_cross_loops(sessions: list[SessionMap], config: SlamConfig) -> list[Cros
     import ray
 
     folders = [(s.name, s.log, str(s.folder)) for s in sessions]
-    task = ray.remote(_cross_loops_task).options(num_cpus=config.map.worker_cpus)
+    task = ray.remote(_cross_loops_task).options(num_cpus=1)
     futures = [task.remote(k, folders, config) for k in range(len(sessions))]
     return [loop for part in ray.get(futures) for loop in part]
 
@@ -228,11 +228,14 @@ def map_logs(
         try:
             import ray
 
+            phases: dict[str, float] = {"start": time.perf_counter() - started}
+            mark = time.perf_counter()
             if not codebooks.exists():
                 with console.status(f"fitting the shared PCA codebooks on {len(logs)} logs"):
                     fitter = remote_worker(config)
                     ray.get(fitter.fit_codebooks.remote([str(p) for p in logs], str(codebooks)))
                     ray.kill(fitter)
+            phases["codebooks"], mark = time.perf_counter() - mark, time.perf_counter()
             workers = min(config.map.workers, len(jobs))
             with console.status(f"running {len(jobs)} session(s) on {workers} Ray worker(s)"):
                 outcomes = run_sessions(config, jobs, codebooks, sessions_dir, console)
@@ -244,18 +247,23 @@ def map_logs(
             sessions = _load_sessions(records, folder, config, console)
             if not sessions:
                 raise MapError("no session succeeded: nothing to map (see the errors above)")
+            phases["sessions"], mark = time.perf_counter() - mark, time.perf_counter()
             with console.status(f"matching {len(sessions)} sessions against each other"):
                 loops = all_cross_loops(sessions, config) if len(sessions) > 1 else []
+            phases["cross_session_matching"] = time.perf_counter() - mark
         finally:
             if owns_ray:
                 ray.shutdown()
+        mark = time.perf_counter()
         links = link_sessions(loops, sessions, config.map)
         poses, in_graph, main = solve_maps(sessions, loops, links)
+        phases["joining_and_solving"] = time.perf_counter() - mark
         members = links.components[0]
         metrics = evaluate_map(sessions, members, poses, loops, in_graph, config.evaluation.loops)
         metrics["sessions"] = len(records)  # the failed ones count: they were asked for
         metrics["merged_fraction"] = len(members) / len(records)
         metrics["wall_s"] = time.perf_counter() - started
+        metrics["seconds"] = phases  # where the wall time went (writing the map is the rest)
         metrics["maps"] = [[sessions[s].name for s in c] for c in links.components]
         metrics["session_results"] = records
         metrics["links"] = [

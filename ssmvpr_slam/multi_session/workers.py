@@ -117,12 +117,20 @@ def worker_gpus(config: SlamConfig, cluster_gpus: float) -> float:
     return min(1.0, cluster_gpus / config.map.workers) if cluster_gpus > 0 else 0.0
 
 
+def worker_cpus(config: SlamConfig, cluster_cpus: float) -> float:
+    """CPUs per worker: as configured, else the cluster's shared among the workers (at least
+    one): one worker on two cores runs its backbone on both."""
+    if config.map.worker_cpus is not None:
+        return config.map.worker_cpus
+    return max(1.0, float(int(cluster_cpus // config.map.workers)))
+
+
 def remote_worker(config: SlamConfig) -> Any:
     """A `SessionWorker` as a Ray actor with the map's resources and retries."""
     import ray
 
     actor = ray.remote(SessionWorker).options(
-        num_cpus=config.map.worker_cpus,
+        num_cpus=worker_cpus(config, float(ray.cluster_resources().get("CPU", 1.0))),
         num_gpus=worker_gpus(config, float(ray.cluster_resources().get("GPU", 0.0))),
         max_restarts=config.map.task_retries,
         max_task_retries=config.map.task_retries,

@@ -54,3 +54,13 @@ def test_workers_take_the_gpus_ray_sees_unless_told() -> None:
     assert worker_gpus(config.model_copy(update={"map": config.map.model_copy(update={"workers": 1})}), 8.0) == 1.0
     told = load_config(None, {"map": {"workers": 4, "worker_gpus": 0.0}})
     assert worker_gpus(told, 2.0) == 0.0
+
+
+def test_workers_share_the_cpus_ray_sees_unless_told() -> None:
+    from ssmvpr_slam.multi_session.workers import worker_cpus
+
+    one = load_config(None, {"map": {"workers": 1}})
+    assert worker_cpus(one, 2.0) == 2.0  # one worker on two cores: its backbone runs on both
+    assert worker_cpus(load_config(None, {"map": {"workers": 2}}), 2.0) == 1.0
+    assert worker_cpus(load_config(None, {"map": {"workers": 4}}), 2.0) == 1.0  # at least one each
+    assert worker_cpus(load_config(None, {"map": {"workers": 1, "worker_cpus": 0.5}}), 2.0) == 0.5
