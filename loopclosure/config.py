@@ -369,7 +369,8 @@ class RearCameraConfig(_Strict):
     keep_codes: bool = Field(
         default=False,
         description="Keep each keyframe's rear-image codes beside the places (saved with the database as rear/): "
-        "a later session driving a street the other way is recognised against them (`map` sets it).",
+        "a later session driving a street the other way is recognised against them (`map` sets it; a checkpoint "
+        "does not hold them, so a resumed run keeps those of the keyframes after the resume only).",
     )
     direction: Literal["forward", "reverse", "both"] = Field(
         default="reverse", description="Sequence direction of the rear camera's matches (reverse: the street "
