@@ -17,11 +17,11 @@ import numpy as np
 from frontend.errors import FrontendInputError
 from frontend.frame import Frame
 from frontend.simulation.city import ALLEY, FACADE, City
-from frontend.simulation.config import SimulationConfig
+from frontend.simulation.config import RouteConfig, SimulationConfig
 from frontend.simulation.layout import build_city
 from frontend.simulation.render import CameraRenderer, LidarRenderer, Scene
 from frontend.simulation.route import Route, build_route
-from frontend.simulation.route_files import read_route_file
+from frontend.simulation.route_files import RouteFile, read_route_file
 from frontend.simulation.traffic import Traffic
 
 # Independent random streams derived from the seed.
@@ -43,6 +43,11 @@ def pose_matrix(x: float, y: float, z: float, yaw: float, pitch: float = 0.0) ->
     return T
 
 
+def _route_file(route: RouteConfig) -> RouteFile | None:
+    """The poses file a route drives, read (None for a grid route)."""
+    return read_route_file(route.preset, route.poses_format, route.poses_frame) if route.is_file else None
+
+
 class TraverseSimulator:
     """A city, a route through it, and sensors; builds everything eagerly (errors surface here)."""
 
@@ -51,11 +56,7 @@ class TraverseSimulator:
             raise FrontendInputError(f"simulation config must be a SimulationConfig, got {type(config).__name__}")
         self.config = config
         cfg = config
-        self.route_file = (
-            read_route_file(cfg.route.preset, cfg.route.poses_format, cfg.route.poses_frame)
-            if cfg.route.is_file
-            else None
-        )
+        self.route_file = _route_file(cfg.route)
         self.session_seed = cfg.seed if cfg.session_seed is None else cfg.session_seed
         self.route: Route = build_route(
             cfg.route, self.session_seed, cfg.city.pitch_m, self.route_file, terrain_seed=cfg.seed
@@ -95,12 +96,7 @@ class TraverseSimulator:
     def _city_streets(cfg: SimulationConfig) -> np.ndarray:
         """The centre line of `city_route`: the streets every session of the city drives among."""
         assert cfg.city_route is not None
-        city_file = (
-            read_route_file(cfg.city_route.preset, cfg.city_route.poses_format, cfg.city_route.poses_frame)
-            if cfg.city_route.is_file
-            else None
-        )
-        return build_route(cfg.city_route, cfg.seed, cfg.city.pitch_m, city_file).centre
+        return build_route(cfg.city_route, cfg.seed, cfg.city.pitch_m, _route_file(cfg.city_route)).centre
 
     # -- poses ---------------------------------------------------------------------------------
 

@@ -57,11 +57,7 @@ def find_cross_loops(query_index: int, sessions: list[SessionMap], config: SlamC
         return []
     merged, starts = PlaceDatabase.merged([sessions[k].places.database for k in others], config.vpr.database)
     merged.extra[RUNNER_UPS_KEY] = _runner_ups([sessions[k] for k in others] + [query])
-    links: list[list[int]] = []
-    for start, k in zip(starts, others):  # a place the other session visited twice is one place
-        pairs = sessions[k].places.database.extra.get(PLACE_LINKS_KEY) or []
-        links.extend([start + int(a), start + int(b)] for a, b in pairs)
-    merged.extra[PLACE_LINKS_KEY] = links
+    merged.extra[PLACE_LINKS_KEY] = merged_place_links([sessions[k] for k in others], starts)
     detector = LoopDetector(config.vpr, config.detector, None, merged)
     detector.mark_segments(starts)
     detector.links_from_decisions = False  # the query keyframes are never places here
@@ -101,6 +97,16 @@ def _carried(
             return carry_loop(loop.registration.T_mq, match.poses[loop.match_kf], query.poses[loop.query_kf],
                               match.poses[match_kf], query.poses[kf])  # fmt: skip
     return None
+
+
+def merged_place_links(sessions: list[SessionMap], starts: list[int]) -> list[list[int]]:
+    """The place pairs each session's accepted loops joined, in the indices of a database that
+    merged the sessions' places from `starts` on: a place a session visited twice stays one place."""
+    return [
+        [start + int(a), start + int(b)]
+        for session, start in zip(sessions, starts)
+        for a, b in session.places.database.extra.get(PLACE_LINKS_KEY) or []
+    ]
 
 
 def _runner_ups(sessions: list[SessionMap]) -> dict[str, list[float]]:

@@ -52,18 +52,20 @@ def cross_session_revisits(truth: list[np.ndarray | None], radius: float) -> dic
 
 def evaluate_map(
     sessions: list[SessionMap],
+    asked: int,
     map_sessions: list[int],
     map_poses: dict[int, np.ndarray],
     loops: list[CrossLoop],
     in_graph: dict[int, bool],
     config: LoopMetricsConfig,
 ) -> dict[str, Any]:
-    """Metrics of the merged map (the component `map_sessions`, poses by session)."""
+    """Metrics of the merged map (the component `map_sessions`, poses by session); `asked`: the
+    sessions asked for, the failed ones included (what the merged fraction is of)."""
     truth = [s.gt_poses() for s in sessions]
     out: dict[str, Any] = {
-        "sessions": len(sessions),
+        "sessions": asked,
         "sessions_merged": len(map_sessions),
-        "merged_fraction": len(map_sessions) / len(sessions) if sessions else 0.0,
+        "merged_fraction": len(map_sessions) / asked if asked else 0.0,
     }
     known = {s: gt for s in map_sessions if (gt := truth[s]) is not None}
     if known and sum(len(gt) for gt in known.values()) >= 3:

@@ -53,7 +53,7 @@ from ssmvpr_slam.multi_session.writer import (
     write_trajectories,
 )
 from ssmvpr_slam.prior_map import MAP_MANIFEST
-from ssmvpr_slam.run_folder import staged_results_dir
+from ssmvpr_slam.run_folder import staged_results_dir, write_json
 
 
 class MapError(SlamError, ValueError):
@@ -243,7 +243,7 @@ def map_logs(
                 relative = None if outcome.folder is None else str(Path(outcome.folder).relative_to(folder))
                 records.append({"name": outcome.name, "log": outcome.log, "folder": relative, "error": outcome.error,
                                 "keyframes": outcome.keyframes, "seconds": outcome.seconds})  # fmt: skip
-            _remove_leftovers(sessions_dir, [o.folder for o in outcomes] + [r["folder"] for r in records])
+            _remove_leftovers(sessions_dir, [r["folder"] for r in records])
             sessions = _load_sessions(records, folder, config, console)
             if not sessions:
                 raise MapError("no session succeeded: nothing to map (see the errors above)")
@@ -259,9 +259,7 @@ def map_logs(
         poses, in_graph, main = solve_maps(sessions, loops, links)
         phases["joining_and_solving"] = time.perf_counter() - mark
         members = links.components[0]
-        metrics = evaluate_map(sessions, members, poses, loops, in_graph, config.evaluation.loops)
-        metrics["sessions"] = len(records)  # the failed ones count: they were asked for
-        metrics["merged_fraction"] = len(members) / len(records)
+        metrics = evaluate_map(sessions, len(records), members, poses, loops, in_graph, config.evaluation.loops)
         metrics["wall_s"] = time.perf_counter() - started
         metrics["seconds"] = phases  # where the wall time went (writing the map is the rest)
         metrics["maps"] = [[sessions[s].name for s in c] for c in links.components]
@@ -294,8 +292,6 @@ def map_logs(
         write_config(folder, config)
         if config.results.plots:
             plot_map(folder / "map_top_view.png", sessions, poses, loops, in_graph, config)
-        from ssmvpr_slam.run_folder import write_json
-
         write_json(folder / "metrics.json", metrics)
         write_manifest(folder, {"codebooks": codebooks.name, "sessions": records, "maps": metrics["maps"]})
     assert staged.final is not None

@@ -27,7 +27,7 @@ from ssmvpr_common.atomic import atomic_write_text
 from ssmvpr_slam.backend.g2o_io import write_g2o
 from ssmvpr_slam.config import SlamConfig, dump_config
 from ssmvpr_slam.evaluation.trajectory_io import write_kitti, write_tum
-from ssmvpr_slam.multi_session.cross_loops import CrossLoop
+from ssmvpr_slam.multi_session.cross_loops import CrossLoop, merged_place_links
 from ssmvpr_slam.multi_session.merged_graph import MapGraph
 from ssmvpr_slam.multi_session.session_map import SessionMap
 from ssmvpr_slam.prior_map import MAP_MANIFEST, save_map
@@ -59,18 +59,15 @@ def write_map_database(
     database, starts = PlaceDatabase.merged(parts, config.vpr.database)
     start_of = dict(zip(members, starts))
     database.places = [
-        replace(info, frame_id=index, extra={**info.extra, "session": sessions[s].name, "session_keyframe": k})
+        replace(
+            info, frame_id=start_of[s] + k, extra={**info.extra, "session": sessions[s].name, "session_keyframe": k}
+        )
         for s in members
         for k, info in enumerate(sessions[s].places.database.places)
-        for index in (start_of[s] + k,)
     ]
     largest = max(members, key=lambda s: len(sessions[s]))  # the longest stream's wrong-match model
     database.extra[RUNNER_UPS_KEY] = sessions[largest].places.database.extra.get(RUNNER_UPS_KEY)
-    links = [
-        [start_of[s] + int(a), start_of[s] + int(b)]
-        for s in members
-        for a, b in sessions[s].places.database.extra.get(PLACE_LINKS_KEY) or []
-    ]
+    links = merged_place_links([sessions[s] for s in members], starts)
     links += [
         [start_of[loops[k].query] + loops[k].query_kf, start_of[loops[k].match] + loops[k].match_kf]
         for k, kept in in_graph.items()
