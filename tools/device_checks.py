@@ -55,12 +55,16 @@ DEVICE_PYTHON = "3.12"  # the GPU image's python3 (.library/device/KINDS.md)
 CARRY_LIMIT_BYTES = 64 << 20
 WEIGHTS_FILE = "vgg16_fp16.pth"
 
-# What the GPU image lacks, by the call that carries it (the image has torch, numpy, scipy,
-# scikit-learn, opencv, matplotlib, typer, rich, pyyaml, threadpoolctl and onnxruntime).
+# What the GPU image holds of this project's dependencies (.library/device/KINDS.md) ...
+IMAGE_HAS = {"torch", "numpy", "scipy", "scikit-learn", "opencv-python-headless", "matplotlib", "typer", "rich",
+             "pyyaml", "threadpoolctl", "onnxruntime"}  # fmt: skip
+# ... and what it lacks, by the call that carries it (a test checks that the two cover pyproject's
+# dependencies: a log reader's import missing there cost a GPU session a call).
 WHEELS = {
     "core": ["pydantic", "pydantic-core", "annotated-types", "typing-inspection", "typing-extensions",
              "pydantic-settings", "python-dotenv", "faiss-cpu", "packaging"],
-    "slam": ["gtsam", "kiss-icp", "natsort", "pyquaternion", "mcap", "mcap-ros2-support", "zstandard", "lz4"],
+    "slam": ["gtsam", "kiss-icp", "natsort", "pyquaternion", "mcap", "mcap-ros2-support", "zstandard", "lz4",
+             "rosbags", "ruamel.yaml", "apsw", "backports.zstd"],
 }  # fmt: skip
 NEEDS = {"stage1": ["core"], "backbone": ["core", "weights", "images"], "slam": ["core", "slam", "weights"]}
 # Each command's limit (a first call runs stage1 and backbone: 570 s at most, inside the
@@ -160,13 +164,15 @@ def _install(groups: list[str]) -> None:
     """pip-install the carried wheels of `groups` into .device/site (once per machine)."""
     for group in groups:
         marker = SITE / f".installed-{group}"
-        if marker.exists():
-            continue
         wheels = sorted((KIT / group).glob("*.whl"))  # there: `_missing` checked before
+        listed = " ".join(w.name for w in wheels) + "\n"
+        # Installed already, unless the carried kit differs from what was (a wheel added since).
+        if marker.exists() and (not wheels or marker.read_text() == listed):
+            continue
         log(f"installing {len(wheels)} {group} wheels into {SITE}")
         subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-index", "--no-deps", "--no-compile",
                         "--no-cache-dir", "--upgrade", "--target", str(SITE), *map(str, wheels)], check=True)  # fmt: skip
-        atomic_write_text(marker, " ".join(w.name for w in wheels) + "\n")
+        atomic_write_text(marker, listed)
 
 
 def _environment(local: bool) -> dict[str, str]:

@@ -93,3 +93,20 @@ def test_votes_that_differ_from_numpy_fail_the_step() -> None:
     assert device_checks._verdict("stage1", {"stage1_index": {"sizes": sizes}}) is None
     assert "chunk selection" in device_checks._verdict("stage1", {"selection_equals_topk": False})
     assert device_checks._verdict("stage1", {"selection_equals_topk": True}) is None
+
+
+def test_the_kit_and_the_gpu_image_cover_every_dependency() -> None:
+    """A dependency added to pyproject.toml but neither in the GPU image nor in a carried kit
+    fails there on import, after a machine's start was paid for."""
+    import re
+    import tomllib
+
+    sys.path.insert(0, str(SCRIPT.parent))
+    try:
+        import device_checks
+    finally:
+        sys.path.remove(str(SCRIPT.parent))
+    project = tomllib.loads((SCRIPT.parents[1] / "pyproject.toml").read_text())["project"]
+    needed = {re.split(r"[<>=!~\[; ]", d, maxsplit=1)[0].lower() for d in project["dependencies"]}
+    carried = {name.lower() for names in device_checks.WHEELS.values() for name in names}
+    assert needed - device_checks.IMAGE_HAS - carried == set()
