@@ -18,6 +18,7 @@ from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
+from frontend.config import OdometryConfig
 from frontend.errors import FrontendInputError
 from frontend.frame import Frame
 from frontend.odometry import Odometry, choose_odometry, make_odometry
@@ -56,8 +57,9 @@ def run_log(
     """Stream `log` through SLAM (from `resume`'s checkpoint if given); returns the results
     folder and its metrics. backbone: one already loaded (a `map` worker runs many logs with it)."""
     console = console or Console()
-    config = config.model_copy(deep=True)  # resolved for this log below; the caller's config stays as given
-    source = open_camera_source(log, config, resume)
+    source, odometry = open_camera_source(log, config, resume)
+    config = config.model_copy(deep=True)  # resolved for this log; the caller's config stays as given
+    config.frontend.odometry = odometry
     prior = PriorMap.load(prior_map, config.vpr) if prior_map is not None else None  # before the slow part
     pipeline = SlamPipeline(build_system(config, prior, backbone))
     frames = islice(source, config.pipeline.max_frames)  # a resume's replay counts towards the limit
@@ -81,9 +83,11 @@ def run_log(
     return folder, metrics
 
 
-def open_camera_source(log: Path, config: SlamConfig, resume: Checkpoint | None = None) -> Source:
+def open_camera_source(
+    log: Path, config: SlamConfig, resume: Checkpoint | None = None
+) -> tuple[Source, OdometryConfig]:
     """The log's source, refused without camera images (or, for a resume, when it is not the
-    checkpoint's log); `auto` odometry resolved for it in `config` (run_log's own copy)."""
+    checkpoint's log), and the odometry to run on it (`auto` resolved by its streams)."""
     source = open_source(log, config.frontend.source, config.frontend.pose_files)
     topics = source.topics
     if "camera" not in topics:  # places are recognised in images: a run without them finds no loop
@@ -97,8 +101,7 @@ def open_camera_source(log: Path, config: SlamConfig, resume: Checkpoint | None 
         )
     if resume is not None:
         check_log(resume, log)
-    config.frontend.odometry = choose_odometry(config.frontend.odometry, topics, str(log))
-    return source
+    return source, choose_odometry(config.frontend.odometry, topics, str(log))
 
 
 def build_system(config: SlamConfig, prior: PriorMap | None, backbone: Backbone | None = None) -> SlamSystem:

@@ -151,6 +151,18 @@ def test_run_picks_logged_odometry_for_a_log_without_scans(
     assert not (_run_folders(tmp_path / "out")[0] / "database").exists()
 
 
+def test_opening_a_log_resolves_auto_odometry_without_touching_the_callers_config(camera_only_log: Path) -> None:
+    from ssmvpr_slam.config import load_config
+    from ssmvpr_slam.runner import open_camera_source
+
+    config = load_config(None)
+    assert config.frontend.odometry.kind == "auto"
+    source, odometry = open_camera_source(camera_only_log, config)
+    assert odometry.kind == "logged"  # no scans in the log: the logged poses drive
+    assert config.frontend.odometry.kind == "auto"  # the caller's config is as it was given
+    assert "camera" in source.topics
+
+
 def test_run_refuses_an_odometry_the_log_cannot_feed(camera_only_log: Path, weights_path: Path, tmp_path: Path) -> None:
     out = tmp_path / "out"
     result = invoke("run", camera_only_log, "--odometry", "kiss-icp", "--weights", weights_path, "--out", out)
