@@ -24,22 +24,21 @@ from frontend.frame import Frame
 from frontend.odometry import Odometry, choose_odometry, make_odometry
 from frontend.sources import Source, open_source
 from loopclosure.backbone import Backbone, load_backbone
-from loopclosure.errors import LoopClosureInputError
 from ssmvpr_slam.checkpoint import (
     Checkpoint,
     Checkpointer,
-    CheckpointError,
     CheckpointMeta,
     carry_checkpoint,
     check_log,
     log_fingerprint,
 )
+from ssmvpr_slam.checkpoint_replay import restore_from_checkpoint
 from ssmvpr_slam.config import SlamConfig
 from ssmvpr_slam.evaluation.run_report import RunReport, evaluate
 from ssmvpr_slam.pipeline import SlamPipeline
 from ssmvpr_slam.prior_map import PriorMap
 from ssmvpr_slam.run_folder import RunFolder, staged_results_dir
-from ssmvpr_slam.run_result import RunResult, StreamEnd
+from ssmvpr_slam.run_result import RunResult
 from ssmvpr_slam.run_state import RunState
 from ssmvpr_slam.system import SlamSystem
 from ssmvpr_slam.writers import write_results
@@ -129,33 +128,6 @@ def stream_frames(pipeline: SlamPipeline, frames: Iterator[Frame], source: Sourc
             checkpoints.maybe()
 
         pipeline.run(frames, after_frame)
-
-
-def restore_from_checkpoint(pipeline: SlamPipeline, checkpoint: Checkpoint, log: Path, frames: Iterator[Frame],
-                            console: Console) -> None:  # fmt: skip
-    """Put the system back where the checkpoint left it: its state from the files, the odometry
-    by replaying the frames it had seen (see `ssmvpr_slam.checkpoint` for why)."""
-    system = pipeline.system
-    try:
-        system.restore(checkpoint.result, checkpoint.detector_state)
-    except (LoopClosureInputError, KeyError) as exc:  # a state this build or these settings cannot take
-        what = f"lacks {exc}" if isinstance(exc, KeyError) else str(exc)
-        raise CheckpointError(f"{checkpoint.folder / 'detector.npz'}: {what}") from None
-    seen = checkpoint.result.frames_seen
-    with Progress(TextColumn("[bold]replaying odometry"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
-                  console=console) as progress:  # fmt: skip
-        task = progress.add_task("frames", total=seen)
-        for _ in range(seen):
-            frame = next(frames, None)
-            if frame is None:
-                raise FrontendInputError(f"{log}: ended after {progress.tasks[task].completed:.0f} frames; "
-                                         f"the checkpoint had seen {seen}")  # fmt: skip
-            system.replay_odometry(frame)
-            progress.advance(task)
-    system.resume_keyframe_selection()
-    pipeline.ending = StreamEnd(seconds=checkpoint.result.ending.seconds)  # the run's time carries on
-    console.print(f"resumed from [bold]{escape(str(checkpoint.folder))}[/bold]: {len(checkpoint.result.keyframes)} "
-                  f"keyframes, {seen} frames")  # fmt: skip
 
 
 @contextmanager

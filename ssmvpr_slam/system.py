@@ -31,20 +31,17 @@ from loopclosure.backbone import Backbone
 from loopclosure.database import PlaceDatabase
 from loopclosure.detector import LoopDetector, LoopProposal
 from loopclosure.encoder import Encoder
-from ssmvpr_slam.backend.kept_scan import KeptScan, keep_scan
 from ssmvpr_slam.backend.loop_registration import LoopRegistration
 from ssmvpr_slam.backend.pose_graph import PoseGraph, PoseGraphError
-from ssmvpr_slam.backend.two_view import reduce_image
 from ssmvpr_slam.config import SlamConfig
+from ssmvpr_slam.kept_keyframe import keep_keyframe
 from ssmvpr_slam.loop_policy import LoopPolicy
-from ssmvpr_slam.mcap_output import thumbnail_jpeg
 from ssmvpr_slam.prior_map import PriorMap
 from ssmvpr_slam.result_assembly import assemble_result, odometry_stats_of
 from ssmvpr_slam.run_result import (
     Keyframe,
     LoopRecord,
     RunResult,
-    StageTimes,
     StreamEnd,
 )
 from ssmvpr_slam.run_state import FrontCounts, KeyframeInput, RunState
@@ -83,9 +80,9 @@ class SlamSystem:
             else PoseGraph(config.backend.pose_graph.for_odometry(config.frontend.odometry.kind))
         )
         self.state = RunState()
-        self._front = FrontCounts()
+        self.front_counts = FrontCounts()
         self._result: RunResult | None = None
-        self._recoveries_told = 0  # the graph's recoveries already warned about
+        self.recoveries_told = 0  # the graph's recoveries already warned about
 
     # ---- per frame ------------------------------------------------------------------------
     def process(self, frame: Frame) -> None:
@@ -107,7 +104,7 @@ class SlamSystem:
         if self._result is not None:
             raise RuntimeError("SlamSystem.process: the run is finished (finish() was called)")
         start = time.perf_counter()
-        counts = self._front
+        counts = self.front_counts
         counts.frames_seen += 1
         try:
             pose = self.odometry.update(frame)  # every scan feeds the odometry, camera or not
@@ -124,7 +121,7 @@ class SlamSystem:
                 frame = replace(frame, rear_image=None)  # the forward image still recognises the place
             if not self.selector.select(pose, frame.timestamp):
                 return None
-            keyframe = self._keep(frame, pose, counts.keyframes)
+            keyframe = keep_keyframe(frame, pose, counts.keyframes, self.config, self.odometry)
             counts.keyframes += 1
         finally:
             counts.seconds += time.perf_counter() - start
@@ -133,40 +130,10 @@ class SlamSystem:
         return KeyframeInput(keyframe, frame.image, frame.rear_image, counts.frames_seen,
                              dict(counts.frames_skipped), seconds)  # fmt: skip
 
-    def _keep(self, frame: Frame, pose: np.ndarray, keyframe_id: int) -> Keyframe:
-        """What the run keeps of a keyframe: poses, the voxelised scan (int16 cm), grey copies of
-        the images within the pixel budget where there is no scan (two-view registration is
-        what registers such a keyframe; with scans on both sides ICP does), and a JPEG
-        thumbnail for trajectory.mcap; never the full images (megabytes per keyframe)."""
-        assert frame.image is not None
-        pipeline = self.config.pipeline
-        scan = self._keep_scan(self._scan_of(frame)) if pipeline.use_lidar_for_loops else None
-        pixels = pipeline.keyframe_image_pixels
-        image = rear = None
-        if scan is None:
-            image = reduce_image(frame.image, pixels, f"keyframe {keyframe_id} image")
-            if frame.rear_image is not None:
-                rear = reduce_image(frame.rear_image, pixels, f"keyframe {keyframe_id} rear image")
-        thumbnail = None
-        if self.config.results.mcap:
-            name = f"keyframe {keyframe_id} (frame {frame.index})"
-            thumbnail = thumbnail_jpeg(frame.image, self.config.results.mcap_thumbnail_width, name)
-        return Keyframe(
-            id=keyframe_id,
-            frame_index=frame.index,
-            timestamp=frame.timestamp,
-            odom_pose=np.array(pose, dtype=np.float64),
-            gt_pose=None if frame.gt_pose is None else np.array(frame.gt_pose, dtype=np.float64),
-            scan=scan,
-            image=image,
-            rear_image=rear,
-            thumbnail=thumbnail,
-        )
-
     def sync_front_counts(self) -> None:
         """Bring the state's frame counters up to the front's (frames after the last keyframe)."""
-        self.state.frames_seen = self._front.frames_seen
-        self.state.frames_skipped = Counter(self._front.frames_skipped)
+        self.state.frames_seen = self.front_counts.frames_seen
+        self.state.frames_skipped = Counter(self.front_counts.frames_skipped)
 
     def back(self, item: KeyframeInput) -> None:
         """Recognise, register and graph a keyframe from `front` (in the order they came)."""
@@ -190,7 +157,7 @@ class SlamSystem:
                 t1 = time.perf_counter()
                 registration = self._register(kf, proposal)
                 t_reg = time.perf_counter() - t1
-                self.state.loops[-1] = self._add_loop(LoopRecord(proposal, registration))
+                self.state.loops[-1] = self.add_loop_factor(LoopRecord(proposal, registration))
                 if registration.accepted or registration.method == "spaced":
                     self.detector.join(proposal)
         t2 = time.perf_counter()
@@ -226,9 +193,9 @@ class SlamSystem:
     def _tell_recoveries(self) -> None:
         """Warn once about each recovery of the pose graph (see `PoseGraph.update`)."""
         recoveries = self.graph.recoveries
-        for recovery in recoveries[self._recoveries_told :]:
+        for recovery in recoveries[self.recoveries_told :]:
             log.warning("%s: %s", self._frames_of(recovery.keyframes), recovery.what)
-        self._recoveries_told = len(recoveries)
+        self.recoveries_told = len(recoveries)
 
     def _frames_of(self, keyframe_ids: Sequence[int]) -> str:
         """'frame 5 (keyframe 1)' for the warnings (the user knows frames, the graph keyframes)."""
@@ -236,7 +203,7 @@ class SlamSystem:
         named = [f"frame {kfs[k].frame_index} (keyframe {k})" for k in keyframe_ids if k < len(kfs)]
         return ", ".join(named) or "pose graph"
 
-    def _add_loop(self, record: LoopRecord) -> LoopRecord:
+    def add_loop_factor(self, record: LoopRecord) -> LoopRecord:
         """The record with its factor handle, once an accepted registration became a factor."""
         reg, proposal = record.registration, record.proposal
         if reg is None or not reg.accepted:
@@ -252,15 +219,6 @@ class SlamSystem:
         else:
             handle = self.graph.add_loop(proposal.match_id, proposal.query_id, reg.T_mq, sigmas=reg.sigmas)
         return replace(record, factor_handle=handle)
-
-    def _scan_of(self, frame: Frame) -> np.ndarray | None:
-        """The odometry's motion-compensated scan when it has one (kiss-icp), else the raw one."""
-        deskewed = getattr(self.odometry, "last_scan", None)
-        return deskewed if deskewed is not None else frame.points
-
-    def _keep_scan(self, points: np.ndarray | None) -> KeptScan | None:
-        lidar = self.config.backend.registration.lidar
-        return keep_scan(points, lidar.voxel_size * lidar.map_downsample_factor)
 
     def _register(self, kf: Keyframe, proposal: LoopProposal) -> LoopRegistration:
         """How the accepted proposal becomes a registration: `ssmvpr_slam.loop_policy`."""
@@ -310,56 +268,11 @@ class SlamSystem:
         return assemble_result(self.state, self.detector, self.graph, self.prior_map, by_id, final, ending, stats,
                                recoveries)  # fmt: skip
 
-    # ---- resuming from a checkpoint: plain data in, no files --------------------------------
+    # ---- a checkpoint's view ------------------------------------------------------------------
     def detector_state(self) -> dict[str, np.ndarray] | None:
-        """The detector's state as arrays, None while the PCA warm-up still buffers keyframes."""
+        """The detector's state as arrays, None while the PCA warm-up still buffers keyframes
+        (`ssmvpr_slam.checkpoint_replay` puts a system back from it)."""
         return self.detector.state_arrays() if self.detector.ready else None
-
-    def restore(self, partial: RunResult, detector_state: dict[str, np.ndarray]) -> None:
-        """Continue a run from its checkpoint (`partial_result` + `detector_state`, reloaded).
-
-        The pose graph is rebuilt by repeating the original calls in their order (each
-        keyframe, its loop factor, one iSAM2 step), so it is the graph the run had; the
-        odometry's state is re-derived by `replay_odometry` on the frames already seen."""
-        if self.state.frames_seen or self.state.keyframes or self.finished:
-            raise RuntimeError("SlamSystem.restore: only a fresh system can be restored")
-        if partial.database is None:
-            raise ValueError("restore: the checkpoint holds no place database")
-        self.detector.load_state_arrays(detector_state, partial.database)
-        rows = [dict(r) for r in partial.timings]
-        self.state = RunState([], [], partial.frames_seen, Counter(partial.frames_skipped), partial.rear_keyframes,
-                              StageTimes(rows))  # fmt: skip
-        self._front = FrontCounts(partial.frames_seen, Counter(partial.frames_skipped), len(partial.keyframes))
-        loops: dict[int, list[LoopRecord]] = {}
-        for record in partial.loops:
-            loops.setdefault(record.proposal.query_id, []).append(record)
-        for kf in partial.keyframes:
-            self.state.keyframes.append(kf)
-            self.graph.add_keyframe(kf.id, kf.odom_pose)
-            for record in loops.get(kf.id, []):
-                restored = (
-                    self._add_loop(replace(record, factor_handle=None)) if record.factor_handle is not None else record
-                )
-                if restored.factor_handle != record.factor_handle:
-                    raise ValueError(f"restore: keyframe {kf.id}'s loop factor came back as handle "
-                                     f"{restored.factor_handle}, the checkpoint says {record.factor_handle}")  # fmt: skip
-                self.state.loops.append(record)
-            self.graph.update()
-        self._recoveries_told = len(self.graph.recoveries)  # warned about when the run first met them
-
-    def replay_odometry(self, frame: Frame) -> None:
-        """Feed a frame processed before the checkpoint to the odometry only (its state is not
-        serialisable: kiss-icp's voxel map lives in C++)."""
-        self.odometry.update(frame)
-
-    def resume_keyframe_selection(self) -> None:
-        """After the replay: the next keyframe is chosen relative to the checkpoint's last one."""
-        self.selector.reset()
-        if self.state.keyframes:
-            last = self.state.keyframes[-1]
-            self.selector.select(last.odom_pose, last.timestamp)
-            self.selector.count = len(self.state.keyframes)
-        self._front.keyframes = len(self.state.keyframes)
 
 
 def build_detector(config: SlamConfig, backbone: Backbone, database: PlaceDatabase | None = None) -> LoopDetector:

@@ -11,8 +11,9 @@ import pytest
 from rich.console import Console
 
 from loopclosure.errors import LoopClosureInputError
+from ssmvpr_slam import checkpoint_replay
 from ssmvpr_slam.checkpoint import CheckpointError
-from ssmvpr_slam.runner import restore_from_checkpoint
+from ssmvpr_slam.checkpoint_replay import restore_from_checkpoint
 
 
 @pytest.mark.parametrize(
@@ -23,12 +24,15 @@ from ssmvpr_slam.runner import restore_from_checkpoint
         (KeyError("int8_stream_calibrated"), "detector.npz: lacks 'int8_stream_calibrated'"),
     ],
 )  # fmt: skip
-def test_a_state_the_detector_refuses_names_the_checkpoints_file(tmp_path: Path, problem, expected) -> None:
-    def restore(result, state) -> None:  # noqa: ANN001
+def test_a_state_the_detector_refuses_names_the_checkpoints_file(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, problem, expected
+) -> None:
+    def restore(system, result, state) -> None:  # noqa: ANN001
         raise problem
 
+    monkeypatch.setattr(checkpoint_replay, "restore_system", restore)
     replayed: list[object] = []
-    pipeline = SimpleNamespace(system=SimpleNamespace(restore=restore, replay_odometry=replayed.append))
+    pipeline = SimpleNamespace(system=SimpleNamespace(odometry=SimpleNamespace(update=replayed.append)))
     checkpoint = SimpleNamespace(folder=tmp_path / "checkpoint-000002", result=SimpleNamespace(frames_seen=3),
                                  detector_state={})  # fmt: skip
     with pytest.raises(CheckpointError) as caught:
