@@ -458,7 +458,8 @@ def run(
 def _resume(log: Path, folder: Path, weights: Path | None, device: str | None, refused: dict[str, Any]) -> None:
     """`run LOG --resume DIR`: the checkpoint's own settings, prior map and results folder; only
     where the weights are and which device runs them may change."""
-    from ssmvpr_slam.checkpoint import CheckpointError, load_checkpoint
+    from ssmvpr_slam.checkpoint import CheckpointError
+    from ssmvpr_slam.checkpoint_loading import load_checkpoint
     from ssmvpr_slam.config import settings_variables
     from ssmvpr_slam.run_folder import check_writable
     from ssmvpr_slam.runner import run_log

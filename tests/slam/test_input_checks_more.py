@@ -41,7 +41,8 @@ from loopclosure.errors import LoopClosureInputError
 from loopclosure.pca import Codebooks, PCAProjection
 from ssmvpr_slam.backend.loop_registration import LoopRegistration
 from ssmvpr_slam.backend.two_view import ReducedImage
-from ssmvpr_slam.checkpoint import CheckpointError, CheckpointMeta, load_checkpoint, write_checkpoint
+from ssmvpr_slam.checkpoint import CheckpointError, CheckpointMeta, write_checkpoint
+from ssmvpr_slam.checkpoint_loading import load_checkpoint
 from ssmvpr_slam.config import load_config
 from ssmvpr_slam.prior_map import PriorMap, save_map
 from ssmvpr_slam.run_result import Keyframe, LoopRecord, RunResult, StreamEnd
@@ -253,6 +254,8 @@ CHECKPOINT_CASES: dict[str, tuple[Callable[[Path], str], str]] = {
     "loops_an_object": (_field("loops", {"0": 1}), "loops must be a list of objects"),
     "log_a_number": (_field("log", 7), "log must be a string"),
     "prior_map_a_list": (_field("prior_map", []), "prior_map must be a path or null"),
+    "a_misspelt_field": (_field("frames_sen", 12), "frames_sen is no field of a checkpoint record"),
+    "prior_map_missing": (_record(lambda r: r.pop("prior_map")), "prior_map must be a path or null, got nothing"),
     "loop_handle_skips": (_loop(1, None, factor_handle=3), "factor_handle is 3, the graph would give 0"),
     "loop_query_unknown": (_loop(1, "proposal", query_id=99), "query keyframe 99 is not one of the 5 keyframes"),
     "loop_query_text": (_loop(0, "proposal", query_id="3"), "query_id must be a whole number"),
