@@ -211,7 +211,7 @@ class OdometryConfig(_Model):
 
 
 class PoseFileConfig(_Model):
-    """Reading and writing TUM / KITTI trajectory files (:mod:`frontend.poses_io`)."""
+    """Reading and writing TUM / KITTI trajectory files (:mod:`frontend.poses_io`, :mod:`ssmvpr_common.trajectory_io`)."""
 
     rotation_tolerance: float = Field(
         1e-3, gt=0.0, description="max |R^T R - I| (or |q| - 1) before a line is rejected"

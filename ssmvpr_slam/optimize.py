@@ -11,12 +11,12 @@ import numpy as np
 from rich.console import Console
 from rich.markup import escape
 
+from ssmvpr_common.trajectory_io import write_tum
 from ssmvpr_slam.backend import g2o_io
 from ssmvpr_slam.backend.graph_optimizer import KERNEL_NAMES, OptimizerSettings, initial_poses, optimize_graph
 from ssmvpr_slam.backend.gtsam_errors import gtsam_reason
 from ssmvpr_slam.errors import OptionError
 from ssmvpr_slam.evaluation.graph_metrics import loop_classification_scores, trajectory_ate
-from ssmvpr_slam.evaluation.trajectory_io import write_tum
 from ssmvpr_slam.run_folder import output_dir, staged_results_dir, write_json
 
 

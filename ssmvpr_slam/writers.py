@@ -23,10 +23,10 @@ from typing import Any
 import numpy as np
 
 from ssmvpr_common.atomic import atomic_write_text
+from ssmvpr_common.trajectory_io import write_kitti, write_tum
 from ssmvpr_slam.backend.g2o_io import write_g2o
 from ssmvpr_slam.config import SlamConfig, dump_config
 from ssmvpr_slam.evaluation.run_report import RunReport
-from ssmvpr_slam.evaluation.trajectory_io import write_kitti, write_tum
 from ssmvpr_slam.prior_map import REAR_FOLDER, save_map
 from ssmvpr_slam.run_folder import write_json
 from ssmvpr_slam.run_result import Keyframe, LoopRecord, RunResult, has_ground_truth

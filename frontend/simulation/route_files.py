@@ -64,7 +64,8 @@ def read_route_file(path: str | Path, fmt: str = "auto", frame: PosesFrame = "au
     """Read a TUM (``t x y z qx qy qz qw``) or KITTI (3x4 row-major) poses file as a route.
 
     ``frame`` says which convention the poses use; ``auto`` detects it from the direction of
-    travel. Raises FrontendInputError naming the file on anything unreadable or degenerate.
+    travel. Raises TrajectoryFileError naming file:line on a line that is no pose, and
+    FrontendInputError naming the file on a route that cannot be driven.
     """
     path = Path(path)
     if fmt not in ("auto", "tum", "kitti"):

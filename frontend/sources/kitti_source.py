@@ -24,13 +24,13 @@ import numpy as np
 from frontend.config import KittiSourceConfig, PoseFileConfig
 from frontend.errors import FrontendInputError
 from frontend.frame import Frame
-from frontend.poses_io import read_kitti
 from frontend.sources.base import Source
 from frontend.sources.clock import StreamClock, read_times
 from frontend.sources.images import read_rgb
 from ssmvpr_common.images import image_files, pair_by_number
 from ssmvpr_common.poses import KITTI_COLUMNS, pose_from_kitti_row, pose_problem
 from ssmvpr_common.text_files import read_text
+from ssmvpr_common.trajectory_io import read_kitti
 
 log = logging.getLogger("frontend.sources.kitti")
 
@@ -154,7 +154,7 @@ class KittiSource(Source):
     def _read_gt(self, pose_config: PoseFileConfig | None) -> np.ndarray | None:
         if self.poses_path is None:
             return None
-        poses = read_kitti(self.poses_path, pose_config).poses
+        poses = read_kitti(self.poses_path, (pose_config or PoseFileConfig()).rotation_tolerance)
         if len(poses) != len(self.times):
             raise FrontendInputError(f"{self.poses_path}: {len(poses)} poses but times.txt has {len(self.times)} lines")
         if self.gt_frame == "lidar":

@@ -42,6 +42,7 @@ import numpy as np
 from ssmvpr_common.atomic import atomic_write_text
 from ssmvpr_common.poses import matrix_to_quaternion, quaternion_to_matrix
 from ssmvpr_common.text_files import read_text
+from ssmvpr_common.trajectory_io import TrajectoryFileError, read_tum
 from ssmvpr_slam.backend.se3 import make_pose, project_to_so3, rot_z, yaw_of
 
 QUATERNION_NORM_TOL = 1e-3
@@ -493,14 +494,10 @@ def read_ground_truth(
             by_id = dict(zip(gt_graph.ids, chain_odometry(gt_graph)))
         return _in_graph_order(path, graph, by_id)
     if path.suffix.lower() == ".tum":
-        from frontend.poses_io import read_tum
-
         try:
-            tum = read_tum(path)
-        except ValueError as error:
+            stamps, poses = read_tum(path)
+        except TrajectoryFileError as error:
             raise PoseGraphFileError(str(error)) from None
-        stamps, poses = tum.timestamps, tum.poses
-        assert stamps is not None
         if times is not None:
             index = {round(float(t), 6): k for k, t in enumerate(stamps)}
             missing = [float(t) for t in times if round(float(t), 6) not in index]

@@ -2,6 +2,7 @@
 KITTI relative error, loop-closure precision / recall, and plots. Plots (matplotlib) load only
 when imported."""
 
+from ssmvpr_common.trajectory_io import read_kitti, read_tum, write_kitti, write_tum
 from ssmvpr_slam.evaluation.alignment import Alignment, align_trajectory, umeyama
 from ssmvpr_slam.evaluation.config import (
     EvaluationConfig,
@@ -22,7 +23,6 @@ from ssmvpr_slam.evaluation.metrics import (
     kitti_relative_error,
     rpe,
 )
-from ssmvpr_slam.evaluation.trajectory_io import read_kitti, read_tum, write_kitti, write_tum
 
 __all__ = [
     "Alignment",

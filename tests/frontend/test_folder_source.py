@@ -12,8 +12,8 @@ import pytest
 
 from frontend.config import FolderSourceConfig, SourceConfig
 from frontend.errors import FrontendInputError
-from frontend.poses_io import write_kitti, write_tum
 from frontend.sources import FolderSource, McapSource, detect_kind, open_source
+from ssmvpr_common.trajectory_io import write_kitti, write_tum
 
 ROOT = Path(__file__).resolve().parents[2]
 

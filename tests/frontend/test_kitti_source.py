@@ -14,8 +14,8 @@ import pytest
 from frontend.config import KittiSourceConfig, SourceConfig
 from frontend.errors import FrontendInputError
 from frontend.odometry.logged import so3_exp
-from frontend.poses_io import write_kitti
 from frontend.sources import KittiSource, McapSource, detect_kind, open_source
+from ssmvpr_common.trajectory_io import write_kitti
 
 ROOT = Path(__file__).resolve().parents[2]
 N = 4

@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from frontend.errors import FrontendInputError
 from frontend.simulation import SimulationConfig, TraverseSimulator, default_demo_config, read_route_file
 from frontend.simulation.city import CAR, FOLIAGE
 from frontend.simulation.route_files import CAMERA_TO_BODY
+from ssmvpr_common.errors import SsmvprError
 
 SHARED = Path(os.environ.get("SSMVPR_SHARED", Path(__file__).resolve().parents[3] / "shared"))
 KITTI06 = SHARED / "data" / "routes" / "kitti06" / "06.txt"
@@ -127,7 +127,7 @@ def test_no_frame_inside_a_building_on_preset_routes(preset):
 def test_bad_route_files_give_one_line_errors_naming_the_file(tmp_path, content, needle):
     path = tmp_path / "route.txt"
     path.write_text(content)
-    with pytest.raises(FrontendInputError) as err:
+    with pytest.raises(SsmvprError) as err:  # the file's lines (TrajectoryFileError) or the route they draw
         TraverseSimulator(SimulationConfig(route={"preset": str(path)}))
     message = str(err.value)
     assert str(path) in message and needle in message and "\n" not in message

@@ -22,6 +22,7 @@ from frontend.simulation import (
 from frontend.simulation.config import CityConfig
 from frontend.simulation.render import cast_rays
 from frontend.simulation.route import grid_node
+from ssmvpr_common.trajectory_io import TrajectoryFileError
 
 
 @pytest.fixture(scope="module")
@@ -437,11 +438,11 @@ def test_unknown_preset_is_rejected_naming_it():
 def test_unreadable_poses_file_names_the_file(tmp_path):
     bad = tmp_path / "poses.txt"
     bad.write_text("0 1 2 3 0 0 0 1\n0 1 two 3 0 0 0 1\n")
-    with pytest.raises(FrontendInputError, match=r"poses\.txt:2: non-numeric"):
+    with pytest.raises(TrajectoryFileError, match=r"poses\.txt:2: not a number"):
         TraverseSimulator(SimulationConfig(route={"preset": str(bad)}))
     odd = tmp_path / "five.txt"
     odd.write_text("1 2 3 4 5\n")
-    with pytest.raises(FrontendInputError, match="five.txt"):
+    with pytest.raises(TrajectoryFileError, match="five.txt"):
         simulate_traverse(SimulationConfig(route={"preset": str(odd)}))
 
 

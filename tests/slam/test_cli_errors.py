@@ -14,7 +14,7 @@ from cli_helpers import assert_user_error, clean_ssmvpr_environment, invoke  # n
 from frontend.config import McapWriterConfig
 from frontend.simulation import SimulationConfig, TraverseSimulator
 from frontend.sources import write_frames
-from ssmvpr_slam.evaluation.trajectory_io import read_tum
+from ssmvpr_common.trajectory_io import read_tum
 
 
 def _write_images(folder: Path, n: int, seed: int) -> list[Path]:

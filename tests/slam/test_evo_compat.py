@@ -22,9 +22,9 @@ except ImportError as exc:  # pragma: no cover - evo is a declared test dependen
         f"evo is required for tests/slam/test_evo_compat.py (pip install 'ssmvpr-slam[evo]'): {exc}"
     ) from exc
 
+from ssmvpr_common.trajectory_io import read_kitti, read_tum, write_kitti, write_tum
 from ssmvpr_slam.backend.se3 import make_pose, rot_z
 from ssmvpr_slam.evaluation.metrics import ate, rpe
-from ssmvpr_slam.evaluation.trajectory_io import read_kitti, read_tum, write_kitti, write_tum
 
 
 @pytest.fixture(scope="module")

@@ -23,13 +23,13 @@ import pytest
 from cli_helpers import assert_user_error, clean_ssmvpr_environment, invoke  # noqa: E402, F401
 
 from frontend.config import McapWriterConfig
-from frontend.poses_io import write_kitti
 from frontend.simulation import SimulationConfig, TraverseSimulator
 from frontend.sources import write_frames
 from loopclosure.database import PlaceDatabase, PlaceInfo
 from loopclosure.detector import LoopProposal
 from loopclosure.encoder import Encoder, PlaceCodes
 from loopclosure.pca import Codebooks, PCAProjection
+from ssmvpr_common.trajectory_io import write_kitti
 from ssmvpr_slam.config import load_config
 from ssmvpr_slam.evaluation.run_report import evaluate
 from ssmvpr_slam.prior_map import PriorMap, save_map

@@ -30,7 +30,6 @@ from pydantic import ValidationError
 
 from frontend.config import DriftConfig
 from frontend.errors import FrontendInputError
-from frontend.poses_io import write_kitti
 from frontend.simulation.config import SimulationConfig
 from frontend.sources.kitti_source import KittiSource
 from loopclosure.config import PCAConfig
@@ -39,6 +38,7 @@ from loopclosure.detector import LoopProposal
 from loopclosure.encoder import PlaceCodes
 from loopclosure.errors import LoopClosureInputError
 from loopclosure.pca import Codebooks, PCAProjection
+from ssmvpr_common.trajectory_io import write_kitti
 from ssmvpr_slam.backend.loop_registration import LoopRegistration
 from ssmvpr_slam.backend.two_view import ReducedImage
 from ssmvpr_slam.checkpoint import CheckpointError, CheckpointMeta, write_checkpoint

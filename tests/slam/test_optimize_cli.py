@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from typer.testing import CliRunner
 
+from ssmvpr_common.trajectory_io import read_tum
 from ssmvpr_slam.backend.g2o_io import planar_of, planar_pose, read_pose_graph
 from ssmvpr_slam.cli import app
-from ssmvpr_slam.evaluation.trajectory_io import read_tum
 
 
 def invoke(*args: object):  # noqa: ANN201

@@ -45,11 +45,11 @@ from frontend.odometry.base import Odometry, OdometryStats
 from frontend.simulation import SimulationConfig, TraverseSimulator
 from loopclosure.backbone import load_backbone
 from loopclosure.errors import LoopClosureInputError
+from ssmvpr_common.trajectory_io import read_kitti, read_tum
 from ssmvpr_slam.backend.noise import sigmas6
 from ssmvpr_slam.config import SlamConfig, load_config
 from ssmvpr_slam.evaluation.metrics import ate
 from ssmvpr_slam.evaluation.run_report import evaluate
-from ssmvpr_slam.evaluation.trajectory_io import read_kitti, read_tum
 from ssmvpr_slam.pipeline import SlamPipeline
 from ssmvpr_slam.prior_map import PriorMap
 from ssmvpr_slam.run_result import RunResult
