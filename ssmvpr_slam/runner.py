@@ -16,7 +16,6 @@ from typing import Any
 from rich.console import Console
 from rich.markup import escape
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-from rich.table import Table
 
 from frontend.config import OdometryConfig
 from frontend.errors import FrontendInputError
@@ -38,8 +37,10 @@ from ssmvpr_slam.evaluation.run_report import RunReport, evaluate
 from ssmvpr_slam.pipeline import SlamPipeline
 from ssmvpr_slam.prior_map import PriorMap
 from ssmvpr_slam.run_folder import RunFolder, staged_results_dir
+from ssmvpr_slam.run_metrics import ResumedFrom, RunInputs, RunMetrics
 from ssmvpr_slam.run_result import RunResult
 from ssmvpr_slam.run_state import RunState
+from ssmvpr_slam.run_summary import summary_table
 from ssmvpr_slam.system import SlamSystem
 from ssmvpr_slam.writers import write_results
 
@@ -71,15 +72,15 @@ def run_log(
     stopped = pipeline.ending.interrupted and checkpoints.write() is not None  # resumable where it stopped
     result = pipeline.finish()
     report = evaluate(result, config.evaluation)
-    extra = run_description(log, source, config, prior_map, resume)
-    folder, metrics = publish_results(run_folder, result, report, config, extra, name, keep_checkpoint=stopped)
+    inputs = run_description(log, source, config, prior_map, resume)
+    folder, metrics = publish_results(run_folder, result, report, config, inputs, name, keep_checkpoint=stopped)
     print_summary(console, metrics, result, folder, name)
     if stopped:
         console.print(f"resume it with: ssmvpr-slam run {escape(str(log))} --resume {escape(str(folder))}")
-    if not metrics["recognition_started"]:
+    if not metrics.recognition_started:
         warn_recognition_never_started(console, config, len(result.keyframes))
     raise_if_failed(pipeline, folder)
-    return folder, metrics
+    return folder, metrics.to_json_dict()
 
 
 def open_camera_source(
@@ -152,30 +153,31 @@ def progress_bar(console: Console, source: Source, limit: int | None = None) -> 
 
 
 def run_description(log: Path, source: Source, config: SlamConfig, prior_map: Path | None,
-                    resume: Checkpoint | None) -> dict[str, Any]:  # fmt: skip
+                    resume: Checkpoint | None) -> RunInputs:  # fmt: skip
     """What metrics.json says about the run's inputs."""
-    return {"log": str(log), "source": source.description, "source_stats": _stats(source),
-            "odometry_kind": config.frontend.odometry.kind, "prior_map": str(prior_map) if prior_map else None,
-            "resumed_from": None if resume is None else {"checkpoint": resume.folder.name, "frames": resume.result.frames_seen,
-                                                          "keyframes": len(resume.result.keyframes)}}  # fmt: skip
+    resumed = None
+    if resume is not None:
+        resumed = ResumedFrom(checkpoint=resume.folder.name, frames=resume.result.frames_seen,
+                              keyframes=len(resume.result.keyframes))  # fmt: skip
+    return RunInputs(log=str(log), source=source.description, source_stats=_stats(source),
+                     odometry_kind=config.frontend.odometry.kind, prior_map=str(prior_map) if prior_map else None,
+                     resumed_from=resumed)  # fmt: skip
 
 
 def publish_results(run_folder: RunFolder, result: RunResult, report: RunReport, config: SlamConfig,
-                    extra: dict[str, Any], name: str, keep_checkpoint: bool = False) -> tuple[Path, dict[str, Any]]:  # fmt: skip
+                    inputs: RunInputs, name: str, keep_checkpoint: bool = False) -> tuple[Path, RunMetrics]:  # fmt: skip
     """Write every result into a staging folder and move it into place as one unit (over the
     run's checkpoints, if it wrote any); `latest` moves once it is complete. keep_checkpoint (a
     stopped run): the last checkpoint goes with the partial results, for `--resume`."""
     with staged_results_dir(run_folder.base, name, run_folder.path) as staged:
-        metrics = write_results(staged.path, result, report, config, extra)
+        metrics = write_results(staged.path, result, report, config, inputs)
         if keep_checkpoint:
             carry_checkpoint(run_folder.path, staged.path)
     assert staged.final is not None
     return staged.final, metrics
 
 
-def print_summary(
-    console: Console, metrics: dict[str, Any], result: RunResult, folder: Path, name: str = "run"
-) -> None:
+def print_summary(console: Console, metrics: RunMetrics, result: RunResult, folder: Path, name: str = "run") -> None:
     console.print(summary_table(metrics, f"ssmvpr-slam {name}"))
     if result.ending.interrupted:
         console.print("[yellow]stopped early on request: results cover the frames processed so far[/yellow]")
@@ -207,54 +209,6 @@ def _stats(source: object) -> dict[str, Any]:
     if stats is None:
         return {}
     return {"frames_yielded": stats.frames_yielded, "skipped": dict(stats.skipped), "notes": dict(stats.notes)}
-
-
-def summary_table(metrics: dict[str, Any], title: str = "ssmvpr-slam run") -> Table:
-    table = Table(title=title)
-    table.add_column("metric")
-    table.add_column("value", justify="right")
-    table.add_row("frames / keyframes", f"{metrics['frames']} / {metrics['keyframes']}")
-    loops = metrics.get("loops", {})
-    if loops:
-        table.add_row("loops proposed / gate-accepted / in graph",
-                      f"{loops['proposed']} / {loops['gate_accepted']} / {loops['in_graph']}")  # fmt: skip
-        if loops.get("spaced"):  # loop_spacing_keyframes: judged with the loops in the graph below
-            table.add_row("loops spaced out (not registered)", str(loops["spaced"]))
-        fmt = lambda v: "n/a" if v is None else f"{v:.3f}"  # noqa: E731
-        table.add_row("loop precision / recall", f"{fmt(loops['precision'])} / {fmt(loops['recall'])}")
-        if loops.get("n_revisits") == 0:  # say why recall is n/a: the route never comes back
-            table.add_row("revisits in the ground truth", "none: no place is passed twice, no loop to find")
-        if "recall_visible" in loops:  # what a camera could see: reverse revisits show the far side
-            fwd, rev = loops["by_direction"]["forward"], loops["by_direction"]["reverse"]
-            table.add_row("recall of visible / forward / reverse revisits",
-                          f"{fmt(loops['recall_visible'])} / {fmt(fwd['recall'])} / {fmt(rev['recall'])}")  # fmt: skip
-        if loops.get("rear_camera_keyframes"):  # the rear camera is what recognises reverse revisits
-            by_camera = loops["in_graph_by_camera"]
-            table.add_row("loops in graph: front / rear camera", f"{by_camera['front']} / {by_camera['rear']}")
-    prior = metrics.get("prior_map_loops")
-    if prior:  # `--map`: loops to the earlier sessions' places are counted apart from the session's own
-        table.add_row("prior-map loops proposed / gate-accepted / in graph",
-                      f"{prior['loops_proposed']} / {prior['loops_gate_accepted']} / {prior['loops_in_graph']}")  # fmt: skip
-        if "precision" in prior:
-            table.add_row("prior-map loop precision", f"{prior['precision']:.3f}")
-        if "ate_rmse" in prior:  # a session corrected onto the map inherits the map's own error
-            table.add_row("prior map's own ATE RMSE", f"{prior['ate_rmse']:.2f} m")
-    if "ground_truth_coverage" in metrics:  # evaluated on the keyframes with ground truth only
-        covered, total = metrics["ground_truth_keyframes"], metrics["keyframes"]
-        table.add_row(
-            "ground truth coverage", f"{covered} / {total} keyframes ({100 * metrics['ground_truth_coverage']:.0f}%)"
-        )
-    if "ate_odometry" in metrics:
-        table.add_row("ATE RMSE odometry", f"{metrics['ate_odometry']['rmse']:.2f} m")
-        table.add_row("ATE RMSE optimised", f"{metrics['ate_optimised']['rmse']:.2f} m")
-        ratio = metrics.get("ate_ratio")  # None when the odometry's ATE is 0 (it followed the ground truth)
-        table.add_row("optimised / odometry", "n/a" if ratio is None else f"{ratio:.3f}")
-    if "stream_pr_auc" in metrics:
-        table.add_row("stream PR-AUC", f"{metrics['stream_pr_auc']:.3f}")
-    latency = metrics.get("latency_per_keyframe", {}).get("total")
-    if latency:
-        table.add_row("latency per keyframe (median)", f"{1000 * latency['median_s']:.0f} ms")
-    return table
 
 
 def simulate_to_mcap(config: SlamConfig, out: Path, console: Console) -> Path:

@@ -29,6 +29,7 @@ from ssmvpr_slam.config import SlamConfig, dump_config
 from ssmvpr_slam.evaluation.run_report import RunReport
 from ssmvpr_slam.prior_map import REAR_FOLDER, save_map
 from ssmvpr_slam.run_folder import write_json
+from ssmvpr_slam.run_metrics import RunInputs, RunMetrics
 from ssmvpr_slam.run_result import Keyframe, LoopRecord, RunResult, has_ground_truth
 
 LOOP_COLUMNS = [
@@ -41,8 +42,8 @@ LOOP_COLUMNS = [
 
 
 def write_results(
-    folder: Path, result: RunResult, report: RunReport, config: SlamConfig, extra: dict[str, Any]
-) -> dict[str, Any]:
+    folder: Path, result: RunResult, report: RunReport, config: SlamConfig, inputs: RunInputs
+) -> RunMetrics:
     """Every output of a finished run into `folder`; returns what metrics.json holds."""
     write_trajectories(folder, result)
     write_pose_graph(folder, result)
@@ -50,7 +51,7 @@ def write_results(
     write_config(folder, config)
     if config.results.save_database:
         write_database(folder / "database", result, config)
-    metrics = write_metrics(folder, result, report, extra)
+    metrics = write_metrics(folder, result, report, inputs)
     if config.results.plots:
         write_plots(folder, result, report, config)
     if config.results.mcap:
@@ -176,17 +177,18 @@ def run_metrics(result: RunResult) -> dict[str, Any]:
     }
 
 
-def metrics_of(result: RunResult, report: RunReport, extra: dict[str, Any]) -> dict[str, Any]:
-    """metrics.json's content: the run's counters, the caller's `extra`, the evaluation."""
-    metrics = {**run_metrics(result), **extra, **report.metrics()}
+def metrics_of(result: RunResult, report: RunReport, inputs: RunInputs) -> RunMetrics:
+    """metrics.json's content: the run's counters, its inputs, the evaluation; validated against
+    `RunMetrics` (a key that the model does not declare fails here, not in a reader)."""
+    metrics = {**run_metrics(result), **inputs.model_dump(), **report.metrics()}
     if report.prior_map is not None:
         metrics["prior_map_loops"] = report.prior_map.to_dict()
-    return metrics
+    return RunMetrics.model_validate(metrics)
 
 
-def write_metrics(folder: Path, result: RunResult, report: RunReport, extra: dict[str, Any]) -> dict[str, Any]:
-    metrics = metrics_of(result, report, extra)
-    write_json(folder / "metrics.json", metrics)
+def write_metrics(folder: Path, result: RunResult, report: RunReport, inputs: RunInputs) -> RunMetrics:
+    metrics = metrics_of(result, report, inputs)
+    write_json(folder / "metrics.json", metrics.to_json_dict())
     return metrics
 
 

@@ -10,14 +10,12 @@ from typing import Any
 import numpy as np
 import pytest
 from cli_helpers import clean_ssmvpr_environment, invoke  # noqa: F401
-from rich.console import Console
 
 from ssmvpr_slam.backend.se3 import make_pose, rot_z
 from ssmvpr_slam.config import load_config
 from ssmvpr_slam.evaluation import plots
 from ssmvpr_slam.evaluation.config import LoopMetricsConfig
 from ssmvpr_slam.evaluation.loop_metrics import evaluate_loops
-from ssmvpr_slam.runner import summary_table
 from ssmvpr_slam.simulated_logs import simulated_log_path
 
 
@@ -54,19 +52,6 @@ def test_a_loop_plot_with_loops_has_no_such_note(figures: list[Any], tmp_path: P
     gt = np.array([make_pose(rot_z(a), [10 * np.cos(a), 10 * np.sin(a), 0]) for a in ang])
     plots.plot_trajectories(tmp_path / "top.png", gt, gt, gt, loops=[(60, 20)])
     assert "no loops" not in _texts(figures[0])
-
-
-def test_the_summary_says_the_route_never_comes_back() -> None:
-    metrics = {"frames": 47, "keyframes": 47,
-               "loops": {"proposed": 0, "gate_accepted": 0, "in_graph": 0, "precision": None, "recall": None,
-                         "n_revisits": 0}}  # fmt: skip
-    console = Console(record=True, width=120)
-    console.print(summary_table(metrics))
-    assert "none: no place is passed twice, no loop to find" in console.export_text()
-    metrics["loops"]["n_revisits"] = 12
-    console = Console(record=True, width=120)
-    console.print(summary_table(metrics))
-    assert "no place is passed twice" not in console.export_text()
 
 
 def test_the_simulated_log_is_named_by_its_settings(tmp_path: Path) -> None:

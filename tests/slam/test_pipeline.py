@@ -36,6 +36,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+from run_metrics_examples import example_inputs
 from wrong_loops import WrongLoopGraph
 
 from frontend.config import KeyframeConfig
@@ -52,6 +53,7 @@ from ssmvpr_slam.evaluation.metrics import ate
 from ssmvpr_slam.evaluation.run_report import evaluate
 from ssmvpr_slam.pipeline import SlamPipeline
 from ssmvpr_slam.prior_map import PriorMap
+from ssmvpr_slam.run_metrics import RunMetrics
 from ssmvpr_slam.run_result import RunResult
 from ssmvpr_slam.writers import LOOP_COLUMNS, write_results
 
@@ -182,10 +184,11 @@ class Run:
     result: RunResult
 
 
-def _finish_and_write(pipeline: SlamPipeline, cfg: SlamConfig, folder: Path, extra: dict[str, Any]) -> Run:
+def _finish_and_write(pipeline: SlamPipeline, cfg: SlamConfig, folder: Path) -> Run:
     result = pipeline.finish()
-    metrics = write_results(folder, result, evaluate(result, cfg.evaluation), cfg, extra)
-    return Run(pipeline, cfg, metrics, folder, result)
+    metrics = write_results(folder, result, evaluate(result, cfg.evaluation), cfg, example_inputs(log=folder.name))
+    assert RunMetrics.read(folder) == metrics  # the file as written reads back as the model it was made from
+    return Run(pipeline, cfg, metrics.to_json_dict(), folder, result)
 
 
 @pytest.fixture(scope="module")
@@ -230,7 +233,7 @@ def _run(
     pipeline.run(frames)
     cfg.results.plots = plots
     folder.mkdir(parents=True)
-    return _finish_and_write(pipeline, cfg, folder, {"test": folder.name})
+    return _finish_and_write(pipeline, cfg, folder)
 
 
 @pytest.fixture(scope="module")
@@ -510,7 +513,7 @@ def test_sigint_mid_run_stops_cleanly_and_results_are_consistent(
     assert len(state.keyframes) == INTERRUPT_AFTER // 2
     assert any(r.in_graph for r in state.loops)  # it got into the second lap
 
-    metrics = _finish_and_write(pipeline, cfg, tmp_path, {}).metrics
+    metrics = _finish_and_write(pipeline, cfg, tmp_path).metrics
     n = len(state.keyframes)
     _, odom = read_tum(tmp_path / "odometry.tum")
     _, optimised = read_tum(tmp_path / "optimised.tum")
@@ -537,7 +540,7 @@ def test_stop_flag_before_the_first_frame_gives_an_empty_but_valid_run(
 
     state = pipeline.run(frames())
     assert pipeline.ending.interrupted and state.frames_seen == 0 and not state.keyframes
-    metrics = _finish_and_write(pipeline, cfg, tmp_path, {}).metrics
+    metrics = _finish_and_write(pipeline, cfg, tmp_path).metrics
     assert metrics["keyframes"] == 0 and metrics["interrupted"] is True
     assert json.loads((tmp_path / "metrics.json").read_text())["interrupted"] is True
     assert not (tmp_path / "odometry.tum").exists()  # no trajectory, rather than an empty one
@@ -675,7 +678,7 @@ def _second_session(folder: Path, cfg: SlamConfig, backbone: MemoBackbone, frame
     pipeline = SlamPipeline.build(cfg, odometry, backbone, prior_map)  # type: ignore[arg-type]
     pipeline.run(frames)
     folder.mkdir(parents=True)
-    return _finish_and_write(pipeline, cfg, folder, {"test": folder.name})
+    return _finish_and_write(pipeline, cfg, folder)
 
 
 @pytest.fixture(scope="module")

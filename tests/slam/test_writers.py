@@ -9,6 +9,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+from run_metrics_examples import example_inputs
 
 from loopclosure.database import PlaceDatabase, PlaceInfo
 from loopclosure.detector import LoopProposal
@@ -64,8 +65,8 @@ def test_writing_twice_changes_neither_the_result_nor_the_prior_map(tmp_path: Pa
                        database=database, session_places={k: 3 + k for k in range(5)}, prior_map=prior)  # fmt: skip
     report = evaluate(result, config.evaluation)
 
-    first = write_results(tmp_path / "first", result, report, config, {})
-    second = write_results(tmp_path / "second", result, report, config, {})
+    first = write_results(tmp_path / "first", result, report, config, example_inputs())
+    second = write_results(tmp_path / "second", result, report, config, example_inputs())
 
     assert first == second
     assert prior.database.places == prior_places and database.places == session_places  # no pose written into them
