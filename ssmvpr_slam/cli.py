@@ -2,6 +2,10 @@
 
 Heavy imports (torch, gtsam, kiss-icp) happen inside the commands so `--help` is instant.
 Errors a user can fix print as one red line and exit with status 2.
+
+Over 400 lines because of the typer declarations: nine commands, each with its options and
+their help. The logic of each command lives in its own module (`runner`, `optimize`,
+`loop_eval.runner`, `vpr.evaluate`, `multi_session.runner`); a command here parses and calls.
 """
 
 from __future__ import annotations

@@ -28,6 +28,10 @@ which has the same optimum (Pose3's local coordinates restricted to the plane ar
 fraction of the cost; the writer writes a 2-D graph back as EDGE_SE2 from the same planar part.
 3-D information is permuted from g2o's (translation, rotation) order to GTSAM's (rotation,
 translation) order, as gtsam's own ``readG2o`` does.
+
+Over 400 lines: three record formats in two dimensions, each with its own checks, plus the
+ground-truth files `optimize` reads beside a graph; they share the line parsing and the one
+error type, and no caller wants one without the other.
 """
 
 from __future__ import annotations

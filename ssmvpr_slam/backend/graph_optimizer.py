@@ -47,6 +47,10 @@ and returns a frozen :class:`OptimizationResult`; the command line writes the ou
   the answer); without GNC, a loop is an outlier when its whitened
   (Mahalanobis) residual squared after optimisation exceeds the chi2 quantile `outlier_quantile`
   (0.99) with 3 degrees of freedom for 2-D graphs, 6 for 3-D.
+
+Over 400 lines: the kernel solve, GNC, the leave-one-out check and the choice between the two
+starts are one algorithm whose steps hand each other GTSAM values and graphs; each step is a
+function of its own.
 """
 
 from __future__ import annotations

@@ -23,6 +23,10 @@ factorisation (the condition number is not squared; used from then on), then, sh
 too, without the new loops, then also with the new keyframes' odometry edges cut (each starts a
 segment held by a prior at its odometry guess). Each fallback is a `GraphRecovery` the caller warns
 about; only when the last one fails too is a `PoseGraphError` raised, with the estimate so far kept.
+
+Over 400 lines because the recovery ladder above and the prior-map anchor share the graph's own
+records (keyframes, loops, removals) with the ordinary update: split apart, each would need its
+own copy of them.
 """
 
 from __future__ import annotations
