@@ -18,7 +18,7 @@ DEFAULT_KERNEL_SCALES: dict[str, float] = {
     "huber": 1.345,
     # Redescending kernels ignore residuals far beyond their scale. The first true loop after
     # a long drift has a large whitened error, so their scales must be generous or it would be
-    # discarded (seen in tests/slam/test_pose_graph.py's simulation: DCS 1.0 and Tukey 4.685
+    # discarded (seen in tests/slam/backend/test_pose_graph.py's simulation: DCS 1.0 and Tukey 4.685
     # leave the odometry uncorrected; these values keep the correction and reject outliers).
     "dcs": 10.0,
     "geman_mcclure": 10.0,

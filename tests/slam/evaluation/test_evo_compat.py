@@ -19,7 +19,7 @@ try:
     from evo.tools import file_interface
 except ImportError as exc:  # pragma: no cover - evo is a declared test dependency here
     raise ImportError(
-        f"evo is required for tests/slam/test_evo_compat.py (pip install 'ssmvpr-slam[evo]'): {exc}"
+        f"evo is required for tests/slam/evaluation/test_evo_compat.py (pip install 'ssmvpr-slam[evo]'): {exc}"
     ) from exc
 
 from ssmvpr_common.trajectory_io import read_kitti, read_tum, write_kitti, write_tum

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from kiss_icp.voxelization import voxel_down_sample
 
-from ssmvpr_slam import checkpoint
+from ssmvpr_slam import checkpoint, checkpoint_loading
 from ssmvpr_slam.backend.kept_scan import MAX_RANGE_M, KeptScan, keep_scan
 from ssmvpr_slam.run_result import Keyframe, RunResult
 
@@ -88,7 +88,7 @@ def test_a_checkpoint_holds_the_kept_scans_exactly(tmp_path: Path) -> None:
     kfs = tuple(Keyframe(k, k, float(k), poses[k], None, scans[k], None) for k in range(3))
     result = RunResult(kfs, (), np.arange(3.0), poses, poses)
     (tmp_path / "keyframes.npz").write_bytes(checkpoint._npz(checkpoint._keyframe_arrays(result)))
-    back = checkpoint._keyframes(checkpoint._load_npz(tmp_path / "keyframes.npz"), tmp_path / "images")
+    back = checkpoint_loading._keyframes(checkpoint_loading._load_npz(tmp_path / "keyframes.npz"), tmp_path / "images")
     for before, after in zip(kfs, back):
         if before.scan is None:
             assert after.scan is None
