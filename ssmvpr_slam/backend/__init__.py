@@ -17,7 +17,7 @@ from ssmvpr_slam.backend.config import (
 _LAZY = {
     "PoseGraph": "ssmvpr_slam.backend.pose_graph",
     "LoopResidual": "ssmvpr_slam.backend.pose_graph",
-    "GncResult": "ssmvpr_slam.backend.gnc",
+    "FinalSolve": "ssmvpr_slam.backend.pose_graph",
     "LoopRegistration": "ssmvpr_slam.backend.loop_registration",
     "LoopRegistrar": "ssmvpr_slam.backend.loop_registration",
     "build_local_map": "ssmvpr_slam.backend.loop_registration",

@@ -86,9 +86,13 @@ class ISAM2Config(_Strict):
 
 
 class GncConfig(_Strict):
-    """Optional final batch pass with graduated non-convexity over the whole graph."""
+    """GNC's settings: of `optimize`, and of a run's optional final robust pass (`enabled`)."""
 
-    enabled: bool = Field(False, description="run GNC at the end and remove the loops it rejects")
+    enabled: bool = Field(
+        False,
+        description="at the end of a run, `optimize`'s robust solve (kernel, GNC, leave-one-out check) over the "
+        "session's graph, and remove the loops it rejects (not with prior-map loops: iSAM2's estimate is kept)",
+    )
     loss: Literal["tls", "gm"] = Field("tls", description="GNC loss: truncated least squares or Geman-McClure")
     inlier_probability: float = Field(0.99, gt=0, lt=1, description="chi2 quantile that sets the inlier cost threshold")
     weight_threshold: float = Field(
@@ -96,7 +100,9 @@ class GncConfig(_Strict):
     )
     max_iterations: int = Field(100, ge=1, description="GNC iterations at most (GTSAM GncParams)")
     init: Literal["odometry", "current"] = Field(
-        "odometry", description="start from the odometry chain or the current iSAM2 estimate"
+        "odometry",
+        description="where the solve starts: the odometry chain (both of optimize's starts, the lower TLS "
+        "objective kept) or the current iSAM2 estimate; GNC then starts from the kernel solution",
     )
 
 

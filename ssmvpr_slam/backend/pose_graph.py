@@ -40,7 +40,8 @@ import numpy as np
 
 from ssmvpr_slam.backend import noise
 from ssmvpr_slam.backend.config import PoseGraphConfig
-from ssmvpr_slam.backend.gnc import GncResult, run_gnc
+from ssmvpr_slam.backend.g2o_io import GraphEdge, PoseGraphData
+from ssmvpr_slam.backend.graph_optimizer import OptimizerSettings, optimize_graph
 from ssmvpr_slam.backend.gtsam_errors import gtsam_reason
 from ssmvpr_slam.backend.se3 import as_pose, relative
 from ssmvpr_slam.errors import SlamError
@@ -69,6 +70,16 @@ def _loop_key(i: int, on_map: bool) -> int:
 class PoseGraphError(SlamError, RuntimeError):
     """iSAM2 could not take the graph's latest keyframes or loops, even after every fallback
     (a RuntimeError too, as GTSAM's own errors were before: callers catching that still do)."""
+
+
+@dataclass(frozen=True)
+class FinalSolve:
+    """The final robust pass's answer; handles are `add_loop`'s."""
+
+    poses: dict[int, np.ndarray]
+    inliers: list[int]
+    outliers: list[int]
+    weights: dict[int, float]  # GNC's weight of each loop
 
 
 @dataclass(frozen=True)
@@ -477,33 +488,65 @@ class PoseGraph:
             out.append(LoopResidual(handle, loop.i, loop.j, chi2, norm, weight))
         return out
 
-    def batch_gnc(self) -> GncResult:
-        """Batch pass with `GncLMOptimizer` over the full graph; classifies loops.
-
-        Odometry and prior factors are known inliers; loop factors enter with their Gaussian
-        noise (GNC supplies the robust loss). Does not change the iSAM2 state.
-        """
-
+    def final_solve(self) -> FinalSolve:
+        """`optimize`'s robust solve (`graph_optimizer.optimize_graph` with its defaults: the
+        kernel solve from each start, GNC, the leave-one-out check) over the session's keyframes
+        and the factors between them, with this graph's GNC settings; classifies the loops by
+        handle. Does not change the iSAM2 state. Only for a graph that `final_solve_refusal`
+        passes: one odometry chain, no prior-map loops."""
         self._flush()
-        if self._prior is None:
-            return GncResult({}, [], [], {})
-        known = self._known_factors()
-        loops: dict[int, gtsam.NonlinearFactor] = {
-            h: gtsam.BetweenFactorPose3(lp.key_i, _key(lp.j), gtsam.Pose3(lp.measured), lp.gaussian)
-            for h, lp in self._loops.items()
-        }
-        return run_gnc(known, loops, self._initial_for_gnc(), {kf: _key(kf) for kf in self._order}, self.config.gnc)
+        index = {kf: k for k, kf in enumerate(self._order)}
+        odometry = [GraphEdge(index[e.i], index[e.j], e.measured, np.asarray(e.gaussian.information()))
+                    for e in self._odom_edges]  # fmt: skip
+        handles = list(self._loops)
+        loops = [GraphEdge(index[lp.i], index[lp.j], lp.measured, np.asarray(lp.gaussian.information()))
+                 for lp in self._loops.values()]  # fmt: skip
+        poses = np.stack([self._pose_of(kf) for kf in self._order])
+        data = PoseGraphData(3, tuple(range(len(self._order))), poses, (*odometry, *loops), "run")
+        gnc = self.config.gnc
+        if gnc.init == "odometry":  # both starts from the odometry chain, the lower TLS objective kept
+            data = data.without_estimate()
+        result = optimize_graph(data, OptimizerSettings(gnc_config=gnc.model_copy(update={"init": "current"})))
+        kept = {handles[int(k) - len(odometry)]: bool(inlier)
+                for k, inlier in zip(result.loop_indices, result.loop_inlier)}  # fmt: skip
+        weights = {handles[int(k) - len(odometry)]: float(w) for k, w in zip(result.loop_indices, result.loop_weight)}
+        return FinalSolve(
+            poses={kf: result.poses[index[kf]] for kf in self._order},
+            inliers=[h for h in handles if kept[h]],
+            outliers=[h for h in handles if not kept[h]],
+            weights=weights,
+        )
+
+    def final_solve_refusal(self) -> str | None:
+        """Why `final_solve` cannot take this graph, or None: it solves one chain of keyframes
+        with loops between them (what a g2o file holds), not a prior map's places nor segments
+        a recovery cut apart."""
+        if not self._order or self._prior is None:
+            return "an empty graph"
+        if any(lp.on_map for lp in self._loops.values()):
+            return "a session with prior-map loops"
+        if self._segment_priors:
+            return "a graph a recovery cut into segments"
+        if any(abs(self._order.index(lp.j) - self._order.index(lp.i)) == 1 for lp in self._loops.values()):
+            return "a loop between consecutive keyframes (it would be read as odometry)"
+        return None
 
     def finalize(self) -> dict[int, np.ndarray]:
-        """Final poses: iSAM2's estimate, or, with `gnc.enabled`, the GNC solution after the
-        loops GNC rejects are removed from the iSAM2 graph too (iSAM2's estimate, noted in
-        `recoveries`, when the batch solver fails: the run's result must not be lost to it)."""
+        """Final poses: iSAM2's estimate, or, with `gnc.enabled`, `final_solve`'s after the loops
+        it rejects are removed from the iSAM2 graph too. iSAM2's estimate, noted in
+        `recoveries`, where the final solve cannot take the graph or GTSAM fails in it: the run's
+        result must not be lost to it."""
         if not self.config.gnc.enabled or self._failed is not None:
             return self.optimized_poses()
+        refusal = self.final_solve_refusal()
+        if refusal is not None:
+            if self._order:
+                self._note((), f"the final robust pass does not run on {refusal}; iSAM2's estimate is kept")
+            return self.optimized_poses()
         try:
-            result = self.batch_gnc()
+            result = self.final_solve()
         except RuntimeError as error:  # the batch solve hit what iSAM2 had to work around
-            self._note((), f"the final GNC pass failed ({gtsam_reason(error)}); iSAM2's estimate is kept")
+            self._note((), f"the final robust pass failed ({gtsam_reason(error)}); iSAM2's estimate is kept")
             return self.optimized_poses()
         for handle in result.outliers:
             self.remove_loop(handle)
@@ -584,17 +627,6 @@ class PoseGraph:
         if self._pending_values.exists(_ANCHOR_KEY):
             return self._pending_values.atPose3(_ANCHOR_KEY).matrix()
         return self._estimate.atPose3(_ANCHOR_KEY).matrix()
-
-    def _initial_for_gnc(self) -> gtsam.Values:
-        values = gtsam.Values()
-        for kf in self._order:
-            pose = self._odom[kf] if self.config.gnc.init == "odometry" else self._pose_of(kf)
-            values.insert(_key(kf), gtsam.Pose3(pose))
-        if self._anchor_initial is not None:  # map nodes start where iSAM2 has them
-            values.insert(_ANCHOR_KEY, gtsam.Pose3(self._anchor_pose()))
-            for place in self._map_places:
-                values.insert(_map_key(place), self._estimate.atPose3(_map_key(place)))
-        return values
 
     def _get_loop(self, handle: int) -> _Loop:
         if isinstance(handle, bool) or not isinstance(handle, (int, np.integer)):

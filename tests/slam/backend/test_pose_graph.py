@@ -147,12 +147,15 @@ def test_remove_queued_loop_never_reaches_isam(scenario):
         graph.remove_loop(handle)
 
 
-def test_gnc_flags_injected_outliers(scenario):
+def test_the_final_robust_pass_flags_injected_outliers(scenario):
+    """`gnc.enabled`: optimize's solve (kernel, GNC, leave-one-out check) over the run's graph."""
     gt, odom, good, bad = scenario
     graph, handles = run_graph(odom, good + bad, gnc=True)
     wrong = {h for h in handles if graph.loop_edge(h)[:2] in {(m, q) for m, q, _ in bad}}
     assert len(wrong) == len(bad)
-    result = graph.batch_gnc()
+    assert graph.final_solve_refusal() is None
+    result = graph.final_solve()
+    assert all(result.weights[h] < 0.5 for h in wrong)
     assert set(result.outliers) == wrong
     assert set(result.inliers) == set(handles) - wrong
     final = graph.finalize()

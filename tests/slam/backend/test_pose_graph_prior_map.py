@@ -96,12 +96,19 @@ def test_residuals_report_map_loops() -> None:
     assert all(r.whitened_norm < 1.0 for r in residuals.values())
 
 
-def test_gnc_rejects_a_wrong_map_loop() -> None:
-    config = PoseGraphConfig.model_validate({"gnc": {"enabled": True, "init": "current"}})
+def test_the_final_robust_pass_keeps_isam2s_estimate_with_prior_map_loops() -> None:
+    """`optimize`'s solve holds one chain of keyframes: with map places in the graph the final
+    pass says it does not run, and the robust kernel's iSAM2 estimate, which already discounts a
+    wrong map loop, is the answer."""
+    config = PoseGraphConfig.model_validate({"gnc": {"enabled": True}})
     graph, handles = _session(list(range(0, 100, 10)), wrong={50: 12}, config=config)
-    result = graph.batch_gnc()
-    assert handles[50] in result.outliers
-    assert all(handles[k] in result.inliers for k in handles if k != 50)
+    isam2 = graph.optimized_poses()
+    final = graph.finalize()
+    assert graph.final_solve_refusal() == "a session with prior-map loops"
+    assert [r.what for r in graph.recoveries] == [
+        "the final robust pass does not run on a session with prior-map loops; iSAM2's estimate is kept"
+    ]
+    assert all(np.allclose(final[k], isam2[k]) for k in isam2) and set(graph.loop_handles) == set(handles.values())
 
 
 def test_a_map_place_cannot_change_pose() -> None:
