@@ -56,8 +56,8 @@ class Keyframe:
 class LoopRecord:
     """One proposal as reported in loop_closures.csv, with what became of it.
 
-    factor_handle: the pose graph's handle when a factor was added; dropped: a final GNC pass
-    took that factor out again (set only in a finished run's result)."""
+    factor_handle: the pose graph's handle when a factor was added; dropped: the final robust
+    pass took that factor out again (set only in a finished run's result)."""
 
     proposal: LoopProposal
     registration: LoopRegistration | None = None

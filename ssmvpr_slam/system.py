@@ -246,7 +246,7 @@ class SlamSystem:
 
     def _final_result(self, ending: StreamEnd) -> RunResult:
         optimised = self.graph.finalize() if self.state.keyframes else {}
-        self._tell_recoveries()  # a final GNC pass that failed
+        self._tell_recoveries()  # a final robust pass that failed or could not run
         return self._result_with(optimised, set(self.graph.loop_handles), ending)
 
     def partial_result(self, ending: StreamEnd) -> RunResult:
