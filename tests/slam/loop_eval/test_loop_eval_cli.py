@@ -32,11 +32,15 @@ SMALL = ["--weights", "random", "--device", "cpu"]
 
 
 def small_config(tmp_path: Path) -> Path:
+    """A small detector (8-dimensional PCA fitted on the first 20 frames) on 64 px inputs, its
+    cubes cut to keep the layout 128 px gave with the default cubes (one stage-I cube, a 7 x 7
+    stage-II grid) for a quarter of the backbone's work."""
     config = tmp_path / "small.yaml"
     config.write_text(
         "detector: {pca_warmup_keyframes: 20, exclusion_keyframes: 5, exclusion_distance: 0.0,\n"
         "           calibrated: {min_history: 5}}\n"
-        "vpr: {backbone: {input_size: 128}, filtering: {pca: {dim: 8}}, spatial: {pca: {dim: 8}}}\n"
+        "vpr: {backbone: {input_size: 64}, filtering: {cubes: {cube_size: 4, stride: 2}, pca: {dim: 8}},\n"
+        "     spatial: {cubes: {cube_size: 2, stride: 1}, pca: {dim: 8}}}\n"
     )
     return config
 
