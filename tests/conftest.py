@@ -49,16 +49,18 @@ def gardens_dir(shared_dir: Path) -> Path:
 class BackbonePasses:
     """The real fp32 backbone's maps of every image it has seen this session, per image: Corridor
     is encoded by three test modules (stage-I index, `loop-eval`, `vpr-eval`) through their own
-    backbones, in batches of their own. Random weights, reduced precisions and int8 are never
-    remembered (their tests are about those passes)."""
+    backbones, in batches of their own. Reduced precisions and int8 are never remembered (their
+    tests are about those passes), nor random weights unless `random_weights` (a module whose
+    tests draw them from one seed): the key holds the weights' digest, so other weights never
+    get these maps."""
 
-    def __init__(self) -> None:
+    def __init__(self, random_weights: bool = False) -> None:
         self.maps: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
         self.passes = 0  # images the backbone actually ran on
+        self.random_weights = random_weights
 
-    @staticmethod
-    def _weights_key(backbone: Any) -> bytes | None:
-        if backbone.config.weights == "random" or backbone.precision != "fp32":
+    def _weights_key(self, backbone: Any) -> bytes | None:
+        if (backbone.config.weights == "random" and not self.random_weights) or backbone.precision != "fp32":
             return None
         if backbone._int8 is not None or backbone._calibrating is not None:
             return None
@@ -92,13 +94,25 @@ def backbone_passes() -> BackbonePasses:
     return BackbonePasses()
 
 
-@pytest.fixture(scope="module")
-def shared_backbone_passes(backbone_passes: BackbonePasses) -> Iterator[BackbonePasses]:
-    """For a module: the real backbone runs once per distinct image over the session's modules
-    that ask for this (see BackbonePasses)."""
+def _remembering(passes: BackbonePasses) -> Iterator[BackbonePasses]:
     from loopclosure.backbone import Backbone
 
     original = Backbone.__call__
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(Backbone, "__call__", lambda self, images: backbone_passes.call(original, self, images))
-        yield backbone_passes
+        patch.setattr(Backbone, "__call__", lambda self, images: passes.call(original, self, images))
+        yield passes
+
+
+@pytest.fixture(scope="module")
+def shared_backbone_passes(backbone_passes: BackbonePasses) -> Iterator[BackbonePasses]:
+    """For a module: the real backbone runs once per distinct image over the session's modules
+    that ask for this (see BackbonePasses)."""
+    yield from _remembering(backbone_passes)
+
+
+@pytest.fixture(scope="module")
+def seeded_random_backbone_passes() -> Iterator[BackbonePasses]:
+    """For a module whose tests run the same images through random weights drawn from the same
+    seed (torch.manual_seed before each backbone is made): within the module the backbone runs
+    once per distinct image and weights."""
+    yield from _remembering(BackbonePasses(random_weights=True))

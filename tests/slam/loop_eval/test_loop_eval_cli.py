@@ -45,10 +45,11 @@ def small_config(tmp_path: Path) -> Path:
     return config
 
 
-def test_one_sequence_with_a_loop_matrix(tmp_path: Path, images: Path) -> None:
+def test_one_sequence_with_a_loop_matrix(tmp_path: Path, images: Path, seeded_random_backbone_passes: object) -> None:
     matrix = np.zeros((50, 50), np.uint8)
     matrix[40, 12] = matrix[41, 13] = 1
     np.save(tmp_path / "gt.npy", matrix)
+    torch.manual_seed(0)  # the weights of the next test too: it finds these images' passes
     result = invoke("loop-eval", images, "--gt-matrix", tmp_path / "gt.npy", "-c", small_config(tmp_path),
                     "--out", tmp_path / "out", *SMALL)  # fmt: skip
     assert result.exit_code == 0, result.output
@@ -64,11 +65,12 @@ def test_one_sequence_with_a_loop_matrix(tmp_path: Path, images: Path) -> None:
     assert (run / "pr.png").stat().st_size > 0 and (run / "config.yaml").is_file()
 
 
-def test_one_sequence_with_poses(tmp_path: Path, images: Path) -> None:
+def test_one_sequence_with_poses(tmp_path: Path, images: Path, seeded_random_backbone_passes: object) -> None:
     # 25 frames around a 25 m loop driven twice: frame q revisits q - 25
     angle = np.arange(50) * 2 * np.pi / 25
     lines = [f"{i} {4 * np.cos(a):.4f} {4 * np.sin(a):.4f} 0 0 0 0 1" for i, a in enumerate(angle)]
     (tmp_path / "gt.tum").write_text("\n".join(lines) + "\n")
+    torch.manual_seed(0)
     result = invoke("loop-eval", images, "--gt-poses", tmp_path / "gt.tum", "--radius", "0.5",
                     "-c", small_config(tmp_path), "--out", tmp_path / "out", *SMALL)  # fmt: skip
     assert result.exit_code == 0, result.output
@@ -129,9 +131,13 @@ def sim_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return log
 
 
-def test_a_log_is_one_sequence_judged_by_its_own_ground_truth(tmp_path: Path, sim_log: Path) -> None:
+def test_a_log_is_one_sequence_judged_by_its_own_ground_truth(
+    tmp_path: Path, sim_log: Path, seeded_random_backbone_passes: object
+) -> None:
     """An MCAP (and the same log as a ROS 1 bag): keyframes every metre of the true path, the
-    rear camera streamed, revisits within --radius; the bag gives the very same decisions."""
+    rear camera streamed, revisits within --radius; the bag gives the very same decisions (its
+    images, byte for byte the MCAP's, find the MCAP run's backbone passes: an image the bag
+    decoded otherwise would be encoded afresh)."""
     from frontend.sources.rosbag_convert import mcap_to_rosbag
 
     runs = {}
