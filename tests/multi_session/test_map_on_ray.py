@@ -97,7 +97,9 @@ def maps(weights_path: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[s
     finally:
         killer.stop.set()
         killer.join()
-    second, second_metrics = map_logs([logs["s1"]], config, Console(quiet=True), add_to=first)
+    # one log to add: one worker, given every core (under map.workers 2 its session would get half of them)
+    one_worker = config.model_copy(update={"map": config.map.model_copy(update={"workers": 1})})
+    second, second_metrics = map_logs([logs["s1"]], one_worker, Console(quiet=True), add_to=first)
     return {"first": first, "first_metrics": first_metrics, "second": second, "second_metrics": second_metrics,
             "config": config, "killed": killer.killed}  # fmt: skip
 
