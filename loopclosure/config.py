@@ -286,10 +286,11 @@ class SequenceMatchConfig(_Strict):
     aggregation: Literal["mean", "median"] = Field(
         default="mean", description="How the L terms of a sequence combine (median resists one occluded frame)."
     )
-    missing: Literal["zero", "skip"] = Field(
+    missing: Literal["zero", "skip", "shrink"] = Field(
         default="zero",
         description="A term that does not exist (before the stream or the database, a place the earlier query "
-        "could not match) counts as score 0 (zero), or is left out of the aggregate (skip).",
+        "could not match) counts as score 0 (zero), is left out of the aggregate (skip), or is left out and "
+        "the aggregate of n terms weighed by sqrt(n / L) (shrink: a short line's noise then matches a full one's).",
     )
 
     @model_validator(mode="after")
@@ -318,8 +319,9 @@ class CalibratedDecisionConfig(_Strict):
     candidates) before they are added up along a sequence. The winner's centred sequence score
     is then compared with what wrong matches score *in this stream*: the runner-ups (each
     query's best sequence away from its winner and from places already joined to it by an
-    accepted loop). z = (winner - median of the last `history` runner-ups) / their
-    interquartile range. Absolute stage-II levels differ by texture, camera and light (a night
+    accepted loop). z = (winner - median of the last `history` runner-ups) / their spread
+    (twice the median absolute deviation); while the stream has few runner-ups a prior in
+    field spreads bounds both from below. Absolute stage-II levels differ by texture, camera and light (a night
     walk's right matches score like a simulated city's aliases); a lead over the stream's own
     runner-ups does not (docs/loop_decisions.md)."""
 
@@ -335,7 +337,19 @@ class CalibratedDecisionConfig(_Strict):
     )
     history: int = Field(default=300, ge=5, description="Runner-ups the stream's wrong-match model keeps (newest).")
     min_history: int = Field(
-        default=40, ge=5, description="Runner-ups needed before anything is accepted (the model's warm-up)."
+        default=5, ge=3, description="Runner-ups before the stream's own model counts (the prior alone before)."
+    )
+    prior_median: float = Field(
+        default=0.5, ge=0.0, description="The prior's median runner-up, in field spreads (the interquartile range "
+        "of a keyframe's stage-II scores over its stage-I candidates)."
+    )  # fmt: skip
+    prior_spread: float = Field(default=0.6, ge=0.0, description="The prior's runner-up spread, in field spreads.")
+    prior_runner_ups: int = Field(
+        default=40, ge=0, description="Runner-ups of the stream's own up to which the prior's bounds hold in full; "
+        "beyond, they weigh prior_runner_ups / runner-ups seen (0: no prior, decide from min_history on)."
+    )  # fmt: skip
+    min_field: int = Field(
+        default=10, ge=1, description="Places a keyframe must be able to match (stage-I candidates) to decide."
     )
     runner_up_window: int = Field(
         default=3, ge=0, description="Places within this many of the winner (or of a place joined to it) are not "
@@ -353,6 +367,7 @@ class CalibratedDecisionConfig(_Strict):
             raise ValueError(f"propose ({self.propose}) must not exceed accept ({self.accept})")
         if self.min_history > self.history:
             raise ValueError(f"min_history ({self.min_history}) must not exceed history ({self.history})")
+
         return self
 
 
@@ -427,11 +442,15 @@ class DetectorConfig(_Strict):
         default=0.25, ge=0.0, le=1.0,
         description="decision absolute: the keyframe's own stage-II score against the match needed to accept.",
     )  # fmt: skip
-    sequence: SequenceMatchConfig = SequenceMatchConfig(length=8, direction="forward", sequence_candidates=20)
+    sequence: SequenceMatchConfig = SequenceMatchConfig(
+        length=8, direction="forward", sequence_candidates=20, missing="shrink"
+    )
     gate: SequenceGateConfig = SequenceGateConfig()
     pca_warmup_keyframes: int = Field(
-        default=40, ge=2, description="Without codebooks, fit PCA on the first keyframes, then start querying."
-    )
+        default=30, ge=2, description="Without codebooks, fit PCA on the first keyframes, then start querying "
+        "(earlier at a seam, `LoopDetector.break_sequence`, when the keyframes so far suffice). No longer than "
+        "exclusion_keyframes, it costs a stream nothing: those keyframes could not be matched yet anyway."
+    )  # fmt: skip
     codebooks: str | None = Field(
         default=None, description="Codebooks (.npz from fit-pca) to use from the first keyframe."
     )

@@ -28,7 +28,7 @@ from loopclosure.calibration import CalibratedDecision, PlaceLinks, RunnerUpMode
 from loopclosure.config import DetectorConfig, VPRConfig, feature_side, grid_side
 from loopclosure.database import PlaceDatabase, PlaceInfo
 from loopclosure.device_search import check_search_device
-from loopclosure.encoder import Encoder, PlaceCodes, RawCubes
+from loopclosure.encoder import Encoder, PlaceCodes, RawCubes, per_image_cells
 from loopclosure.errors import LoopClosureInputError
 from loopclosure.filtering import Candidates
 from loopclosure.pca import Codebooks
@@ -117,6 +117,10 @@ class LoopDetector:
         self.decision = CalibratedDecision(config.calibrated, config.calibrated.accept)  # the forward camera's
         self.rear_decision = CalibratedDecision(config.calibrated, config.rear_accept)
         self.links = PlaceLinks()
+        # keyframes whose winner was measured against a level (the stream's model or its prior): a
+        # stream with none was too short to decide anything, which a caller reports as such
+        self.keyframes_judged = 0
+        self._absolute_judged = 0
         # who joins the places of an accepted loop: the detector itself (used alone), or the caller
         # once the loop is registered (`join`: a SLAM back end, which refuses some)
         self.links_from_decisions = True
@@ -175,9 +179,9 @@ class LoopDetector:
 
     def _seed_models(self, saved: object) -> None:
         """Start the runner-up models from a prior map's (`annotate_database`): a session that
-        starts in a mapped world may accept loops from its first keyframes, judged by what wrong
-        matches scored there, instead of waiting `min_history` keyframes; its own runner-ups then
-        take over (the newest `history` count)."""
+        starts in a mapped world is judged from its first keyframes by what wrong matches scored
+        there (they count as its own: the prior does not apply), until its own runner-ups take
+        over (the newest `history` count)."""
         if saved is None:
             return
         if not isinstance(saved, dict):
@@ -248,12 +252,36 @@ class LoopDetector:
 
     def _recognise(self, front: PlaceCodes, keyframe_id: int, rear: PlaceCodes | None) -> LoopProposal | None:
         """One keyframe's proposal: its forward codes, and its rear codes when it has them."""
+        judged = self._judged_decisions()
         proposal = self._query(front, keyframe_id)
         if rear is not None:
             proposal = _preferred(proposal, self._query(rear, keyframe_id, rear=True))
         elif self.config.rear.enabled:
             self.rear_sequence.reset()  # a keyframe without its rear image breaks the rear sequence
+        self.keyframes_judged += self._judged_decisions() > judged
         return proposal
+
+    def _judged_decisions(self) -> int:
+        return self.decision.judged + self.rear_decision.judged + self._absolute_judged
+
+    def too_short_to_decide(self) -> str | None:
+        """Why no keyframe was judged (None once one was): a stream too short for the PCA
+        warm-up, or one whose keyframes never had enough places outside the exclusion window.
+        A caller says so instead of reporting a bare recall of 0."""
+        if self.keyframes_judged:
+            return None
+        config = self.config
+        keyframes = len(self._session_travelled) + len(self._warmup)
+        if not self.ready:
+            return (f"recognition never started: the PCA warm-up takes {config.pca_warmup_keyframes} keyframes "
+                    f"(detector.pca_warmup_keyframes) and the stream had {keyframes}")  # fmt: skip
+        if config.decision == "calibrated":
+            need = f"{config.calibrated.min_field} places or more (detector.calibrated.min_field)"
+        else:
+            need = "a place"
+        return (f"no keyframe could be matched against {need}: the exclusion window keeps the last "
+                f"{config.exclusion_keyframes} keyframes and {config.exclusion_distance:g} m out "
+                f"(detector.exclusion_keyframes, detector.exclusion_distance) and the stream had {keyframes}")  # fmt: skip
 
     @property
     def ready(self) -> bool:
@@ -263,10 +291,15 @@ class LoopDetector:
     def break_sequence(self) -> None:
         """The next keyframe does not follow the last one along a path (a gap in the traverse, a
         second traverse streamed after the first): sequences start again from it, on both sides:
-        no query's sequence reaches back across the gap, and no line runs along the places across it."""
+        no query's sequence reaches back across the gap, and no line runs along the places across it.
+        The exclusion window does not reach back across it either, so the next keyframe may match
+        any place before it: a PCA warm-up ends here if it has enough keyframes to fit on."""
         self.sequence.reset()
         self.rear_sequence.reset()
         self._break_pending = True
+        # the next keyframe may match the ones before the seam: end a PCA warm-up that can end
+        if self.database is None and self._can_fit():
+            self._end_warmup()
 
     def _segment_of(self, places: np.ndarray) -> np.ndarray:
         return np.searchsorted(np.asarray(self._segment_starts, np.int64), places, side="right")
@@ -331,6 +364,7 @@ class LoopDetector:
             **self.links.state_arrays(),
             "segment_starts": np.array(self._segment_starts, np.int64),
             "break_pending": np.array(self._break_pending),
+            "keyframes_judged": np.array(self.keyframes_judged, np.int64),
         }
         calibration = self.encoder.backbone.stream_calibration()
         if calibration is not None:
@@ -373,6 +407,7 @@ class LoopDetector:
         self.links.load_state_arrays(arrays)
         self._segment_starts = np.asarray(arrays["segment_starts"], np.int64).tolist()
         self._break_pending = bool(arrays["break_pending"])
+        self.keyframes_judged = int(arrays.get("keyframes_judged", 0))  # absent from states saved before it
 
     def _advance(self, position: np.ndarray | None) -> None:
         if position is None:
@@ -409,15 +444,31 @@ class LoopDetector:
         self._break_pending = False
         if self.encoder.codebooks is None and len(self._warmup) < self.config.pca_warmup_keyframes:
             return
+        self._end_warmup()
+
+    def _end_warmup(self) -> None:
+        """Fit PCA on the buffered keyframes (unless codebooks were given) and make them places."""
         if self.encoder.codebooks is None:
             self.encoder.codebooks = self.encoder.fit_codebooks_from_raw([r for r, _, _, _ in self._warmup])
         self.database = PlaceDatabase(self.encoder.codebooks, self.vpr.database)
         self._recognizer = Recognizer(self.vpr, self.database)
+        pending = self._break_pending
         for raw_i, info_i, travelled, starts in self._warmup:
             self._break_pending = starts
             place = self._add(self.encoder.project(raw_i), info_i, travelled)
             self.gate.observe(place, None)
+        self._break_pending = pending
         self._warmup.clear()
+
+    def _can_fit(self) -> bool:
+        """The buffered keyframes hold enough cube vectors for both PCA codebooks."""
+        if not self._warmup:
+            return False
+        raw = self._warmup[0][0]
+        vectors1 = raw.stage1.shape[1] * len(self._warmup)
+        cells = int(np.prod(raw.stage2.shape[1:3]))
+        vectors2 = min(cells, per_image_cells(self.vpr)) * len(self._warmup)
+        return vectors1 >= self.vpr.filtering.pca.dim and vectors2 >= self.vpr.spatial.pca.dim
 
     def _add(self, codes: PlaceCodes, info: PlaceInfo, travelled: float | None = None) -> int:
         assert self.database is not None
@@ -439,7 +490,11 @@ class LoopDetector:
             if self._last_position is None
             else bisect.bisect_right(self._session_travelled, self._travelled - self.config.exclusion_distance)
         )
-        return np.arange(self.prior_places + min(first_recent, first_near), self.prior_places + n, dtype=np.int64)
+        # the window never reaches back across a seam: the places before it are another traverse,
+        # not the same street a moment ago (two passes of a route streamed one after the other)
+        seam = len(self.database) if self._break_pending and self.database is not None else self._segment_starts[-1]
+        first = max(self.prior_places + min(first_recent, first_near), seam)
+        return np.arange(first, self.prior_places + n, dtype=np.int64)
 
     def _score_places(self, grid: np.ndarray, places: np.ndarray) -> np.ndarray:
         """Stage-II scores of an earlier keyframe's grid against database places (sequence terms)."""
@@ -481,7 +536,7 @@ class LoopDetector:
         start = time.perf_counter()
         query_place = len(self.database)  # the gate and the links work in place indices: unique across sessions
         if rear:
-            decided = self._decide(match, centre, rear=True)
+            decided = self._decide(match, centre, field, rear=True)
             proposal = None
             if decided is not None:
                 accepted, reason, z, second = decided
@@ -494,7 +549,7 @@ class LoopDetector:
         top1 = recognition.best_place
         if not self._calibrated and recognition.best_score < self.config.min_score:
             top1 = None
-        decided = self._decide(match, centre)
+        decided = self._decide(match, centre, field)
         if decided is None:
             self.gate.observe(query_place, top1)
             timings.gate += time.perf_counter() - start
@@ -530,30 +585,33 @@ class LoopDetector:
             self.links.join(a, b)
 
     def _decide(
-        self, match: SequenceMatch, centre: float, rear: bool = False
+        self, match: SequenceMatch, centre: float, field: np.ndarray, rear: bool = False
     ) -> tuple[bool, str, float | None, float | None] | None:
         """(accepted, reason, calibrated z, runner-up) of the winning sequence, or None when it is not
         worth a proposal."""
         if self._calibrated:
-            return self._decide_calibrated(match, centre, rear)
+            return self._decide_calibrated(match, centre, field, rear)
         threshold, min_single, floor = (
             (self.config.rear.accept_score, self.config.rear.min_single_score, self.config.rear.min_score)
             if rear
             else (self.config.accept_threshold, self.config.min_single_score, self.config.min_score)
         )
-        if match.place is None or match.score < floor:
+        if match.place is None:
+            return None
+        self._absolute_judged += 1
+        if match.score < floor:
             return None
         accepted, reason = self._decide_absolute(match, threshold, min_single)
         return accepted, reason, None, None
 
     def _decide_calibrated(
-        self, match: SequenceMatch, centre: float, rear: bool
+        self, match: SequenceMatch, centre: float, field: np.ndarray, rear: bool
     ) -> tuple[bool, str, float | None, float | None] | None:
         """The winner's lead over this camera's runner-ups (`CalibratedDecision`)."""
         if match.place is None:
             return None
         joined = self.links.joined(match.place) if self.config.calibrated.link_accepted else set()
-        verdict = (self.rear_decision if rear else self.decision).decide(match, joined)
+        verdict = (self.rear_decision if rear else self.decision).decide(match, field, joined)
         if verdict is None:
             return None
         detail = self._detail(match, centre)
@@ -651,3 +709,5 @@ def _check_state(arrays: dict[str, np.ndarray], n_places: int) -> None:
         raise LoopClosureInputError("detector state segment_starts: expected increasing place indices from 0")
     if np.asarray(arrays["break_pending"]).dtype != bool:
         raise LoopClosureInputError("detector state break_pending: expected true or false")
+    if "keyframes_judged" in arrays:
+        saved_ints(arrays, "keyframes_judged", 0, 1 << 62)

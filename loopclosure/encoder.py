@@ -143,7 +143,7 @@ class _FitSamples:
         self.stage1: list[np.ndarray] = []
         self.stage2: list[np.ndarray] = []
         self.rng = np.random.default_rng(config.spatial.pca.seed)
-        self.per_image = _per_image_budget(config)
+        self.per_image = per_image_cells(config)
 
     def add(self, raw: RawCubes) -> None:
         self.stage1.append(raw.stage1.reshape(-1, raw.stage1.shape[-1]))
@@ -166,7 +166,7 @@ class _FitSamples:
         )
 
 
-def _per_image_budget(config: VPRConfig) -> int:
+def per_image_cells(config: VPRConfig) -> int:
     """Stage-II cells kept per image so the fit set stays near pca.max_fit_samples."""
     pca = config.spatial.pca
     return max(1, -(-pca.max_fit_samples // pca.max_fit_images))

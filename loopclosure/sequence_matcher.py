@@ -15,8 +15,14 @@ or inside that query's exclusion window: ``limit``). By default (``missing: zero
 counts as score 0, i.e. no evidence. Averaging over the terms that exist instead ("skip") makes
 a short sequence as noisy as one frame while it competes with full-length averages, whose
 spread is smaller, so at the start of a traverse or at a database edge a lucky alias outranks
-real sequences: measured on Gardens Point mini at ±0 frames, PR-AUC 0.23 (skip) vs 0.90 (zero)
-at L=5. With zero fill a sequence never scores more than full evidence could give it.
+real sequences. With zero fill a sequence never scores more than full evidence could give it, but
+a line of n < L terms scores n / L of what the same match scores at full length: the first
+keyframes after a seam, and the revisit of a stream's first places (whose line runs off the
+database's start), lose most of their evidence. ``missing: shrink`` (the detector's default)
+takes the mean of the n terms that exist times sqrt(n / L): a wrong line's spread is then that
+of a full line (n terms of spread s average to s / sqrt(n), which the factor brings to
+s / sqrt(L)), so short lines compete fairly with full ones, and a right match of n terms counts
+sqrt(n / L) of its full-length lead instead of n / L (docs/loop_decisions.md).
 
 Two implementations of the same definition:
 - :func:`sequence_score_matrix` / :func:`match_sequences`: batch, over a dense score matrix.
@@ -79,14 +85,18 @@ def aggregate(terms: np.ndarray, config: SequenceMatchConfig) -> np.ndarray:
         for k in range(terms.shape[0]):
             total += filled[k]
         return total / terms.shape[0]
+    present = np.maximum((~missing).sum(axis=0), 1)
     if config.aggregation == "median":
         with np.errstate(all="ignore"):
             out = np.nanmedian(np.where(np.all(missing, axis=0), 0.0, terms), axis=0)
-        return out
-    total = np.zeros(terms.shape[1:], np.float64)
-    for k in range(terms.shape[0]):
-        total += np.where(missing[k], 0.0, terms[k])
-    return total / np.maximum((~missing).sum(axis=0), 1)
+    else:
+        out = np.zeros(terms.shape[1:], np.float64)
+        for k in range(terms.shape[0]):
+            out += np.where(missing[k], 0.0, terms[k])
+        out /= present
+    if config.missing == "shrink":  # n terms weigh as sqrt(n / L) of a full line's evidence
+        out *= np.sqrt(present / terms.shape[0])
+    return out
 
 
 @dataclass(frozen=True)

@@ -79,18 +79,33 @@ def test_nothing_is_accepted_in_a_stream_without_revisits() -> None:
     assert accepted(decide_stream(s, candidates, limits, SEQUENCE, CALIBRATED)) == {}
 
 
-def test_the_model_warms_up_then_scores_in_interquartile_ranges() -> None:
-    model = RunnerUpModel(CalibratedDecisionConfig(min_history=10, history=20))
+def test_the_model_warms_up_then_scores_in_its_spread() -> None:
+    model = RunnerUpModel(CalibratedDecisionConfig(min_history=10, history=20, prior_runner_ups=20))
     for v in range(9):
         model.observe(float(v))
     assert not model.ready and model.score(100.0) is None
-    model.observe(9.0)  # 0..9: median 4.5, quartiles 2.25 and 6.75
+    model.observe(9.0)  # 0..9: median 4.5; interquartile range 4.5, twice the median deviation 5: the smaller
     assert model.ready and model.score(9.0) == pytest.approx((9.0 - 4.5) / 4.5)
     for v in range(10, 40):  # only the newest 20 are kept
         model.observe(float(v))
     assert len(model) == 20 and model.score(29.5) == pytest.approx(0.0)
     with pytest.raises(ValueError, match="finite"):
         model.observe(float("nan"))
+
+
+def test_the_spread_holds_while_nearly_half_the_runner_ups_are_off() -> None:
+    # a young model: 12 runner-ups of a train standing at a station (the same place again, as good
+    # as the winner) among 16 ordinary ones; the interquartile range would take the stations' level
+    model = RunnerUpModel(CalibratedDecisionConfig(min_history=5, prior_runner_ups=0))
+    ordinary = np.linspace(0.0, 0.02, 16)
+    for v in [*ordinary, *np.full(12, 0.15)]:
+        model.observe(float(v))
+    median, spread = model.level()  # type: ignore[misc]
+    values = np.r_[ordinary, np.full(12, 0.15)]
+    q1, q3 = np.percentile(values, [25.0, 75.0])
+    assert spread < 0.25 * (q3 - q1)
+    assert model.score(0.25) > 6.0  # a right match standing clear of the ordinary runner-ups
+    assert (0.25 - median) / (q3 - q1) < 2.0  # which the interquartile range would not see
 
 
 def test_a_flat_stream_still_orders_winners_above_its_level() -> None:
@@ -117,12 +132,13 @@ def test_the_runner_up_is_neither_a_neighbour_of_the_winner_nor_a_place_joined_t
 def test_a_third_visit_is_judged_against_other_places_not_the_first_visit() -> None:
     # the winner (a place of the second visit) and the first visit score alike: without the
     # link the lead is nothing, with it the lead is over the other places
-    decision = CalibratedDecision(CalibratedDecisionConfig(min_history=5, propose=-100), accept=6.0)
+    decision = CalibratedDecision(CalibratedDecisionConfig(min_history=5, propose=-100, prior_runner_ups=0), accept=6.0)
     for v in (0.10, 0.12, 0.11, 0.09, 0.10, 0.13):
         decision.model.observe(v)
     third = match([120, 121, 20, 21, 60], [0.60, 0.55, 0.59, 0.50, 0.12], 120)
-    unlinked = decision.decide(third)
-    linked = decision.decide(third, joined={20})
+    field = np.linspace(0.0, 0.2, 30)  # a field of 30 places; without fields seen the prior is silent
+    unlinked = decision.decide(third, field)
+    linked = decision.decide(third, field, joined={20})
     assert unlinked is not None and linked is not None
     assert unlinked.runner_up == 0.59 and linked.runner_up == 0.12
     assert linked.accepted
@@ -148,3 +164,63 @@ def test_place_links_join_transitively_and_come_back_from_their_state() -> None:
 def test_config_refuses_a_propose_level_above_accept() -> None:
     with pytest.raises(ValueError, match="propose"):
         CalibratedDecisionConfig(accept=2.0, propose=3.0)
+
+
+def test_the_prior_judges_the_first_keyframes_in_field_spreads_and_fades_as_runner_ups_arrive() -> None:
+    config = CalibratedDecisionConfig(min_history=5, prior_median=0.8, prior_spread=1.0, prior_runner_ups=40)
+    model = RunnerUpModel(config)
+    assert not model.ready  # neither runner-ups nor a field yet
+    model.observe_field(np.array([0.0, 0.1, 0.2, 0.3, 0.4]))  # interquartile range 0.2
+    assert model.ready and model.score(0.16 + 6 * 0.2) == pytest.approx(6.0)  # median 0.8 * 0.2, spread 0.2
+    for _ in range(40):  # up to prior_runner_ups runner-ups its bounds hold in full
+        model.observe(0.0)
+    assert model.level() == pytest.approx((0.16, 0.2))  # the stream's own are lower
+    model.observe(0.0)
+    for _ in range(39):  # twice as many: they weigh a half
+        model.observe(0.0)
+    assert model.level() == pytest.approx((0.08, 0.1))
+    for v in np.linspace(0.5, 1.0, 220):  # a grown model: the prior weighs 40 / 300 and bounds nothing
+        model.observe(float(v))
+    values = np.r_[np.zeros(80), np.linspace(0.5, 1.0, 220)]
+    median = np.median(values)
+    own = (median, min(np.subtract(*np.percentile(values, [75.0, 25.0])), 2 * np.median(np.abs(values - median))))
+    assert model.level() == pytest.approx(own)
+
+
+def test_the_prior_bounds_a_noisy_young_model_from_below() -> None:
+    # five runner-ups that happen to agree: alone they would call anything a loop
+    config = CalibratedDecisionConfig(min_history=5, prior_median=0.8, prior_spread=1.0, prior_runner_ups=40)
+    model = RunnerUpModel(config)
+    model.observe_field(np.linspace(0.0, 0.4, 21))  # spread 0.2
+    for v in (0.010, 0.011, 0.010, 0.012, 0.011):
+        model.observe(v)
+    median, spread = model.level()  # type: ignore[misc]
+    assert spread == pytest.approx(0.2) and median == pytest.approx(0.8 * 0.2)  # the prior in full
+    assert model.score(0.3) < 6.0  # a lead of 0.3 is not a loop against a field this wide
+
+
+def test_a_keyframe_with_a_small_field_decides_nothing_but_its_runner_up_counts() -> None:
+    decision = CalibratedDecision(CalibratedDecisionConfig(min_field=10, propose=-100), accept=6.0)
+    winner = match([1, 2, 8], [0.9, 0.2, 0.1], 1)
+    assert decision.decide(winner, np.linspace(0.0, 0.2, 3)) is None  # 3 places: no decision
+    assert len(decision.model) == 1 and not decision.model.ready  # the runner-up joined, no field did
+    verdict = decision.decide(winner, np.linspace(0.0, 0.2, 10))
+    assert verdict is not None and verdict.accepted  # the prior alone: 0.9 is far above a field of 0.2
+
+
+def test_a_state_saved_before_the_prior_resumes_with_the_runner_ups_alone() -> None:
+    model = RunnerUpModel(CalibratedDecisionConfig())
+    model.observe_field(np.linspace(0.0, 0.4, 21))
+    model.observe(0.1)
+    state = model.state_arrays("model_")
+    assert set(state) == {"model_runner_ups", "model_field_spreads"}
+    old = {"model_runner_ups": state["model_runner_ups"]}
+    RunnerUpModel.check_state_arrays(old, "model_")
+    resumed = RunnerUpModel(CalibratedDecisionConfig())
+    resumed.load_state_arrays(old, "model_")
+    assert len(resumed) == 1 and not resumed.ready
+    again = RunnerUpModel(CalibratedDecisionConfig())
+    again.load_state_arrays(state, "model_")
+    assert again.level() == model.level()
+    with pytest.raises(LoopClosureInputError, match="field_spreads"):
+        RunnerUpModel.check_state_arrays({**state, "model_field_spreads": np.array([np.nan])}, "model_")

@@ -87,6 +87,7 @@ def detector(
     accept: float = 0.9,
     rear: bool = True,
     decision: str = "absolute",
+    warmup: int = WARMUP,
     **gate: object,
 ) -> LoopDetector:
     # identical images score 1 and unrelated ones about 0: a sequence of L = 3 scores about
@@ -99,7 +100,7 @@ def detector(
         min_score=0.2,
         accept_score=accept,
         min_single_score=0.5,
-        pca_warmup_keyframes=WARMUP,
+        pca_warmup_keyframes=warmup,
         codebooks=codebooks,
         sequence=SequenceMatchConfig(length=3, direction=direction),
         gate=SequenceGateConfig(**{"length": 3, "tolerance": 1, **gate}),
@@ -596,6 +597,62 @@ def test_a_break_starts_sequences_again_on_both_sides_of_the_seam(codebooks: str
             assert p.sequence_terms <= k + 1  # nothing from before the break
     accepted = [p for p in second if p is not None and p.accepted]
     assert accepted and all(p.match_id == p.query_id - 30 for p in accepted)
+
+
+def test_a_warmup_ends_at_a_seam_when_the_keyframes_so_far_suffice() -> None:
+    """Two passes of one route, the first shorter than the warm-up: PCA is fitted at the seam
+    on the first pass, so the second is recognised from its first keyframe on."""
+    det = detector(warmup=50, decision="calibrated", direction="forward")
+    feed(det, list(range(20)), 0)
+    assert not det.ready
+    det.break_sequence()
+    assert det.ready and len(det.database) == 20  # the first pass became places, one segment
+    second = feed(det, list(range(20)), 20)
+    assert second[0] is not None and second[0].match_id == 0  # the first keyframe after the seam
+    accepted = [p for p in second if p is not None and p.accepted]
+    assert accepted and all(p.match_id == p.query_id - 20 for p in accepted)
+    assert accepted[0].query_id <= 21  # an exact revisit is accepted at once, not after L keyframes
+    assert det._segment_of(np.array([0, 19, 20, 39])).tolist() == [1, 1, 2, 2]
+
+
+def test_a_seam_too_early_for_a_fit_keeps_the_warmup() -> None:
+    det = detector(warmup=50)
+    feed(det, [0], 0)  # one keyframe: 16 stage-I vectors, fewer than the 32 dimensions
+    det.break_sequence()
+    assert not det.ready and det.too_short_to_decide() is not None
+    assert "recognition never started" in det.too_short_to_decide()  # type: ignore[operator]
+
+
+def test_early_codebooks_round_trip_through_a_saved_map_and_a_resume(tmp_path: Path) -> None:
+    """The stream's own codebooks, fitted after its first keyframes: saved with the places, a
+    detector loaded from the map and the state continues exactly as the uninterrupted one."""
+    import io
+
+    scenes = list(range(12)) + list(range(12))
+    make = lambda: detector(keyframes=3, decision="calibrated", direction="forward")  # noqa: E731
+    uncut = make()
+    whole = feed(uncut, scenes[:12], 0)
+    uncut.break_sequence()
+    whole += feed(uncut, scenes[12:], 12)
+    assert any(p is not None and p.accepted for p in whole) and uncut.keyframes_judged > 0
+    cut = 16
+    first = make()
+    feed(first, scenes[:12], 0)
+    first.break_sequence()
+    assert feed(first, scenes[12:cut], 12) == whole[:cut][12:]
+    buffer = io.BytesIO()
+    np.savez(buffer, **first.state_arrays())
+    first.database.save(tmp_path / "db")
+    buffer.seek(0)
+    with np.load(buffer, allow_pickle=False) as data:
+        state = {name: data[name] for name in data.files}
+    loaded = PlaceDatabase.load(tmp_path / "db")
+    assert loaded.codebooks.same_as(first.encoder.codebooks)  # the map records the codes' codebooks
+    second = make()  # no codebooks of its own: it takes the map's
+    second.load_state_arrays(state, loaded)
+    assert second.encoder.codebooks is loaded.codebooks
+    assert feed(second, scenes[cut:], cut) == whole[cut:]
+    assert second.keyframes_judged == uncut.keyframes_judged
 
 
 @pytest.mark.parametrize("decision", ["absolute", "calibrated"])

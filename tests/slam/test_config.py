@@ -42,9 +42,13 @@ def test_no_argument_loads_the_default_preset() -> None:
     assert not gate.enabled  # loops are decided on sequence scores; the top-1 gate is optional
     sequence = cfg.detector.sequence
     assert (sequence.length, sequence.direction, sequence.sequence_candidates) == (8, "forward", 20)
+    assert sequence.missing == "shrink"  # a line cut short by a seam or the database's start weighs sqrt(n / L)
     assert cfg.detector.rear.direction == "reverse"  # a street driven the other way
     assert cfg.detector.decision == "calibrated"
-    assert (cfg.detector.calibrated.accept, cfg.detector.calibrated.min_history) == (6.0, 40)
+    calibrated = cfg.detector.calibrated
+    assert (calibrated.accept, calibrated.min_history, calibrated.prior_runner_ups) == (6.0, 5, 40)
+    assert (calibrated.prior_median, calibrated.prior_spread, calibrated.min_field) == (0.5, 0.6, 10)
+    assert cfg.detector.pca_warmup_keyframes == cfg.detector.exclusion_keyframes == 30  # a warm-up that costs nothing
     assert cfg.detector.min_score == 0.3 and cfg.detector.accept_threshold == 0.45  # decision: absolute
     assert cfg.backend.registration.lidar.min_inlier_ratio == 0.8
 
