@@ -64,6 +64,8 @@ def assemble_result(
         session_places=session_places(detector),
         prior_map=prior_map,
         graph_recoveries=recoveries,
+        keyframes_judged=detector.keyframes_judged,
+        too_short_to_decide=detector.too_short_to_decide(),
     )
 
 

@@ -165,6 +165,10 @@ class RunMetrics(_Part):
     frames_skipped: dict[str, NonNegativeInt]
     keyframes: NonNegativeInt
     recognition_started: bool  # False: the run ended inside the PCA warm-up, nothing was matched
+    # keyframes whose best match the loop decision measured; none: the run was too short to decide
+    # anything, and too_short_to_decide says why (absent from files written before it)
+    keyframes_judged: NonNegativeInt | None = None
+    too_short_to_decide: str | None = None
     interrupted: bool
     source_error: str | None
     error: str | None

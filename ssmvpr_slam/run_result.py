@@ -139,6 +139,8 @@ class RunResult:
     session_places: Mapping[int, int] = field(default_factory=dict)  # keyframe id -> database place
     prior_map: PriorMap | None = None  # as loaded; never changed by the run
     graph_recoveries: tuple[str, ...] = ()  # iSAM2 steps the pose graph had to work around (PoseGraph.recoveries)
+    keyframes_judged: int = 0  # keyframes whose winner the loop decision measured (LoopDetector.keyframes_judged)
+    too_short_to_decide: str | None = None  # why none was, when none was (LoopDetector.too_short_to_decide)
 
     @property
     def session_loops(self) -> tuple[LoopRecord, ...]:

@@ -77,8 +77,8 @@ def run_log(
     print_summary(console, metrics, result, folder, name)
     if stopped:
         console.print(f"resume it with: ssmvpr-slam run {escape(str(log))} --resume {escape(str(folder))}")
-    if not metrics.recognition_started:
-        warn_recognition_never_started(console, config, len(result.keyframes))
+    if result.too_short_to_decide is not None:
+        warn_too_short_to_decide(console, result.too_short_to_decide)
     raise_if_failed(pipeline, folder)
     return folder, metrics.to_json_dict()
 
@@ -184,14 +184,12 @@ def print_summary(console: Console, metrics: RunMetrics, result: RunResult, fold
     console.print(f"results in [bold]{escape(str(folder))}[/bold]")
 
 
-def warn_recognition_never_started(console: Console, config: SlamConfig, keyframes: int) -> None:
-    """A run shorter than the PCA warm-up looks like one that found no loop; say which it was."""
-    warmup = config.detector.pca_warmup_keyframes
+def warn_too_short_to_decide(console: Console, why: str) -> None:
+    """A run too short to decide anything looks like one that found no loop; say which it was."""
     console.print(
-        f"[yellow]warning: recognition never started: the PCA warm-up takes {warmup} keyframes "
-        f"(detector.pca_warmup_keyframes) and the run had {keyframes}, so no place was matched and no "
-        "place database was saved; for a run this short, fit codebooks first (ssmvpr-slam fit-pca) and "
-        "pass them as detector.codebooks[/yellow]"
+        f"[yellow]warning: too short to decide any loop: {escape(why)}; its recall says nothing about "
+        "the detector (for a run this short, fit codebooks first with ssmvpr-slam fit-pca and pass them as "
+        "detector.codebooks, or close loops against a map with --map)[/yellow]"
     )
 
 

@@ -166,6 +166,8 @@ def run_metrics(result: RunResult) -> dict[str, Any]:
         "keyframes": len(result.keyframes),
         # False when the run ended inside the PCA warm-up: nothing was matched and no database saved
         "recognition_started": result.database is not None,
+        "keyframes_judged": result.keyframes_judged,
+        "too_short_to_decide": result.too_short_to_decide,
         "interrupted": end.interrupted,
         "source_error": end.source_error,
         "error": end.error,

@@ -156,6 +156,9 @@ def compute_metrics(outcome: StreamOutcome, loop_truth: LoopTruth, config: SlamC
         "decision": det.decision,
         "accept": det.calibrated.accept if det.decision == "calibrated" else det.accept_threshold,
         "loops": score.loop_metrics(judged, n_passes),
+        # a stream too short to decide anything has recall 0 that says nothing about the detector
+        "keyframes_judged": outcome.keyframes_judged,
+        "too_short_to_decide": outcome.too_short_to_decide,
     }
     if n_passes > 1:
         metrics["loops_across_passes"] = score.loop_metrics(score.only_across(judged), passes=1)  # none within
@@ -274,5 +277,9 @@ def run_loop_eval(
             write_pr_plot(folder / "pr.png", outcome, loop_truth, len(passes), f"Loop closures: {name}")
     assert staged.final is not None
     console.print(summary_table(metrics))
+    if outcome.too_short_to_decide is not None:
+        console.print(f"[bold yellow]warning:[/bold yellow] too short to decide any loop: "
+                      f"{escape(outcome.too_short_to_decide)}; recall 0 here says nothing about the detector",
+                      highlight=False)  # fmt: skip
     console.print(f"results in [bold]{escape(str(staged.final))}[/bold]")
     return staged.final, metrics

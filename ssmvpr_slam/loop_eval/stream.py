@@ -20,6 +20,8 @@ from ssmvpr_slam.system import build_detector
 class StreamOutcome:
     proposals: tuple[LoopProposal | None, ...]  # per stream frame: its best sequence and the decision
     seconds: np.ndarray  # (N,) detector time per frame (backbone included)
+    keyframes_judged: int = 0  # frames whose winner the decision measured (LoopDetector.keyframes_judged)
+    too_short_to_decide: str | None = None  # why none was (LoopDetector.too_short_to_decide)
 
 
 def recording_every_winner(config: SlamConfig) -> SlamConfig:
@@ -83,4 +85,5 @@ def stream(
             frame += 1
             if on_frame is not None:
                 on_frame()
-    return StreamOutcome(tuple(proposals), np.array(seconds))
+    return StreamOutcome(tuple(proposals), np.array(seconds), detector.keyframes_judged,
+                         detector.too_short_to_decide())  # fmt: skip
