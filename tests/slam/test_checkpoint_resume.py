@@ -72,10 +72,12 @@ vpr:
   backbone: {input_size: 112, device: cpu}
   filtering: {pca: {dim: 8}}
   spatial: {pca: {dim: 8}}
-detector: {pca_warmup_keyframes: 15, calibrated: {min_history: 10}}
+detector: {pca_warmup_keyframes: 15, calibrated: {min_history: 10, prior_runner_ups: 0}}
 evaluation: {loops: {min_frame_gap: 25}}
 """
-SMALL_DETECTOR = "detector: {pca_warmup_keyframes: 15, calibrated: {min_history: 10}}\n"  # a short log: early revisits
+# a short log with early revisits, decided by its own young model (no prior): it accepts look-alikes
+# early that the odometry gate must refuse, the decisions that read restored state
+SMALL_DETECTOR = "detector: {pca_warmup_keyframes: 15, calibrated: {min_history: 10, prior_runner_ups: 0}}\n"
 FRONTEND = "frontend:\n  keyframes: {min_distance_m: null, min_angle_deg: null, max_interval_s: 0.35}\n"
 
 # the camera-only log is too short and its 112-px images too coarse for the calibrated decision, and

@@ -159,8 +159,6 @@ def slam_config(weights_path: Path, odometry: str) -> SlamConfig:
     cfg = load_config()  # the default (paper) preset
     cfg.vpr.backbone.weights = str(weights_path)
     cfg.vpr.backbone.device = "cpu"
-    cfg.detector.pca_warmup_keyframes = 30  # the first revisit comes at keyframe ~64...
-    cfg.detector.calibrated.min_history = 20  # ...34 queries after the warm-up: the model must be ready by then
     cfg.frontend.keyframes = KeyframeConfig(min_distance_m=None, min_angle_deg=None, max_interval_s=0.35)
     cfg.frontend.odometry.kind = odometry  # type: ignore[assignment]
     if odometry == "logged":
