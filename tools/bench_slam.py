@@ -2,17 +2,21 @@
 """Per-keyframe latency of the SLAM pipeline by stage, and its memory per keyframe; prints JSON.
 
 Stages (metrics.json's `latency_per_keyframe`): backbone (CNN + cubes + PCA), database_query
-(stage I), spatial_matching (stage II), sequence_matching, gate, registration (ICP / two-view,
-only on gate-accepted proposals), isam2_update, total (the back end's time per keyframe), and
-front_end (source, odometry and keyframe selection since the previous keyframe; with
-`pipeline.overlap` it runs beside the back end). `keyframe_interval_s` is the time from one
+(stage I), spatial_matching (stage II), sequence_matching, gate, registration (the back end's
+wait for loop registrations due at the keyframe: their whole computation when inline, only what
+the worker had not finished otherwise), registration_work (the computation of the registrations
+applied at the keyframe, in the worker or inline), isam2_update, total (the back end's time per
+keyframe), and front_end (source, odometry and keyframe selection since the previous keyframe;
+with `pipeline.overlap` it runs beside the back end). `stages_sum_per_keyframe_s` adds every
+stage's seconds of a keyframe: the time one after another would take, against which the
+interval shows what running them in flight together gains. `keyframe_interval_s` is the time from one
 keyframe leaving the back end to the next, everything included: the end-to-end time per
 keyframe a user sees, which the target (median <= 100 ms) is about. `wall_per_keyframe_s` also
 spreads the start (first inference, PCA fit) over the keyframes. `cpu` is the CPU time the run
 used (this process and an odometry child, all threads) per keyframe, and that divided by the
 cores: the floor under which no schedule of the same work can bring `keyframe_interval_s`.
 
-    python tools/bench_slam.py [--frames 200] [--odometry kiss_icp|logged] [--log demo.mcap]
+    python tools/bench_slam.py [--frames 200] [--odometry kiss_icp|logged] [--log demo.mcap] [--serial]
         [--overlap | --no-overlap] [--precision fp32|bf16|int8|auto] [--omp-wait-policy PASSIVE|ACTIVE|inherit]
         [--sim-config long.yaml] [--laps N] [--no-lidar-loops] [--rss-every 100] [--weights PATH] [--device auto]
 
@@ -21,6 +25,11 @@ written beforehand (`--log`, e.g. by `ssmvpr-slam simulate`: decoding then costs
 in a `run`). `--rss-every N` samples the resident memory every N keyframes and fits its slope
 per keyframe over the second half of the run; the place database's own bytes per place are
 reported beside it, so the growth besides the database is the difference.
+
+`--serial` runs the same frames a second time in this process one stage after another (no
+overlap, loop registrations inline; the same registration lag, so the same loops and
+trajectory): its figures under `serial`, `speedup` (keyframes per second over the serial ones)
+and `same_loops` (both accepted the same loops).
 
 OMP_WAIT_POLICY must be set before torch loads its OpenMP runtime, so the option is applied
 before torch is imported ('inherit' leaves the environment as it is). Every result records the
@@ -62,6 +71,10 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--weights", default=None, help="VGG16 weights (default: resolve as configured)")
     parser.add_argument("--device", default=None, help="auto | cpu | cuda")
     parser.add_argument("--config", default=None)
+    parser.add_argument("--serial", action="store_true",
+                        help="also run the traverse one stage after another (no overlap, loops registered inline) "
+                             "in this process, and report both, their ratio (speedup) and whether they accepted the "
+                             "same loops (same_loops)")  # fmt: skip
     return parser
 
 
@@ -73,18 +86,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.frames is None and args.log is None and args.sim_config is None and args.laps is None:
         args.frames = 200
 
-    import numpy as np
-    import torch
-    from _sim_options import simulation_config
-
-    from frontend.simulation.simulator import TraverseSimulator
-    from frontend.sources import open_source
     from loopclosure.backbone import load_backbone
     from ssmvpr_slam.config import load_config
-    from ssmvpr_slam.pipeline import SlamPipeline
-    from ssmvpr_slam.run_result import latency_summary
-    from ssmvpr_slam.run_state import RunState
-    from ssmvpr_slam.runner import build_odometry
 
     config = load_config(args.config)
     if args.weights:
@@ -100,25 +103,70 @@ def main(argv: list[str] | None = None) -> int:
     if args.release_heap_every is not None:
         config.pipeline.release_heap_every_keyframes = args.release_heap_every
     config.frontend.odometry.kind = args.odometry
-    if args.log is not None:
-        source: Any = open_source(args.log, config.frontend.source, config.frontend.pose_files)
-        frames = iter(source)
-        if args.frames is not None:
-            frames = (f for k, f in zip(range(args.frames), frames))
-        traverse = {"log": str(args.log)}
-    else:
-        sim = simulation_config(parser, args, **({"route": {"laps": args.laps}} if args.laps else {}))
-        if not config.pipeline.use_lidar_for_loops and args.odometry == "logged":
-            sim = sim.model_copy(update={"lidar": sim.lidar.model_copy(update={"enabled": False})})  # nothing reads it
-        frames = TraverseSimulator(sim).frames()
-        traverse = {"simulated": sim.route.preset, "laps": sim.route.laps, "max_frames": sim.max_frames,
-                    "lidar": sim.lidar.enabled}  # fmt: skip
+    frames, traverse = _frames(parser, args, config)
     backbone = load_backbone(config.vpr.backbone)
-    pipeline = SlamPipeline.build(config, build_odometry(config), backbone)
+    result, run = _run(config, frames(), backbone, args)
+    result["traverse"] = traverse
+    if args.serial:  # the one-after-another schedule, same process, same frames: what the stages in flight gain
+        serial_config = config.model_copy(deep=True)
+        serial_config.pipeline.overlap = False
+        serial_config.pipeline.registration_worker = False
+        serial, serial_run = _run(serial_config, frames(), backbone, args)
+        result["serial"] = serial
+        result["speedup"] = (
+            result["keyframes_per_second"] / serial["keyframes_per_second"] if serial["keyframes_per_second"] else None
+        )
+        result["same_loops"] = _accepted(run) == _accepted(serial_run)
+    json.dump(result, sys.stdout, indent=2)
+    print()
+    failure = result["error"] or (result.get("serial") or {}).get("error")
+    if failure is not None:  # the numbers above cover the frames before it
+        print(f"bench_slam: the run failed: {failure}", file=sys.stderr)
+        return 1
+    return 0
 
+
+def _frames(parser: argparse.ArgumentParser, args: argparse.Namespace, config: Any) -> tuple[Any, dict[str, Any]]:
+    """A function giving the traverse's frames afresh (each schedule reads them anew), and what it is."""
+    from _sim_options import simulation_config
+
+    from frontend.simulation.simulator import TraverseSimulator
+    from frontend.sources import open_source
+
+    if args.log is not None:
+
+        def from_log() -> Any:
+            frames = iter(open_source(args.log, config.frontend.source, config.frontend.pose_files))
+            return frames if args.frames is None else (f for k, f in zip(range(args.frames), frames))
+
+        return from_log, {"log": str(args.log)}
+    sim = simulation_config(parser, args, **({"route": {"laps": args.laps}} if args.laps else {}))
+    if not config.pipeline.use_lidar_for_loops and args.odometry == "logged":
+        sim = sim.model_copy(update={"lidar": sim.lidar.model_copy(update={"enabled": False})})  # nothing reads it
+    traverse = {"simulated": sim.route.preset, "laps": sim.route.laps, "max_frames": sim.max_frames,
+                "lidar": sim.lidar.enabled}  # fmt: skip
+    return (lambda: TraverseSimulator(sim).frames()), traverse
+
+
+def _accepted(run: Any) -> list[tuple[int, int, str]]:
+    """The loops the detector accepted: (query keyframe, matched keyframe, camera)."""
+    return [(r.proposal.query_id, r.proposal.match_id, r.proposal.camera) for r in run.loops if r.proposal.accepted]
+
+
+def _run(config: Any, frames: Any, backbone: Any, args: argparse.Namespace) -> tuple[dict[str, Any], Any]:
+    """One run of the traverse: its figures, and its result."""
+    import numpy as np
+    import torch
+
+    from ssmvpr_slam.evaluation.metrics import ate
+    from ssmvpr_slam.pipeline import SlamPipeline
+    from ssmvpr_slam.run_result import latency_summary
+    from ssmvpr_slam.run_state import RunState
+    from ssmvpr_slam.runner import build_odometry
+
+    pipeline = SlamPipeline.build(config, build_odometry(config), backbone)
     samples: list[dict[str, float]] = []
     load_before = os.getloadavg()
-
     finished_at: list[float] = []  # when each keyframe left the back end: the pace the user sees
     cpu_at: list[float] = []  # this process's CPU seconds (all its threads) at the same moments
 
@@ -142,13 +190,17 @@ def main(argv: list[str] | None = None) -> int:
     wall = time.perf_counter() - start
     summary = state.times.summary()
     n_kf = len(state.keyframes)
-    # from keyframe to keyframe: front end, back end and waits alike
-    interval = latency_summary([{"keyframe": float(t)} for t in np.diff(finished_at)]).get("keyframe")
+    intervals = np.diff(finished_at)  # from keyframe to keyframe: front end, back end and waits alike
+    interval = latency_summary([{"keyframe": float(t)} for t in intervals]).get("keyframe")
     pace = None if interval is None else interval["median_s"]
-    pipeline.finish()  # ends an odometry process too (its CPU time counts once it is reaped)
+    run = pipeline.finish()  # ends an odometry process too (its CPU time counts once it is reaped)
     cpu = _cpu_use(cpu_start, _cpu_seconds(), wall, n_kf, np.diff(cpu_at), latency_summary)
     error = pipeline.step_error
     failure = f"{type(error).__name__}: {error}" if error is not None else pipeline.ending.source_error
+    stages = ("front_end", "backbone", "database_query", "spatial_matching", "sequence_matching", "gate",
+              "registration_work", "isam2_update")  # fmt: skip
+    work = [sum(row.get(k, 0.0) for k in stages) for row in state.times.rows]
+    gt = [k.gt_pose for k in run.keyframes]
     result: dict[str, Any] = {
         "machine": {
             "cpus": os.cpu_count(),
@@ -160,10 +212,11 @@ def main(argv: list[str] | None = None) -> int:
             "load_average_after": os.getloadavg(),
             "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY"),
         },
-        "traverse": traverse,
         "settings": {
             "odometry": args.odometry,
             "overlap": config.pipeline.overlap,
+            "registration_worker": config.pipeline.registration_worker,
+            "registration_lag_keyframes": config.pipeline.registration_lag_keyframes,
             "precision": config.vpr.backbone.precision,
             "lidar_loops": config.pipeline.use_lidar_for_loops,
             "keyframe_image_pixels": config.pipeline.keyframe_image_pixels,
@@ -175,25 +228,30 @@ def main(argv: list[str] | None = None) -> int:
         "keyframes": n_kf,
         "rear_keyframes": state.rear_keyframes,
         "loops_proposed": len(state.loops),
-        "loops_in_graph": sum(r.in_graph for r in state.loops),
+        "loops_accepted": len(_accepted(run)),
+        "loops_in_graph": sum(r.in_graph for r in run.loops),
+        "ate_optimised_m": ate(np.array(gt), run.optimised).stats.rmse
+        if n_kf and all(g is not None for g in gt)
+        else None,
         "wall_s": wall,
         "frames_per_second": state.frames_seen / wall,
         "keyframes_per_second": n_kf / wall,
         "wall_per_keyframe_s": wall / n_kf if n_kf else None,
         "latency_per_keyframe_s": summary,
         "keyframe_interval_s": interval,
+        "keyframe_interval_p99_s": float(np.percentile(intervals, 99)) if len(intervals) else None,
+        # the pace against the work: every stage's seconds of a keyframe added up (the worker's
+        # registrations and the front end included), the time one after another would take
+        "stages_sum_per_keyframe_s": {"median_s": float(np.median(work)), "mean_s": float(np.mean(work))}
+        if work
+        else None,
         "cpu": cpu,
         "error": failure,
         "target": {"median_keyframe_interval_s": 0.1, "pass": bool(pace is not None and pace <= 0.1)},
     }
     if args.rss_every:
         result["memory"] = _memory(samples, pipeline, state, np)
-    json.dump(result, sys.stdout, indent=2)
-    print()
-    if failure is not None:  # the numbers above cover the frames before it
-        print(f"bench_slam: the run failed: {failure}", file=sys.stderr)
-        return 1
-    return 0
+    return result, run
 
 
 def _stage1_search(database: Any) -> dict[str, str | None]:

@@ -112,6 +112,9 @@ class OdometryProcess:
         ours, theirs = socket.socketpair()
         env = dict(os.environ)  # the child imports what this process can (tools put the repo on sys.path)
         env["PYTHONPATH"] = os.pathsep.join(p for p in [*sys.path, env.get("PYTHONPATH", "")] if p)
+        # the child waits for each frame: idle OpenMP threads must sleep, not spin on cores the
+        # backbone needs (an explicit OMP_WAIT_POLICY in the environment wins)
+        env.setdefault("OMP_WAIT_POLICY", "PASSIVE")
         with theirs:
             self._process = subprocess.Popen(
                 [sys.executable, "-c", _CHILD, str(theirs.fileno())],

@@ -1,6 +1,6 @@
 """tools/bench_slam.py runs end to end on a short simulated traverse, stages overlapped (the
-odometry in its own process), and prints one JSON object with the pace per keyframe and the
-CPU time it cost."""
+odometry in its own process), then one stage after another (`--serial`), and prints one JSON
+object with the pace per keyframe, the CPU time it cost, and the two schedules compared."""
 
 from __future__ import annotations
 
@@ -19,7 +19,7 @@ SCRIPT = Path(__file__).resolve().parents[2] / "tools" / "bench_slam.py"
 @pytest.mark.slow
 def test_bench_slam_reports_stages_and_the_pace_per_keyframe(weights_path: Path) -> None:
     proc = subprocess.run(
-        [sys.executable, str(SCRIPT), "--frames", "12", "--overlap", "--weights", str(weights_path)],
+        [sys.executable, str(SCRIPT), "--frames", "12", "--overlap", "--serial", "--weights", str(weights_path)],
         capture_output=True, text=True, timeout=600, check=False,
         # a warm-up short enough (3 keyframes, 48 stage-I vectors) for the short run to query stage I
         env={**os.environ, "SSMVPR_DETECTOR__PCA_WARMUP_KEYFRAMES": "3", "SSMVPR_VPR__FILTERING__PCA__DIM": "32"},
@@ -46,3 +46,11 @@ def test_bench_slam_reports_stages_and_the_pace_per_keyframe(weights_path: Path)
     assert cpu["floor_per_keyframe_s"] == pytest.approx(cpu["core_s_per_keyframe"] / out["machine"]["cpus"])
     assert 0 < cpu["utilisation_of_all_cores"] <= 1.05  # no more CPU than the cores had
     assert cpu["floor_per_keyframe_s"] * n <= out["wall_s"] * 1.05
+    # the serial schedule in the same process: the same loops, its own figures, their ratio
+    serial = out["serial"]
+    assert serial["settings"]["overlap"] is False and serial["settings"]["registration_worker"] is False
+    assert serial["keyframes"] == n and serial["error"] is None
+    assert out["same_loops"] is True and out["loops_accepted"] == serial["loops_accepted"]
+    assert out["speedup"] == pytest.approx(out["keyframes_per_second"] / serial["keyframes_per_second"])
+    assert out["keyframe_interval_p99_s"] >= pace["median_s"]
+    assert out["stages_sum_per_keyframe_s"]["median_s"] > 0
