@@ -131,6 +131,7 @@ class LoopDetector:
         # distance travelled when each session place was added, in order; it never decreases,
         # so the places too near to the query are always a suffix of the session
         self._session_travelled: list[float] = []
+        self._place_of_keyframe: dict[int, int] = {}  # session keyframe id -> its place
         self._warmup: list[tuple[RawCubes, PlaceInfo, float, bool]] = []
         self._travelled = 0.0
         self._last_position: np.ndarray | None = None
@@ -226,9 +227,8 @@ class LoopDetector:
 
     def join(self, proposal: LoopProposal) -> None:
         """Make the two places of a loop the caller accepted one (with `links_from_decisions`
-        off). The query's place is its keyframe's: keyframe ids must count places from 0, as a
-        SLAM run's do."""
-        self._join_places(self.prior_places + proposal.query_id, proposal.match_place)
+        off). The query's place is its keyframe's (`place_of`)."""
+        self._join_places(self.place_of(proposal.query_id), proposal.match_place)
 
     @property
     def encoder(self) -> Encoder:
@@ -395,6 +395,7 @@ class LoopDetector:
         self.prior_places = prior
         self._recognizer = Recognizer(self.vpr, database)
         self._session_travelled = travelled
+        self._place_of_keyframe = {database.places[i].frame_id: i for i in range(prior, len(database))}
         self._travelled = float(arrays["travelled"])
         last = np.asarray(arrays["last_position"], np.float64)
         self._last_position = last.copy() if np.isfinite(last).all() else None
@@ -477,7 +478,21 @@ class LoopDetector:
         self._break_pending = False
         place = self.database.add(codes, info)[0]
         self._session_travelled.append(self._travelled if travelled is None else travelled)
+        self._place_of_keyframe[info.frame_id] = place
         return place
+
+    def place_of(self, keyframe_id: int) -> int:
+        """The database place of one of this session's keyframes (a keyframe that skipped
+        recognition, `skip`, has none: places and keyframes then no longer count alike)."""
+        try:
+            return self._place_of_keyframe[keyframe_id]
+        except KeyError:
+            raise ValueError(f"keyframe {keyframe_id} is not one of this session's places") from None
+
+    def skip(self, position: np.ndarray | None = None) -> None:
+        """A keyframe handled without recognition (a run that fell behind its sensor): it becomes
+        no place and proposes nothing, but the distance it moved still counts."""
+        self._advance(position)
 
     def _excluded(self) -> np.ndarray:
         """Session places too recent in keyframes or in travelled distance to be loop candidates."""

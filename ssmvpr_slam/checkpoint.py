@@ -38,7 +38,7 @@ import logging
 import os
 import shutil
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -136,7 +136,8 @@ def _write_version(
         written=time.strftime("%Y-%m-%dT%H:%M:%S"), **asdict(meta), frames_seen=partial.frames_seen,
         frames_skipped=dict(partial.frames_skipped), rear_keyframes=partial.rear_keyframes,
         seconds=partial.ending.seconds, keyframes=len(partial.keyframes),
-        timings=[dict(r) for r in partial.timings], loops=[_loop_dict(r) for r in partial.loops],
+        timings=[dict(r) for r in partial.timings], loops=_loop_dicts(partial),
+        unapplied_loops=[index for index, _ in partial.unapplied_registrations],
         config_sha256=hashlib.sha256((folder / "config.yaml").read_bytes()).hexdigest(),
     )  # fmt: skip
     # allow_nan: a loop record's scores may be NaN (a proposal with no sequence score)
@@ -230,6 +231,14 @@ def _keyframe_arrays(result: RunResult) -> dict[str, np.ndarray]:
         "rear_image_full_size": np.array([full_size(k.rear_image) for k in kfs], np.int64).reshape(n, 2),
         "has_thumbnail": np.array([k.thumbnail is not None for k in kfs], bool),
     }
+
+
+def _loop_dicts(partial: RunResult) -> list[dict[str, Any]]:
+    """The loop records; a loop registered but not applied yet (`unapplied_loops`) with its
+    registration, which a resume applies when it falls due."""
+    unapplied = dict(partial.unapplied_registrations)
+    return [_loop_dict(replace(r, registration=unapplied[i]) if i in unapplied else r)
+            for i, r in enumerate(partial.loops)]  # fmt: skip
 
 
 def _loop_dict(record: LoopRecord) -> dict[str, Any]:

@@ -14,6 +14,7 @@ import json
 import math
 import zipfile
 import zlib
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -63,6 +64,7 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
     _check_config(folder, record, config_text, database)
     prior_places = _prior_places(folder / "detector.npz", detector_state, len(database))
     _check_loops(folder / META, loops, n, prior_places, tolerance)
+    loops, unapplied = _split_unapplied(folder / META, loops, record.unapplied_loops)
     for info in database.places[prior_places:]:  # the session's places: the poses are the checkpoint's, not the run's
         info.extra.pop("map_pose", None)
         info.extra.pop("gt_pose", None)
@@ -81,6 +83,7 @@ def load_checkpoint(path: str | Path) -> Checkpoint:
         ending=StreamEnd(interrupted=True, seconds=record.seconds),
         database=database,
         session_places={database.places[i].frame_id: i for i in range(prior_places, len(database))},
+        unapplied_registrations=unapplied,
     )
     return Checkpoint(folder, run_folder, meta, result, detector_state, config_text)
 
@@ -273,6 +276,25 @@ def _check_loops(path: Path, loops: tuple[LoopRecord, ...], n: int, prior_places
             check_sigmas("sigmas", reg.sigmas)
         except ValueError as exc:
             raise CheckpointError(f"{where}: {exc}") from None
+
+
+def _split_unapplied(
+    path: Path, loops: tuple[LoopRecord, ...], indices: list[int]
+) -> tuple[tuple[LoopRecord, ...], tuple[tuple[int, LoopRegistration], ...]]:
+    """The records as the running system held them (an unapplied loop without its registration)
+    and the unapplied registrations: accepted proposals, no factor yet, in order."""
+    if indices != sorted(set(indices)):
+        raise CheckpointError(f"{path}: unapplied_loops must be increasing loop indices, got {indices}")
+    unapplied = []
+    for i in indices:
+        if i >= len(loops):
+            raise CheckpointError(f"{path}: unapplied_loops names loops[{i}], there are {len(loops)}")
+        record = loops[i]
+        if not record.proposal.accepted or record.registration is None or record.factor_handle is not None:
+            raise CheckpointError(f"{path}: loops[{i}] is not a registered loop waiting to be applied")
+        unapplied.append((i, record.registration))
+    held = tuple(replace(r, registration=None) if i in set(indices) else r for i, r in enumerate(loops))
+    return held, tuple(unapplied)
 
 
 def _read_bytes(path: Path) -> bytes:

@@ -45,6 +45,8 @@ class CheckpointRecord(BaseModel):
     keyframes: NonNegativeInt
     timings: list[StageSeconds]  # one row of seconds per stage a keyframe, the same stages in each
     loops: list[dict[str, Any]]  # LoopRecord fields, checked against the keyframes by the reader
+    # loops[i] registered but not applied yet (pipeline.registration_lag_keyframes): a resume applies them
+    unapplied_loops: list[NonNegativeInt] = []
     config_sha256: str | None = None  # of config.yaml beside it; absent in records of older builds
 
 
@@ -55,6 +57,7 @@ _WHAT = {
     "rear_keyframes": "a whole number >= 0", "seconds": "a number >= 0",
     "frames_skipped": "an object of whole numbers >= 0", "timings": "a list of objects (seconds per stage)",
     "loops": "a list of objects", "config_sha256": "a hex digest or null",
+    "unapplied_loops": "a list of loop indices",
 }  # fmt: skip
 
 

@@ -32,8 +32,9 @@ def restore_system(system: SlamSystem, partial: RunResult, detector_state: dict[
     """Continue a fresh `system` from a checkpoint (its `partial_result` and `detector_state`).
 
     The pose graph is rebuilt by repeating the original calls in their order (each keyframe,
-    its loop factor, one iSAM2 step), so it is the graph the run had; the odometry comes back
-    by `replay_frames`."""
+    the loop factors that fell due at it, one iSAM2 step), so it is the graph the run had; the
+    loops registered but not yet due go back to the registration queue; the odometry comes
+    back by `replay_frames`."""
     if system.state.frames_seen or system.state.keyframes or system.finished:
         raise RuntimeError("restore_system: only a fresh system can be restored")
     if partial.database is None:
@@ -43,20 +44,24 @@ def restore_system(system: SlamSystem, partial: RunResult, detector_state: dict[
     system.state = RunState([], [], partial.frames_seen, Counter(partial.frames_skipped), partial.rear_keyframes,
                             StageTimes(rows))  # fmt: skip
     system.front_counts = FrontCounts(partial.frames_seen, Counter(partial.frames_skipped), len(partial.keyframes))
-    loops: dict[int, list[LoopRecord]] = {}
+    lag = system.registrations.lag
+    made: dict[int, list[LoopRecord]] = {}  # by the keyframe that proposed them
+    due: dict[int, list[LoopRecord]] = {}  # factors, by the keyframe whose step added them
     for record in partial.loops:
-        loops.setdefault(record.proposal.query_id, []).append(record)
+        made.setdefault(record.proposal.query_id, []).append(record)
+        if record.factor_handle is not None:
+            due.setdefault(record.proposal.query_id + lag, []).append(record)
     for kf in partial.keyframes:
         system.state.keyframes.append(kf)
         system.graph.add_keyframe(kf.id, kf.odom_pose)
-        for record in loops.get(kf.id, []):
-            if record.factor_handle is not None:
-                restored = system.add_loop_factor(replace(record, factor_handle=None))
-                if restored.factor_handle != record.factor_handle:
-                    raise ValueError(f"restore: keyframe {kf.id}'s loop factor came back as handle "
-                                     f"{restored.factor_handle}, the checkpoint says {record.factor_handle}")  # fmt: skip
-            system.state.loops.append(record)
+        system.state.loops.extend(made.get(kf.id, []))
+        for record in due.get(kf.id, []):
+            restored = system.add_loop_factor(replace(record, factor_handle=None))
+            if restored.factor_handle != record.factor_handle:
+                raise ValueError(f"restore: keyframe {kf.id}'s loop factor came back as handle "
+                                 f"{restored.factor_handle}, the checkpoint says {record.factor_handle}")  # fmt: skip
         system.graph.update()
+    system.registrations.restore(system.state.loops, partial.unapplied_registrations)
     system.recoveries_told = len(system.graph.recoveries)  # warned about when the run first met them
 
 

@@ -425,6 +425,20 @@ def run(
     frames: Annotated[
         int | None, typer.Option(help="Stop after this many frames of the log (pipeline.max_frames).")
     ] = None,
+    realtime: Annotated[
+        bool,
+        typer.Option(
+            "--realtime",
+            help="Play the log at its recorded rate; keyframes too late skip recognition "
+            "(pipeline.realtime; the lag and what was skipped are reported).",
+        ),
+    ] = False,  # fmt: skip
+    rate: Annotated[
+        float | None,
+        typer.Option(
+            "--rate", help="With --realtime: play at this many times the recorded rate (pipeline.realtime_rate)."
+        ),
+    ] = None,  # fmt: skip
     resume: Annotated[
         Path | None,
         typer.Option(
@@ -444,11 +458,19 @@ def run(
     if resume is not None:
         _resume(log, resume, weights, device, {"--config": config, "--odometry": odometry, "--map": map_dir,
                                                 "--no-lidar-loops": no_lidar_loops or None, "--out": out,
-                                                "--frames": frames, "--pose-role": pose_role})  # fmt: skip
+                                                "--frames": frames, "--pose-role": pose_role,
+                                                "--realtime": realtime or None, "--rate": rate})  # fmt: skip
         return
+    if rate is not None and not realtime:
+        from ssmvpr_slam.errors import OptionError
+
+        raise OptionError("--rate sets the pace of --realtime; add --realtime")
     cfg = _config(config, weights, device, out)
     if frames is not None:
         cfg.pipeline = _validated_update(cfg.pipeline, {"max_frames": frames})
+    if realtime:
+        live = {"realtime": True} if rate is None else {"realtime": True, "realtime_rate": rate}
+        cfg.pipeline = _validated_update(cfg.pipeline, live)
     if odometry is not None:
         cfg.frontend.odometry.kind = _odometry_kind(odometry)  # type: ignore[assignment]
     if pose_role is not None:

@@ -97,6 +97,25 @@ class PipelineConfig(BaseModel):
     overlap_queue_keyframes: int = Field(
         default=2, ge=1, description="With overlap: keyframes the front end may run ahead of the back end."
     )
+    registration_lag_keyframes: int = Field(
+        default=3, ge=0, description="A loop accepted at keyframe k enters the graph at keyframe k + this, "
+        "registered meanwhile (ssmvpr_slam/loop_registrations.py): fixed in keyframes, so the result does not "
+        "depend on the machine's timing. 0: at its own keyframe, inline."
+    )  # fmt: skip
+    realtime: bool = Field(
+        default=False, description="Play the log at its recorded rate (`run --realtime`): a keyframe that reaches "
+        "recognition more than realtime_max_lag_s after its frame was due is handled by odometry alone, counted."
+    )  # fmt: skip
+    realtime_rate: float = Field(default=1.0, gt=0.0, allow_inf_nan=False,
+                                 description="Real time: play the log at this many times its recorded rate.")  # fmt: skip
+    realtime_max_lag_s: float = Field(
+        default=1.0, ge=0.0, allow_inf_nan=False,
+        description="Real time: a keyframe later than this (from its frame being due) skips recognition.",
+    )  # fmt: skip
+    registration_worker: bool = Field(
+        default=True, description="Register accepted loops in a worker thread while later keyframes are "
+        "recognised (the same results as false, which registers them inline when accepted)."
+    )  # fmt: skip
     release_heap_every_keyframes: int = Field(
         default=25,
         ge=0,

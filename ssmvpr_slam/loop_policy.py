@@ -36,11 +36,18 @@ class LoopPolicy:
         self.prior_map = prior_map
 
     def register(
-        self, kf: Keyframe, proposal: LoopProposal, keyframes: Sequence[Keyframe], loops: Sequence[LoopRecord]
+        self,
+        kf: Keyframe,
+        proposal: LoopProposal,
+        keyframes: Sequence[Keyframe],
+        loops: Sequence[LoopRecord],
+        travelled_since: float,
     ) -> LoopRegistration:
         """ICP against a local map around the match when both have scans, else a place prior;
         none when the odometry puts the two keyframes too far apart (`odometry_gate`) or a
-        recent ICP loop of the same revisit spaces this one out."""
+        recent ICP loop of the same revisit spaces this one out. travelled_since: the metres
+        driven from the matched place to `kf`, taken when the proposal was made (a worker
+        registers it while later keyframes move the detector on)."""
         if proposal.prior_map:
             return self._register_to_map(kf, proposal, keyframes, loops)
         match = keyframes[proposal.match_id]
@@ -52,9 +59,8 @@ class LoopPolicy:
                 return self.registrar.turned(proposal.yaw_guess, odometry_yaw)
         if self.odometry_kind in gate.sources:
             offset = float(np.linalg.norm(kf.odom_pose[:3, 3] - match.odom_pose[:3, 3]))
-            travelled = self.detector.travelled_since(proposal.match_place)
-            if offset > gate.limit(travelled):
-                return self.registrar.implausible(offset, travelled)
+            if offset > gate.limit(travelled_since):
+                return self.registrar.implausible(offset, travelled_since)
         if kf.scan is not None and match.scan is not None:
             lidar = self.registration_config.lidar
             recent = self._carried(keyframes, loops, kf, match, lidar.loop_spacing_keyframes - 1)
@@ -127,11 +133,11 @@ class LoopPolicy:
             match_pose, match_travelled = pose, math.nan
         else:
             match_pose = kfs[proposal.match_id].odom_pose
-            match_travelled = detector.travelled_at(detector.prior_places + proposal.match_id)
+            match_travelled = detector.travelled_at(detector.place_of(proposal.match_id))
         return LoopPose(
             proposal.query_id, proposal.match_place if proposal.prior_map else proposal.match_id,
             kfs[proposal.query_id].odom_pose, match_pose, T_mq,
-            detector.travelled_at(detector.prior_places + proposal.query_id), match_travelled,
+            detector.travelled_at(detector.place_of(proposal.query_id)), match_travelled,
         )  # fmt: skip
 
     def _carried(

@@ -26,7 +26,7 @@ import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from frontend.errors import FrontendInputError
 from frontend.frame import Frame
@@ -37,6 +37,7 @@ from ssmvpr_slam.backend.pose_graph import PoseGraph
 from ssmvpr_slam.config import SlamConfig
 from ssmvpr_slam.heap import HeapTrimmer
 from ssmvpr_slam.prior_map import PriorMap
+from ssmvpr_slam.realtime import SensorClock
 from ssmvpr_slam.run_result import RunResult, StreamEnd
 from ssmvpr_slam.run_state import KeyframeInput, RunState
 from ssmvpr_slam.system import SlamSystem
@@ -86,6 +87,8 @@ class SlamPipeline:
         self.ending = StreamEnd()
         self.step_error: Exception | None = None  # the exception that ended the loop, for the caller
         self.heap = HeapTrimmer(self.config.pipeline.release_heap_every_keyframes)
+        # `run --realtime`: frames at their recorded rate, late keyframes without recognition
+        self.clock: SensorClock | None = None
 
     @classmethod
     def build(
@@ -130,7 +133,7 @@ class SlamPipeline:
         on_frame is called after each frame (with overlap: after each keyframe, and once at the
         end), in the calling thread."""
         start = time.perf_counter()
-        iterator = iter(frames)
+        iterator = iter(frames) if self.clock is None else self.clock.paced(frames)
         with self.stop.installed():
             if self.config.pipeline.overlap:
                 source_error = self._run_overlapped(iterator, on_frame)
@@ -159,7 +162,7 @@ class SlamPipeline:
             if self.stop.requested:  # requested while the source was producing this frame
                 break
             try:
-                self.system.process(frame)
+                self._process(frame)
             except Exception as exc:  # keep everything processed so far; the caller re-raises
                 self.step_error = exc
                 _log_failure(f"frame {frame.index}", exc)
@@ -216,7 +219,7 @@ class SlamPipeline:
                     end = message
                     break
                 try:
-                    self.system.back(message)
+                    self._back(message)
                 except Exception as exc:  # keep everything processed so far; the caller re-raises
                     self.step_error = exc
                     _log_failure(f"keyframe {message.keyframe.id} (frame {message.keyframe.frame_index})", exc)
@@ -235,14 +238,39 @@ class SlamPipeline:
             on_frame(self.state)
         return end.source_error
 
+    def _process(self, frame: Frame) -> None:
+        """One frame through both halves (`SlamSystem.process`, with the real-time rule)."""
+        if self.clock is None:
+            self.system.process(frame)
+            return
+        item = None
+        try:
+            item = self.system.front(frame)
+        finally:
+            if item is None:  # a frame that is no keyframe (or failed) still counts as seen
+                self.system.sync_front_counts()
+        if item is not None:
+            self._back(item)
+
+    def _back(self, item: KeyframeInput) -> None:
+        """The back half of a keyframe; in real time, by odometry alone when it came too late."""
+        if self.clock is None:
+            self.system.back(item)
+            return
+        late = self.clock.behind(item.keyframe.frame_index)
+        self.system.back(item, recognise=not late)
+        self.clock.done(item.keyframe.frame_index, late)
+
     def _after_step(self, on_frame: Callable[[RunState], None] | None) -> None:
         self.heap.after(len(self.state.keyframes))
         if on_frame is not None:
             on_frame(self.state)
 
     def finish(self) -> RunResult:
-        """The system's result, with how the stream ended (optimises once; see SlamSystem.finish)."""
-        return self.system.finish(self.ending)
+        """The system's result, with how the stream ended (optimises once; see SlamSystem.finish)
+        and, in real time, how it kept pace."""
+        result = self.system.finish(self.ending)
+        return result if self.clock is None else replace(result, realtime=self.clock.stats())
 
 
 def _log_failure(what: str, error: Exception) -> None:

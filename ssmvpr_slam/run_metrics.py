@@ -140,6 +140,21 @@ class PriorMapLoops(_Part):
     ate_rmse: float | None = None  # the map's own error, which a session corrected onto it inherits
 
 
+class Realtime(_Part):
+    """`run --realtime`: the log played at `rate` times its recorded rate; a keyframe later than
+    `max_lag_s` skipped recognition (odometry alone). Lag: from a keyframe's frame being due to
+    the end of its back-end step."""
+
+    rate: float
+    max_lag_s: float
+    keyframes: NonNegativeInt
+    keyframes_skipped: NonNegativeInt
+    lag_median_s: float | None
+    lag_p99_s: float | None
+    lag_max_s: float | None
+    kept_up: bool  # no keyframe skipped recognition
+
+
 class ResumedFrom(_Part):
     checkpoint: str
     frames: NonNegativeInt
@@ -177,6 +192,7 @@ class RunMetrics(_Part):
     latency_per_keyframe: dict[str, StageLatency]
     odometry: dict[str, Any]  # the odometry's own counters (updates, skips, notes): each kind has its own
     pose_graph_recoveries: list[str]
+    realtime: Realtime | None = None  # `run --realtime` only
     # its inputs (`RunInputs`, runner.run_description)
     log: str
     source: str

@@ -18,6 +18,7 @@ from loopclosure.detector import LoopProposal
 from ssmvpr_slam.backend.kept_scan import KeptScan
 from ssmvpr_slam.backend.loop_registration import LoopRegistration
 from ssmvpr_slam.backend.two_view import ReducedImage
+from ssmvpr_slam.realtime import RealtimeStats
 
 if TYPE_CHECKING:  # only for annotations: the result module stays light to import
     from loopclosure.database import PlaceDatabase
@@ -139,7 +140,11 @@ class RunResult:
     session_places: Mapping[int, int] = field(default_factory=dict)  # keyframe id -> database place
     prior_map: PriorMap | None = None  # as loaded; never changed by the run
     graph_recoveries: tuple[str, ...] = ()  # iSAM2 steps the pose graph had to work around (PoseGraph.recoveries)
+    # a checkpoint's view only: registrations of loops made in the last `registration_lag_keyframes`
+    # keyframes, not applied yet (their record index in `loops`, the registration)
+    unapplied_registrations: tuple[tuple[int, LoopRegistration], ...] = ()
     keyframes_judged: int = 0  # keyframes whose winner the loop decision measured (LoopDetector.keyframes_judged)
+    realtime: RealtimeStats | None = None  # `run --realtime`: how the run kept pace with its log
     too_short_to_decide: str | None = None  # why none was, when none was (LoopDetector.too_short_to_decide)
 
     @property

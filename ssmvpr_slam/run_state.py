@@ -26,6 +26,7 @@ class RunState:
     frames_skipped: Counter[str] = field(default_factory=Counter)
     rear_keyframes: int = 0  # keyframes queried with a rear image too
     times: StageTimes = field(default_factory=StageTimes)
+    recognition_skipped: list[int] = field(default_factory=list)  # keyframes a live run handled by odometry alone
 
 
 @dataclass

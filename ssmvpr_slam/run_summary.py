@@ -57,4 +57,15 @@ def summary_table(metrics: RunMetrics, title: str = "ssmvpr-slam run") -> Table:
     total = metrics.latency_per_keyframe.get("total")
     if total is not None:
         table.add_row("latency per keyframe (median)", f"{1000 * total.median_s:.0f} ms")
+    live = metrics.realtime
+    if live is not None:  # `--realtime`: did the run keep pace with its log, and what did it leave out
+        table.add_row(
+            f"real time x{live.rate:g}: lag median / p99", f"{_ms(live.lag_median_s)} / {_ms(live.lag_p99_s)}"
+        )
+        table.add_row("keyframes without recognition (too late)", f"{live.keyframes_skipped} of {live.keyframes}"
+                      + ("" if live.kept_up else f": lag over {live.max_lag_s:g} s"))  # fmt: skip
     return table
+
+
+def _ms(seconds: float | None) -> str:
+    return "n/a" if seconds is None else f"{1000 * seconds:.0f} ms"

@@ -36,6 +36,7 @@ from ssmvpr_slam.config import SlamConfig
 from ssmvpr_slam.evaluation.run_report import RunReport, evaluate
 from ssmvpr_slam.pipeline import SlamPipeline
 from ssmvpr_slam.prior_map import PriorMap
+from ssmvpr_slam.realtime import RealtimeStats, SensorClock
 from ssmvpr_slam.run_folder import RunFolder, staged_results_dir
 from ssmvpr_slam.run_metrics import ResumedFrom, RunInputs, RunMetrics
 from ssmvpr_slam.run_result import RunResult
@@ -62,6 +63,8 @@ def run_log(
     config.frontend.odometry = odometry
     prior = PriorMap.load(prior_map, config.vpr) if prior_map is not None else None  # before the slow part
     pipeline = SlamPipeline(build_system(config, prior, backbone))
+    if config.pipeline.realtime:
+        pipeline.clock = SensorClock(config.pipeline.realtime_rate, config.pipeline.realtime_max_lag_s)
     frames = islice(source, config.pipeline.max_frames)  # a resume's replay counts towards the limit
     if resume is not None:
         restore_from_checkpoint(pipeline, resume, log, frames, console)
@@ -77,6 +80,8 @@ def run_log(
     print_summary(console, metrics, result, folder, name)
     if stopped:
         console.print(f"resume it with: ssmvpr-slam run {escape(str(log))} --resume {escape(str(folder))}")
+    if result.realtime is not None and not result.realtime.kept_up:
+        warn_fell_behind(console, result.realtime)
     if result.too_short_to_decide is not None:
         warn_too_short_to_decide(console, result.too_short_to_decide)
     raise_if_failed(pipeline, folder)
@@ -182,6 +187,16 @@ def print_summary(console: Console, metrics: RunMetrics, result: RunResult, fold
     if result.ending.interrupted:
         console.print("[yellow]stopped early on request: results cover the frames processed so far[/yellow]")
     console.print(f"results in [bold]{escape(str(folder))}[/bold]")
+
+
+def warn_fell_behind(console: Console, live: RealtimeStats) -> None:
+    """A real-time run that left keyframes out: how many, and what to do about it."""
+    console.print(
+        f"[yellow]warning: the run fell behind its log played at x{live.rate:g}: {live.keyframes_skipped} of "
+        f"{live.keyframes} keyframes came more than {live.max_lag_s:g} s late and skipped recognition (lag p99 "
+        f"{live.lag_p99_s:.1f} s); play it slower (--rate), use a lighter preset (-c fast), or allow more lag "
+        "(pipeline.realtime_max_lag_s)[/yellow]"
+    )
 
 
 def warn_too_short_to_decide(console: Console, why: str) -> None:

@@ -16,6 +16,7 @@ pose graph). The pipeline may run the front half in a thread of its own, ahead o
 from __future__ import annotations
 
 import logging
+import math
 import time
 from collections import Counter
 from collections.abc import Iterator, Sequence
@@ -29,13 +30,13 @@ from frontend.keyframes import KeyframeSelector
 from frontend.odometry.base import Odometry
 from loopclosure.backbone import Backbone
 from loopclosure.database import PlaceDatabase
-from loopclosure.detector import LoopDetector, LoopProposal
+from loopclosure.detector import DetectorTimings, LoopDetector
 from loopclosure.encoder import Encoder
-from ssmvpr_slam.backend.loop_registration import LoopRegistration
 from ssmvpr_slam.backend.pose_graph import PoseGraph, PoseGraphError
 from ssmvpr_slam.config import SlamConfig
 from ssmvpr_slam.kept_keyframe import keep_keyframe
 from ssmvpr_slam.loop_policy import LoopPolicy
+from ssmvpr_slam.loop_registrations import AppliedRegistration, LoopRegistrations
 from ssmvpr_slam.prior_map import PriorMap
 from ssmvpr_slam.result_assembly import assemble_result, odometry_stats_of
 from ssmvpr_slam.run_result import (
@@ -74,6 +75,10 @@ class SlamSystem:
             self.detector.mark_segments([*prior_map.session_starts(), len(prior_map)])
         self.detector.links_from_decisions = False  # a loop's places become one once it is registered (`back`)
         self.loop_policy = LoopPolicy(config, self.detector, prior_map)
+        pipeline = config.pipeline
+        self.registrations = LoopRegistrations(
+            self.loop_policy, pipeline.registration_lag_keyframes, pipeline.registration_worker
+        )
         self.graph = (
             graph
             if graph is not None
@@ -135,8 +140,12 @@ class SlamSystem:
         self.state.frames_seen = self.front_counts.frames_seen
         self.state.frames_skipped = Counter(self.front_counts.frames_skipped)
 
-    def back(self, item: KeyframeInput) -> None:
-        """Recognise, register and graph a keyframe from `front` (in the order they came)."""
+    def back(self, item: KeyframeInput, recognise: bool = True) -> None:
+        """Recognise, register and graph a keyframe from `front` (in the order they came).
+
+        recognise False: the keyframe enters the graph by its odometry alone, without the
+        backbone, a proposal or a place (a live run that fell behind its sensor catches up so);
+        loops registered earlier still fall due at it."""
         if self._result is not None:
             raise RuntimeError("SlamSystem.process: the run is finished (finish() was called)")
         kf = item.keyframe
@@ -149,17 +158,22 @@ class SlamSystem:
         self.state.keyframes.append(kf)
         t0 = time.perf_counter()
         self.graph.add_keyframe(kf.id, kf.odom_pose)
-        proposal = self.detector.process(item.image, kf.id, kf.odom_pose[:3, 3], kf.timestamp, item.rear_image)
-        t_reg = 0.0
+        proposal = None
+        if recognise:
+            proposal = self.detector.process(item.image, kf.id, kf.odom_pose[:3, 3], kf.timestamp, item.rear_image)
+        else:
+            self.detector.skip(kf.odom_pose[:3, 3])
+            self.detector.timings = DetectorTimings()
+            self.state.recognition_skipped.append(kf.id)
+        t1 = time.perf_counter()
         if proposal is not None:
             self.state.loops.append(LoopRecord(proposal))  # recorded even if registration fails
-            if proposal.accepted:
-                t1 = time.perf_counter()
-                registration = self._register(kf, proposal)
-                t_reg = time.perf_counter() - t1
-                self.state.loops[-1] = self.add_loop_factor(LoopRecord(proposal, registration))
-                if registration.accepted or registration.method == "spaced":
-                    self.detector.join(proposal)
+            if proposal.accepted:  # registered now or in the worker, applied `registration_lag_keyframes` on
+                travelled = math.nan if proposal.prior_map else self.detector.travelled_since(proposal.match_place)
+                self.registrations.submit(len(self.state.loops) - 1, kf, proposal, self.state.keyframes,
+                                          self.state.loops, travelled)  # fmt: skip
+        worked = sum(self._apply(done) for done in self.registrations.due(kf.id))
+        t_reg = time.perf_counter() - t1
         t2 = time.perf_counter()
         self._update_graph(kf)
         t_graph = time.perf_counter() - t2
@@ -168,9 +182,17 @@ class SlamSystem:
             "backbone": timings.backbone, "database_query": timings.database_query,
             "spatial_matching": timings.spatial_matching, "sequence_matching": timings.sequence_matching,
             "gate": timings.gate,
-            "registration": t_reg, "isam2_update": t_graph, "total": time.perf_counter() - t0,
-            "front_end": item.front_seconds,
+            "registration": t_reg, "registration_work": worked, "isam2_update": t_graph,
+            "total": time.perf_counter() - t0, "front_end": item.front_seconds,
         })  # fmt: skip
+
+    def _apply(self, done: AppliedRegistration) -> float:
+        """A registration that fell due: its factor into the graph, its places joined; the
+        seconds it took to compute."""
+        self.state.loops[done.index] = self.add_loop_factor(LoopRecord(done.proposal, done.registration))
+        if done.registration.accepted or done.registration.method == "spaced":
+            self.detector.join(done.proposal)
+        return done.seconds
 
     def _update_graph(self, kf: Keyframe) -> None:
         """One iSAM2 step (see `_graph_step`)."""
@@ -220,10 +242,6 @@ class SlamSystem:
             handle = self.graph.add_loop(proposal.match_id, proposal.query_id, reg.T_mq, sigmas=reg.sigmas)
         return replace(record, factor_handle=handle)
 
-    def _register(self, kf: Keyframe, proposal: LoopProposal) -> LoopRegistration:
-        """How the accepted proposal becomes a registration: `ssmvpr_slam.loop_policy`."""
-        return self.loop_policy.register(kf, proposal, self.state.keyframes, self.state.loops)
-
     # ---- the end --------------------------------------------------------------------------
     @property
     def finished(self) -> bool:
@@ -239,12 +257,18 @@ class SlamSystem:
             try:
                 self._result = self._final_result(ending or StreamEnd())
             finally:
+                self.registrations.close()
                 close = getattr(self.odometry, "close", None)
                 if close is not None:
                     close()
         return self._result
 
     def _final_result(self, ending: StreamEnd) -> RunResult:
+        remaining = self.registrations.remaining()  # loops made in the last `lag` keyframes
+        if remaining and self.state.keyframes:
+            for done in remaining:
+                self._apply(done)
+            self._update_graph(self.state.keyframes[-1])
         optimised = self.graph.finalize() if self.state.keyframes else {}
         self._tell_recoveries()  # a final robust pass that failed or could not run
         return self._result_with(optimised, set(self.graph.loop_handles), ending)
@@ -254,7 +278,8 @@ class SlamSystem:
         view: the system goes on afterwards, unchanged). Its `database` is the live one, which
         the next keyframe extends: write it out before processing on."""
         optimised = self.graph.optimized_poses() if self.state.keyframes else {}
-        return self._result_with(optimised, set(self.graph.loop_handles), ending, odometry_stats=False)
+        partial = self._result_with(optimised, set(self.graph.loop_handles), ending, odometry_stats=False)
+        return replace(partial, unapplied_registrations=tuple(self.registrations.unapplied()))
 
     def _result_with(self, by_id: dict[int, np.ndarray], final: set[int], ending: StreamEnd,
                      odometry_stats: bool = True) -> RunResult:  # fmt: skip

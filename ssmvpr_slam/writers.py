@@ -176,6 +176,7 @@ def run_metrics(result: RunResult) -> dict[str, Any]:
         "latency_per_keyframe": result.latency(),
         "odometry": dict(result.odometry_stats),
         "pose_graph_recoveries": list(result.graph_recoveries),
+        **({} if result.realtime is None else {"realtime": result.realtime.to_dict()}),
     }
 
 

@@ -330,6 +330,9 @@ def test_a_lidar_run_with_spaced_and_gated_loops_resumes_as_if_never_killed(
 ) -> None:
     killed = _kill(lidar_inputs, weights_path, LIDAR_KILL_AT_KEYFRAMES)
     cut = len(killed.checkpoint.result.keyframes)
+    # loops registered in the worker and not in the graph yet (pipeline.registration_lag_keyframes):
+    # the checkpoint keeps them, and the resume applies them when they fall due
+    assert killed.checkpoint.result.unapplied_registrations, "no loop was waiting to be applied at the cut"
     uninterrupted = _uninterrupted(lidar_inputs, weights_path, own_process=True)
     with open(uninterrupted / "loop_closures.csv", newline="") as f:
         rows = list(csv.DictReader(f))
