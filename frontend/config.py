@@ -144,11 +144,12 @@ class KissIcpConfig(_Model):
     max_num_iterations: int = Field(500, ge=1, description="ICP iterations per scan at most")
     convergence_criterion: float = Field(1e-4, gt=0.0, description="ICP stops once a pose update's norm is below this")
     max_num_threads: int = Field(
-        0,
+        4,
         ge=0,
-        description="0 = all cores. kiss-icp fixes one cap per process at its first registration "
+        description="Threads of its registration, at most the cores (0 = all cores): ICP on one scan keeps a few "
+        "busy, and more only wait. kiss-icp fixes one cap per process at its first registration "
         "(frontend/odometry/kiss_threads.py): where the odometry runs in the main process (pipeline.overlap "
-        "false), the first built of this and backend.registration.lidar.max_threads counts for both",
+        "off), the first built of this and backend.registration.lidar.max_threads counts for both",
     )
     fixed_threshold: float | None = Field(
         None, gt=0.0, description="m; constant correspondence threshold sigma; None: kiss-icp's adaptive one"

@@ -23,11 +23,11 @@ _first: tuple[int, str] | None = None  # (cap in threads, the setting that asked
 
 
 def thread_cap(requested: int) -> int:
-    """The threads a `max_num_threads` value means (0: every core this process may run on, as TBB
-    counts them: a container's CPU set, not the machine's cores)."""
-    if requested > 0:
-        return requested
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    """The threads a `max_num_threads` value means: at most every core this process may run on,
+    as TBB counts them (a container's CPU set, not the machine's cores); 0 is all of them. TBB
+    starts no more worker threads than those cores, whatever cap is asked for."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return min(requested, cores) if requested > 0 else cores
 
 
 def claim_kiss_icp_threads(requested: int, setting: str) -> int:
