@@ -492,6 +492,7 @@ class LoopDetector:
     def skip(self, position: np.ndarray | None = None) -> None:
         """A keyframe handled without recognition (a run that fell behind its sensor): it becomes
         no place and proposes nothing, but the distance it moved still counts."""
+        self.timings = DetectorTimings()
         self._advance(position)
 
     def _excluded(self) -> np.ndarray:

@@ -287,11 +287,11 @@ class Checkpointer:
     def write(self) -> Path | None:
         """Write a checkpoint now (a stop request: the run is resumable from where it stopped),
         if the system can be resumed from one; None when it cannot (the PCA warm-up) or failed."""
-        state = self.system.detector_state()
-        if state is None:  # still in the PCA warm-up: nothing a resume could start from
+        if not self.system.detector.ready:  # still in the PCA warm-up: nothing a resume could start from
             return None
+        state = self.system.detector.state_arrays()  # `checkpoint_replay` puts a system back from it
         seconds = self._seconds_before + time.monotonic() - self._started
-        partial = self.system.partial_result(StreamEnd(interrupted=True, seconds=seconds))
+        partial = partial_result(self.system, StreamEnd(interrupted=True, seconds=seconds))
         self._keyframes_at_last = len(partial.keyframes)
         self._time_of_last = time.monotonic()
         try:
@@ -375,3 +375,12 @@ def check_log(checkpoint: Checkpoint, log: str | Path) -> None:
             f"{log}: not the log checkpoint {checkpoint.folder} was made from ({checkpoint.meta.log}); "
             "a resume must replay the same frames"
         )
+
+
+def partial_result(system: Any, ending: StreamEnd) -> RunResult:
+    """The run so far of `system` (a SlamSystem) with iSAM2's current estimate, without the final pass (a checkpoint's view:
+    the system goes on afterwards, unchanged), and the registrations not applied yet. Its
+    `database` is the live one, which the next keyframe extends: write it out before processing on."""
+    optimised = system.graph.optimized_poses() if system.state.keyframes else {}
+    partial = system.result_with(optimised, set(system.graph.loop_handles), ending, odometry_stats=False)
+    return replace(partial, unapplied_registrations=tuple(system.registrations.unapplied()))

@@ -29,7 +29,7 @@ from ssmvpr_slam.system import SlamSystem
 
 
 def restore_system(system: SlamSystem, partial: RunResult, detector_state: dict[str, np.ndarray]) -> None:
-    """Continue a fresh `system` from a checkpoint (its `partial_result` and `detector_state`).
+    """Continue a fresh `system` from a checkpoint (`checkpoint.partial_result` and the detector's state arrays).
 
     The pose graph is rebuilt by repeating the original calls in their order (each keyframe,
     the loop factors that fell due at it, one iSAM2 step), so it is the graph the run had; the

@@ -25,6 +25,7 @@ from ssmvpr_slam.backend.config import BackendConfig
 from ssmvpr_slam.errors import SlamError
 from ssmvpr_slam.evaluation.config import EvaluationConfig
 from ssmvpr_slam.map_config import MapConfig
+from ssmvpr_slam.pipeline_config import PipelineConfig
 from ssmvpr_slam.presets import PRESETS_DIR, available_presets
 
 
@@ -70,58 +71,6 @@ class ResultsConfig(BaseModel):
         default=300.0,
         gt=0,
         description="Write a checkpoint when this many seconds passed since the last (None: not by time).",
-    )
-
-
-class PipelineConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
-
-    use_lidar_for_loops: bool = Field(default=True, description="Register loops by ICP when scans exist.")
-    max_frames: int | None = Field(
-        default=None, ge=1, description="Stop after this many frames of the log (`run --frames`); None: all of it."
-    )
-    keyframe_image_pixels: int | None = Field(
-        default=76800, ge=1024,
-        description="A keyframe without a scan keeps grey copies of its camera images for two-view loop "
-        "registration, area-averaged to at most this many pixels (aspect kept; 76800 = 320 x 240) and held as PNG "
-        "bytes; None keeps them at full size. Keyframes with a scan register by ICP and keep no image; full colour "
-        "images are never kept.",
-    )  # fmt: skip
-    overlap: bool = Field(
-        default=False,
-        description="Run the source, odometry and keyframe selection in a thread of their own (run and demo put "
-        "kiss-icp in a process of its own: it keeps the GIL), alongside recognition, registration and iSAM2 (same "
-        "keyframes, loops and trajectory as false). Off by default: on a 2-core CPU every stage already uses both "
-        "cores, and it saved nothing with -c fast and 9 % with int8 (docs/slam_demo.md); try it where cores are free.",
-    )
-    overlap_queue_keyframes: int = Field(
-        default=2, ge=1, description="With overlap: keyframes the front end may run ahead of the back end."
-    )
-    registration_lag_keyframes: int = Field(
-        default=3, ge=0, description="A loop accepted at keyframe k enters the graph at keyframe k + this, "
-        "registered meanwhile (ssmvpr_slam/loop_registrations.py): fixed in keyframes, so the result does not "
-        "depend on the machine's timing. 0: at its own keyframe, inline."
-    )  # fmt: skip
-    realtime: bool = Field(
-        default=False, description="Play the log at its recorded rate (`run --realtime`): a keyframe that reaches "
-        "recognition more than realtime_max_lag_s after its frame was due is handled by odometry alone, counted."
-    )  # fmt: skip
-    realtime_rate: float = Field(default=1.0, gt=0.0, allow_inf_nan=False,
-                                 description="Real time: play the log at this many times its recorded rate.")  # fmt: skip
-    realtime_max_lag_s: float = Field(
-        default=1.0, ge=0.0, allow_inf_nan=False,
-        description="Real time: a keyframe later than this (from its frame being due) skips recognition.",
-    )  # fmt: skip
-    registration_worker: bool = Field(
-        default=True, description="Register accepted loops in a worker thread while later keyframes are "
-        "recognised (the same results as false, which registers them inline when accepted)."
-    )  # fmt: skip
-    release_heap_every_keyframes: int = Field(
-        default=25,
-        ge=0,
-        description="Hand the allocator's free pages back to the OS (glibc malloc_trim) every this many keyframes; "
-        "0 never. Without it a long run's memory grew about 1.2 MB per keyframe of memory it no longer used "
-        "(ssmvpr_slam/heap.py).",
     )
 
 

@@ -135,7 +135,7 @@ class SlamPipeline:
         start = time.perf_counter()
         iterator = iter(frames) if self.clock is None else self.clock.paced(frames)
         with self.stop.installed():
-            if self.config.pipeline.overlap:
+            if self.config.pipeline.overlapped:
                 source_error = self._run_overlapped(iterator, on_frame)
             else:
                 source_error = self._run_sequential(iterator, on_frame)

@@ -30,7 +30,7 @@ from frontend.keyframes import KeyframeSelector
 from frontend.odometry.base import Odometry
 from loopclosure.backbone import Backbone
 from loopclosure.database import PlaceDatabase
-from loopclosure.detector import DetectorTimings, LoopDetector
+from loopclosure.detector import LoopDetector
 from loopclosure.encoder import Encoder
 from ssmvpr_slam.backend.pose_graph import PoseGraph, PoseGraphError
 from ssmvpr_slam.config import SlamConfig
@@ -77,7 +77,7 @@ class SlamSystem:
         self.loop_policy = LoopPolicy(config, self.detector, prior_map)
         pipeline = config.pipeline
         self.registrations = LoopRegistrations(
-            self.loop_policy, pipeline.registration_lag_keyframes, pipeline.registration_worker
+            self.loop_policy, pipeline.registration_lag_keyframes, pipeline.registers_in_worker
         )
         self.graph = (
             graph
@@ -163,7 +163,6 @@ class SlamSystem:
             proposal = self.detector.process(item.image, kf.id, kf.odom_pose[:3, 3], kf.timestamp, item.rear_image)
         else:
             self.detector.skip(kf.odom_pose[:3, 3])
-            self.detector.timings = DetectorTimings()
             self.state.recognition_skipped.append(kf.id)
         t1 = time.perf_counter()
         if proposal is not None:
@@ -271,20 +270,12 @@ class SlamSystem:
             self._update_graph(self.state.keyframes[-1])
         optimised = self.graph.finalize() if self.state.keyframes else {}
         self._tell_recoveries()  # a final robust pass that failed or could not run
-        return self._result_with(optimised, set(self.graph.loop_handles), ending)
+        return self.result_with(optimised, set(self.graph.loop_handles), ending)
 
-    def partial_result(self, ending: StreamEnd) -> RunResult:
-        """The run so far with iSAM2's current estimate, without the final pass (a checkpoint's
-        view: the system goes on afterwards, unchanged). Its `database` is the live one, which
-        the next keyframe extends: write it out before processing on."""
-        optimised = self.graph.optimized_poses() if self.state.keyframes else {}
-        partial = self._result_with(optimised, set(self.graph.loop_handles), ending, odometry_stats=False)
-        return replace(partial, unapplied_registrations=tuple(self.registrations.unapplied()))
-
-    def _result_with(self, by_id: dict[int, np.ndarray], final: set[int], ending: StreamEnd,
-                     odometry_stats: bool = True) -> RunResult:  # fmt: skip
-        """odometry_stats: False while the front half may still be updating them (a checkpoint,
-        which does not save them)."""
+    def result_with(self, by_id: dict[int, np.ndarray], final: set[int], ending: StreamEnd,
+                    odometry_stats: bool = True) -> RunResult:  # fmt: skip
+        """The run's result with poses `by_id`. odometry_stats: False while the front half may
+        still be updating them (a checkpoint, which does not save them)."""
         self.detector.annotate_database()  # a map saved from this result seeds the next session's decisions
         recoveries = tuple(
             f"{self._frames_of(r.keyframes)}: {r.what}" if r.keyframes else r.what for r in self.graph.recoveries
@@ -292,12 +283,6 @@ class SlamSystem:
         stats = odometry_stats_of(self.odometry) if odometry_stats else {}
         return assemble_result(self.state, self.detector, self.graph, self.prior_map, by_id, final, ending, stats,
                                recoveries)  # fmt: skip
-
-    # ---- a checkpoint's view ------------------------------------------------------------------
-    def detector_state(self) -> dict[str, np.ndarray] | None:
-        """The detector's state as arrays, None while the PCA warm-up still buffers keyframes
-        (`ssmvpr_slam.checkpoint_replay` puts a system back from it)."""
-        return self.detector.state_arrays() if self.detector.ready else None
 
 
 def build_detector(config: SlamConfig, backbone: Backbone, database: PlaceDatabase | None = None) -> LoopDetector:

@@ -214,8 +214,8 @@ def _run(config: Any, frames: Any, backbone: Any, args: argparse.Namespace) -> t
         },
         "settings": {
             "odometry": args.odometry,
-            "overlap": config.pipeline.overlap,
-            "registration_worker": config.pipeline.registration_worker,
+            "overlap": config.pipeline.overlapped,
+            "registration_worker": config.pipeline.registers_in_worker,
             "registration_lag_keyframes": config.pipeline.registration_lag_keyframes,
             "precision": config.vpr.backbone.precision,
             "lidar_loops": config.pipeline.use_lidar_for_loops,

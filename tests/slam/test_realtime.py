@@ -76,7 +76,7 @@ class StubSystem:
     with recognition and a tenth of it without."""
 
     def __init__(self, time: FakeTime, cost: float) -> None:
-        self.config = SimpleNamespace(pipeline=SimpleNamespace(overlap=False, release_heap_every_keyframes=0))
+        self.config = SimpleNamespace(pipeline=SimpleNamespace(overlapped=False, release_heap_every_keyframes=0))
         self.state = RunState()
         self.time, self.cost = time, cost
         self.recognised: list[bool] = []
