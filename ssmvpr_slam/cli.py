@@ -10,6 +10,7 @@ their help. The logic of each command lives in its own module (`runner`, `optimi
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import functools
 import os
@@ -21,7 +22,7 @@ import sys
 # about 2x slower without this on the shared 2-core machine (docs/slam_demo.md). An explicit
 # OMP_WAIT_POLICY in the environment wins.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -439,6 +440,10 @@ def run(
             "--rate", help="With --realtime: play at this many times the recorded rate (pipeline.realtime_rate)."
         ),
     ] = None,  # fmt: skip
+    viewer: Annotated[
+        bool, typer.Option("--viewer", help="Serve a live view of the run at http://localhost:8080 (viser).")
+    ] = False,
+    viewer_port: Annotated[int, typer.Option("--viewer-port", min=1, max=65535, help="The live view's port.")] = 8080,
     resume: Annotated[
         Path | None,
         typer.Option(
@@ -477,8 +482,30 @@ def run(
         cfg.frontend.source.folder = _validated_update(cfg.frontend.source.folder, {"pose_role": pose_role})
     if no_lidar_loops:
         cfg.pipeline.use_lidar_for_loops = False
-    with output_dir(cfg.results.out_dir, _out_option(out)):
-        run_log(log, cfg, map_dir, console)
+    with output_dir(cfg.results.out_dir, _out_option(out)), _live_view(viewer, viewer_port, console) as view:
+        run_log(log, cfg, map_dir, console, view=view)
+
+
+@contextlib.contextmanager
+def _live_view(enabled: bool, port: int, console: Console) -> Iterator[Any]:
+    """`run --viewer`: the view served for the run; when the run ends in a terminal, it stays up
+    (the final state drawn) until Enter or Ctrl-C."""
+    if not enabled:
+        yield None
+        return
+    from ssmvpr_slam.live_view import LiveView
+
+    view = LiveView(port)
+    console.print(f"live view: [bold]{view.url}[/bold]")
+    try:
+        yield view
+        if sys.stdin.isatty():
+            try:
+                input("the run is over: its view stays at the address above; Enter (or Ctrl-C) closes it ")
+            except (KeyboardInterrupt, EOFError):
+                pass
+    finally:
+        view.close()
 
 
 def _resume(log: Path, folder: Path, weights: Path | None, device: str | None, refused: dict[str, Any]) -> None:

@@ -11,7 +11,7 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from itertools import islice
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from rich.console import Console
 from rich.markup import escape
@@ -45,6 +45,9 @@ from ssmvpr_slam.run_summary import summary_table
 from ssmvpr_slam.system import SlamSystem
 from ssmvpr_slam.writers import write_results
 
+if TYPE_CHECKING:
+    from ssmvpr_slam.live_view import LiveView
+
 
 def run_log(
     log: Path,
@@ -54,9 +57,11 @@ def run_log(
     name: str = "run",
     resume: Checkpoint | None = None,
     backbone: Backbone | None = None,
+    view: LiveView | None = None,
 ) -> tuple[Path, dict[str, Any]]:
     """Stream `log` through SLAM (from `resume`'s checkpoint if given); returns the results
-    folder and its metrics. backbone: one already loaded (a `map` worker runs many logs with it)."""
+    folder and its metrics. backbone: one already loaded (a `map` worker runs many logs with it).
+    view: a live view (`run --viewer`) redrawn as keyframes come."""
     console = console or Console()
     source, odometry = open_camera_source(log, config, resume)
     config = config.model_copy(deep=True)  # resolved for this log; the caller's config stays as given
@@ -71,7 +76,7 @@ def run_log(
     run_folder = RunFolder(config.results.out_dir, name, resume.run_folder if resume else None)
     meta = CheckpointMeta(str(log), log_fingerprint(log), None if prior_map is None else str(prior_map), name)
     checkpoints = Checkpointer(run_folder, config, meta, pipeline.system, pipeline.ending.seconds)
-    stream_frames(pipeline, frames, source, checkpoints, console)
+    stream_frames(pipeline, frames, source, checkpoints, console, view)
     stopped = pipeline.ending.interrupted and checkpoints.write() is not None  # resumable where it stopped
     result = pipeline.finish()
     report = evaluate(result, config.evaluation)
@@ -120,20 +125,25 @@ def build_odometry(config: SlamConfig) -> Odometry:
     """The configured odometry; kiss-icp with the stages overlapped runs in a process of its own,
     because it holds the GIL while it registers a scan and would stall the backbone's thread."""
     odometry = config.frontend.odometry
-    own_process = config.pipeline.overlap and odometry.kind == "kiss_icp"
+    own_process = config.pipeline.overlapped and odometry.kind == "kiss_icp"
     return make_odometry(odometry, config.frontend.pose_files, own_process=own_process)
 
 
 def stream_frames(pipeline: SlamPipeline, frames: Iterator[Frame], source: Source, checkpoints: Checkpointer,
-                  console: Console) -> None:  # fmt: skip
-    """Every frame through the pipeline, with a progress bar and a checkpoint when one is due."""
+                  console: Console, view: LiveView | None = None) -> None:  # fmt: skip
+    """Every frame through the pipeline, with a progress bar, a checkpoint when one is due and
+    the live view redrawn."""
     with progress_bar(console, source, pipeline.config.pipeline.max_frames) as show:
 
         def after_frame(state: RunState) -> None:
             show(state)
             checkpoints.maybe()
+            if view is not None:
+                view.update(state, pipeline.graph)
 
         pipeline.run(frames, after_frame)
+        if view is not None:
+            view.update(pipeline.state, pipeline.graph, force=True)
 
 
 @contextmanager
