@@ -41,6 +41,7 @@ from loopclosure.errors import LoopClosureInputError
 from loopclosure.filtering import Candidates, empty_candidates, max_row_norm, rank_neighbours, vote
 from loopclosure.pca import Codebooks
 from ssmvpr_common.atomic import atomic_write, atomic_write_text
+from ssmvpr_common.disk_full import writing
 
 FORMAT = "ssmvpr-place-database"
 FORMAT_VERSION = 1  # float codes only: what every earlier build reads
@@ -153,7 +154,7 @@ class _MappedArray:
         if not self.writable:
             raise RuntimeError(f"{self.path} is mapped read-only")
         rows = np.ascontiguousarray(rows, self.dtype)
-        with open(self.path, "r+b") as handle:  # data first, then the header's count
+        with writing(self.path), open(self.path, "r+b") as handle:  # data first, then the header's count
             handle.seek(self._offset + self._size * self._row_bytes)
             handle.write(rows.tobytes())
             handle.flush()

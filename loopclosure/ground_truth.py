@@ -23,6 +23,7 @@ from pathlib import Path, PurePath
 import numpy as np
 
 from loopclosure.errors import LoopClosureInputError
+from ssmvpr_common.quoting import quoted, shortened
 
 __all__ = [
     "GroundTruth",
@@ -143,9 +144,9 @@ def _as_int(value: object, what: str) -> int:
     try:
         as_float = float(value)  # type: ignore[arg-type]
     except (TypeError, ValueError):
-        raise LoopClosureInputError(f"{what}: {value!r} is not an integer index") from None
+        raise LoopClosureInputError(f"{what}: {shortened(repr(value))} is not an integer index") from None
     if not as_float.is_integer():
-        raise LoopClosureInputError(f"{what}: {value!r} is not an integer index")
+        raise LoopClosureInputError(f"{what}: {shortened(repr(value))} is not an integer index")
     return int(as_float)
 
 
@@ -159,7 +160,7 @@ def from_vprbench_npy(path: str | Path, n_ref: int, n_query: int) -> GroundTruth
     for row_no, row in enumerate(data):
         if np.ndim(row) == 0 or len(row) != 2:
             raise LoopClosureInputError(
-                f"ground truth {path} row {row_no}: expected [query_index, ref indices], got {row!r}"
+                f"ground truth {path} row {row_no}: expected [query_index, ref indices], got {shortened(repr(row))}"
             )
         q = _as_int(row[0], f"ground truth {path} row {row_no} query index")
         if not 0 <= q < n_query:
@@ -214,7 +215,7 @@ class _FolderIndex:
             for t, i in zip(tokens, looked):
                 if i == -1:
                     raise LoopClosureInputError(
-                        f"ground truth {path}: {column} {t!r} matches several files in the {self.label} folder"
+                        f"ground truth {path}: {column} {quoted(t)} matches several files in the {self.label} folder"
                     )
             return [int(i) for i in looked]  # type: ignore[arg-type]
         if all(_INT.match(t) for t in tokens):
@@ -228,7 +229,7 @@ class _FolderIndex:
             return out
         bad = next(t for t, i in zip(tokens, looked) if i is None and not _INT.match(t))
         raise LoopClosureInputError(
-            f"ground truth {path}: {column} {bad!r} is not a file in the {self.label} folder "
+            f"ground truth {path}: {column} {quoted(bad)} is not a file in the {self.label} folder "
             f"({self.n} images, e.g. {self.example}) nor an integer index"
         )
 
@@ -242,7 +243,13 @@ def _read_rows(path: Path) -> tuple[list[str], list[list[str]]]:
     if not lines:
         raise LoopClosureInputError(f"ground truth {path}: the CSV file is empty")
     delimiter = "," if "," in lines[0] or "\t" not in lines[0] else "\t"
-    rows = [[c.strip() for c in r] for r in csv.reader(lines, delimiter=delimiter)]
+    reader = csv.reader(lines, delimiter=delimiter)
+    try:
+        rows = [[c.strip() for c in r] for r in reader]
+    except csv.Error as exc:  # a cell past the csv module's limit (128 KiB), a NUL byte: not a ground truth
+        raise LoopClosureInputError(
+            f"ground truth {path}: not a readable CSV file (row {reader.line_num}: {exc})"
+        ) from None
     return rows[0], rows[1:]
 
 
@@ -261,7 +268,7 @@ def from_csv(path: str | Path, ref_files: Sequence[object], query_files: Sequenc
     r_col = next((names.index(c) for c in _REF_COLUMNS if c in names), None)
     if q_col is None or r_col is None:
         raise LoopClosureInputError(
-            f"ground truth {path}: header {header} needs a query column (Live or Query) and a "
+            f"ground truth {path}: header {shortened(str(header))} needs a query column (Live or Query) and a "
             f"reference column (Reference or Ref)"
         )
     query_tokens: list[str] = []

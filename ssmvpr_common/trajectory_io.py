@@ -22,6 +22,7 @@ import numpy as np
 from ssmvpr_common import poses as pose_format
 from ssmvpr_common.atomic import atomic_write_text
 from ssmvpr_common.errors import SsmvprError
+from ssmvpr_common.quoting import quoted
 from ssmvpr_common.text_files import read_text
 
 TrajectoryFormat = Literal["tum", "kitti"]
@@ -45,9 +46,9 @@ def _rows(path: Path, expected: int, what: str) -> list[tuple[int, np.ndarray]]:
         try:
             values = np.array([float(token) for token in tokens])
         except ValueError:
-            raise TrajectoryFileError(f"{path}:{lineno}: not a number in {' '.join(tokens)!r}") from None
+            raise TrajectoryFileError(f"{path}:{lineno}: not a number in {quoted(' '.join(tokens))}") from None
         if not np.all(np.isfinite(values)):
-            raise TrajectoryFileError(f"{path}:{lineno}: NaN or inf in {' '.join(tokens)!r}")
+            raise TrajectoryFileError(f"{path}:{lineno}: NaN or inf in {quoted(' '.join(tokens))}")
         rows.append((lineno, values))
     return rows
 

@@ -23,12 +23,15 @@ from frontend.frame import Frame
 from frontend.odometry import Odometry, choose_odometry, make_odometry
 from frontend.sources import Source, open_source
 from loopclosure.backbone import Backbone, load_backbone
+from ssmvpr_common.disk_full import DiskFullError, is_disk_full
 from ssmvpr_slam.checkpoint import (
     Checkpoint,
     Checkpointer,
+    CheckpointError,
     CheckpointMeta,
     carry_checkpoint,
     check_log,
+    find_checkpoint,
     log_fingerprint,
 )
 from ssmvpr_slam.checkpoint_replay import restore_from_checkpoint
@@ -81,7 +84,8 @@ def run_log(
     result = pipeline.finish()
     report = evaluate(result, config.evaluation)
     inputs = run_description(log, source, config, prior_map, resume)
-    folder, metrics = publish_results(run_folder, result, report, config, inputs, name, keep_checkpoint=stopped)
+    with resumable_on_disk_full(run_folder, log, name):
+        folder, metrics = publish_results(run_folder, result, report, config, inputs, name, keep_checkpoint=stopped)
     print_summary(console, metrics, result, folder, name)
     if stopped:
         console.print(f"resume it with: ssmvpr-slam run {escape(str(log))} --resume {escape(str(folder))}")
@@ -190,6 +194,34 @@ def publish_results(run_folder: RunFolder, result: RunResult, report: RunReport,
             carry_checkpoint(run_folder.path, staged.path)
     assert staged.final is not None
     return staged.final, metrics
+
+
+@contextmanager
+def resumable_on_disk_full(run_folder: RunFolder, log: Path, name: str) -> Iterator[None]:
+    """A disk that fills while the results are written drops only the staged results: the run's
+    folder keeps its last checkpoint, so the error says how to resume from it rather than to run
+    the whole log again (`map` sessions have their own recovery and are left to say theirs)."""
+    try:
+        yield
+    except OSError as exc:
+        if not is_disk_full(exc):
+            raise
+        full = exc if isinstance(exc, DiskFullError) else DiskFullError.of(exc.filename, exc)
+        folder = run_folder.path
+        if full.advice is None and folder is not None and name in ("run", "demo") and _has_checkpoint(folder):
+            full.advice = (f"free space, then resume from the last checkpoint, kept in {folder}: "
+                           f"ssmvpr-slam run {log} --resume {folder}")  # fmt: skip
+        if full is exc:
+            raise
+        raise full from exc
+
+
+def _has_checkpoint(folder: Path) -> bool:
+    try:
+        find_checkpoint(folder)
+    except CheckpointError:
+        return False
+    return True
 
 
 def print_summary(console: Console, metrics: RunMetrics, result: RunResult, folder: Path, name: str = "run") -> None:

@@ -7,6 +7,7 @@ import pytest
 
 from frontend.errors import FrontendError, FrontendInputError
 from loopclosure.errors import LoopClosureError, LoopClosureInputError, WeightsNotFoundError
+from ssmvpr_common.disk_full import DiskFullError
 from ssmvpr_common.errors import SsmvprError
 from ssmvpr_slam.checkpoint import CheckpointError
 from ssmvpr_slam.config import ConfigError
@@ -24,6 +25,7 @@ from ssmvpr_slam.run_folder import OutputError
         (OutputError, SlamError, ValueError),
         (CheckpointError, SlamError, ValueError),
         (OptionError, SlamError, ValueError),
+        (DiskFullError, SsmvprError, OSError),  # a write that failed, whichever package wrote
     ],
 )
 def test_every_error_has_its_package_root_and_the_common_one(error: type, package_root: type, builtin: type) -> None:

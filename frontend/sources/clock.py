@@ -16,6 +16,7 @@ import numpy as np
 
 from frontend.errors import FrontendInputError
 from frontend.sources.base import SourceStats
+from ssmvpr_common.quoting import shortened
 from ssmvpr_common.text_files import read_text
 
 DEFAULT_MAX_GAP_S = 5.0
@@ -40,7 +41,7 @@ def read_times(path: Path) -> np.ndarray:
     try:
         times = np.loadtxt(text.splitlines(), dtype=np.float64, ndmin=1)
     except ValueError as error:
-        raise FrontendInputError(f"{path}: unreadable ({error})") from None
+        raise FrontendInputError(f"{path}: unreadable ({shortened(str(error))})") from None
     if times.ndim != 1 or not np.all(np.isfinite(times)):
         raise FrontendInputError(f"{path}: need one finite time per line")
     for line, time in enumerate(times.tolist(), start=1):

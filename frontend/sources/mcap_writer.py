@@ -25,6 +25,7 @@ from frontend.errors import FrontendInputError
 from frontend.frame import Frame
 from frontend.sources import ros_convert, ros_msgdefs
 from ssmvpr_common.atomic import default_file_mode
+from ssmvpr_common.disk_full import writing
 from ssmvpr_common.poses import pose_problem
 
 _COMPRESSION = {
@@ -72,10 +73,11 @@ class McapFrameWriter:
         if self._writer is None or self._tmp_path is None:
             return
         try:
-            self._writer.finish()
-            self._file.flush()
-            os.fsync(self._file.fileno())
-            self._file.close()
+            with writing(self.path):  # a full disk: one error naming the log
+                self._writer.finish()
+                self._file.flush()
+                os.fsync(self._file.fileno())
+                self._file.close()
             os.chmod(self._tmp_path, default_file_mode())
             os.replace(self._tmp_path, self.path)
         except BaseException:  # e.g. the target is a folder: no temp file is left behind
@@ -115,9 +117,10 @@ class McapFrameWriter:
 
     def _put(self, topic: str, datatype: str, message: dict[str, Any], nanoseconds: int) -> None:
         assert self._writer is not None, "write() checks that the log is open"
-        self._writer.write_message(
-            topic, self._schema(datatype), message, log_time=nanoseconds, publish_time=nanoseconds
-        )
+        with writing(self.path):  # a chunk is written out as it fills: a full disk names the log
+            self._writer.write_message(
+                topic, self._schema(datatype), message, log_time=nanoseconds, publish_time=nanoseconds
+            )
 
     def _fail(self, frame: Frame, why: str) -> FrontendInputError:
         return FrontendInputError(f"{self.path}: frame {frame.index} not written: {why}")

@@ -45,6 +45,7 @@ import numpy as np
 
 from ssmvpr_common.atomic import atomic_write_text
 from ssmvpr_common.poses import matrix_to_quaternion, quaternion_to_matrix
+from ssmvpr_common.quoting import quoted
 from ssmvpr_common.text_files import read_text
 from ssmvpr_common.trajectory_io import TrajectoryFileError, read_tum
 from ssmvpr_slam.backend.se3 import make_pose, project_to_so3, rot_z, yaw_of
@@ -218,9 +219,9 @@ def _numbers(path: str, lineno: int, tag: str, tokens: list[str], expected: int)
     try:
         values = np.array([float(t) for t in tokens])
     except ValueError:
-        raise _fail(path, lineno, f"{tag}: not a number in {' '.join(tokens)!r}") from None
+        raise _fail(path, lineno, f"{tag}: not a number in {quoted(' '.join(tokens))}") from None
     if not np.all(np.isfinite(values)):
-        raise _fail(path, lineno, f"{tag}: NaN or inf in {' '.join(tokens)!r}")
+        raise _fail(path, lineno, f"{tag}: NaN or inf in {quoted(' '.join(tokens))}")
     return values
 
 
@@ -228,7 +229,7 @@ def _vertex_id(path: str, lineno: int, token: str) -> int:
     try:
         value = int(token)
     except ValueError:
-        raise _fail(path, lineno, f"vertex id {token!r} is not an integer") from None
+        raise _fail(path, lineno, f"vertex id {quoted(token)} is not an integer") from None
     if value < 0:
         raise _fail(path, lineno, f"vertex id {value} is negative")
     return value
@@ -298,7 +299,7 @@ def read_pose_graph(path: str | os.PathLike[str]) -> PoseGraphData:
             _numbers(name, lineno, tag, rest, _IGNORED_TAGS[tag])
             continue
         if tag not in _TAGS:
-            raise _fail(name, lineno, f"unknown tag {tag!r} (expected one of {known})")
+            raise _fail(name, lineno, f"unknown tag {quoted(tag)} (expected one of {known})")
         tag_dim, kind, count = _TAGS[tag]
         if dim is None:
             dim, dim_line = tag_dim, lineno
@@ -459,7 +460,7 @@ def read_edge_pairs(path: str | os.PathLike[str]) -> set[tuple[int, int]]:
         if tokens[0] in _TAGS:
             tokens = tokens[1:]
         if len(tokens) < 2:
-            raise _fail(str(path), lineno, f"expected two vertex ids, got {line.strip()!r}")
+            raise _fail(str(path), lineno, f"expected two vertex ids, got {quoted(line.strip())}")
         i, j = (_vertex_id(str(path), lineno, t) for t in tokens[:2])
         pairs.add((min(i, j), max(i, j)))
     return pairs

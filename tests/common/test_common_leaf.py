@@ -88,7 +88,8 @@ def _definitions(package: str) -> list[tuple[str, str]]:
 @pytest.mark.parametrize(
     "name",
     ["atomic_write", "atomic_write_text", "default_file_mode", "IMAGE_SUFFIXES", "image_files", "quaternion_to_matrix",
-     "matrix_to_quaternion", "tum_lines", "kitti_lines", "TUM_COLUMNS", "KITTI_COLUMNS"],
+     "matrix_to_quaternion", "tum_lines", "kitti_lines", "TUM_COLUMNS", "KITTI_COLUMNS", "quoted", "shortened",
+     "is_disk_full", "free_space"],
 )  # fmt: skip
 def test_each_shared_helper_is_defined_once_in_the_leaf(name: str) -> None:
     where = [path for package in ("frontend", "loopclosure", "ssmvpr_slam", "ssmvpr_common")

@@ -170,6 +170,20 @@ def test_csv_missing_columns(tmp_path: Path) -> None:
         from_csv(p, REF, QUERY)
 
 
+def test_csv_errors_quote_a_huge_cell_or_header_in_a_few_hundred_characters(tmp_path: Path) -> None:
+    p = _write(tmp_path, "a," + "b" * 100_000 + "\n1,2\n")
+    with pytest.raises(LoopClosureInputError, match="needs a query column") as caught:
+        from_csv(p, REF, QUERY)
+    assert "characters)" in str(caught.value) and len(str(caught.value)) < 500
+    p = _write(tmp_path, "Reference,Live\n0000001.jpg," + "n" * 100_000 + "\n")
+    with pytest.raises(LoopClosureInputError, match=r"'nnn.*…' \(100,000 characters\) is not a file") as caught:
+        from_csv(p, REF, QUERY)
+    assert len(str(caught.value)) < 500
+    p = _write(tmp_path, "Reference,Live\n0000001.jpg," + "n" * 1_000_000 + "\n")  # past the csv module's limit
+    with pytest.raises(LoopClosureInputError, match="not a readable CSV file .row 2: field larger than") as caught:
+        from_csv(p, REF, QUERY)
+
+
 def test_load_ground_truth_dispatch_errors(tmp_path: Path) -> None:
     with pytest.raises(LoopClosureInputError, match="does not exist"):
         load_ground_truth(tmp_path / "nope.csv", REF, QUERY)

@@ -138,6 +138,29 @@ def test_malformed_graph_is_one_error_line(tmp_path: Path, line: str, fragment: 
     assert not (tmp_path / "o").exists()
 
 
+THIRTY_MB = 30 * 2**20
+
+
+@pytest.mark.parametrize(
+    ("line", "said"),
+    [
+        ("EDGE_SE2 0 1 1 0 0 1 0 0 1 0 " + "7" * THIRTY_MB + "x", "EDGE_SE2: not a number in '0 1 1 0 0 1 0 0 1 0 777"),
+        ("X" * THIRTY_MB, "unknown tag 'XXX"),
+        ("EDGE_SE2 0 " + "1" * THIRTY_MB + "z 1 0 0 1 0 0 1 0 1", "vertex id '111"),
+    ],
+)
+def test_a_30_mb_line_is_quoted_in_at_most_200_characters(tmp_path: Path, line: str, said: str) -> None:
+    """Before: the whole 30 MB line was echoed into the error."""
+    graph = tmp_path / "bad.g2o"
+    graph.write_text(f"VERTEX_SE2 0 0 0 0\nVERTEX_SE2 1 1 0 0\n{line}\n")
+    result = invoke("optimize", graph, "--out", tmp_path / "o")
+    assert result.exit_code == 2 and "Traceback" not in result.output, result.output[:500]
+    errors = [x for x in result.stderr.splitlines() if x.startswith("error:")]
+    assert len(errors) == 1 and len(result.stderr) < 600, result.stderr[:600]
+    assert f"{graph}:3:" in errors[0] and "characters)" in errors[0], errors[0]
+    assert said in errors[0], errors[0]
+
+
 def test_missing_graph_file(tmp_path: Path) -> None:
     result = invoke("optimize", tmp_path / "nope.g2o")
     assert result.exit_code == 2 and "nope.g2o" in result.stderr
@@ -254,6 +277,6 @@ def test_a_full_disk_names_the_file_and_where_to_go_instead(tmp_path: Path, monk
     result = invoke("optimize", _ring_of_loops(tmp_path / "g.g2o"), "--out", tmp_path / "o")
     assert result.exit_code == 2, result.output
     errors = [x for x in result.stderr.splitlines() if x.startswith("error:")]
-    assert len(errors) == 1 and "optimised.g2o: No space left on device while writing it" in errors[0], result.stderr
+    assert len(errors) == 1 and "optimised.g2o: disk full while writing it (No space left on device; " in errors[0]
     assert "--out" in errors[0] and str(tmp_path / "o") in errors[0]
     assert not (tmp_path / "o" / "latest-optimize").exists() and not list((tmp_path / "o").glob(".optimize*"))
