@@ -30,6 +30,8 @@ import typer
 from rich.console import Console
 from rich.markup import escape
 
+from ssmvpr_common.disk_full import DiskFullError, is_disk_full
+from ssmvpr_slam.finite_options import check_finite_options
 from ssmvpr_slam.presets import available_presets
 
 app = typer.Typer(
@@ -126,18 +128,28 @@ _OPTION_OF_FIELD = {
     ("SimulationConfig", "max_frames"): "--frames (simulation.max_frames)",
     ("SimulationConfig", "seed"): "--seed (simulation.seed)",
     ("PipelineConfig", "max_frames"): "--frames (pipeline.max_frames)",
+    ("PipelineConfig", "realtime_rate"): "--rate (pipeline.realtime_rate)",
     ("FolderSourceConfig", "pose_role"): "--pose-role (frontend.source.folder.pose_role)",
+    ("MapConfig", "workers"): "--workers (map.workers)",
 }
+
+_ELSEWHERE = "free space there, or give --out (or --cache) a folder on another disk"
 
 
 def _file_system_error(exc: OSError) -> str:
-    """'PATH: No space left on device (...)': the file first, and for a full disk or quota where
-    results can go instead."""
+    """'PATH: Permission denied': the file first; a file too large says where results can go instead."""
     where = f"{exc.filename}: " if exc.filename else ""
     message = f"{where}{exc.strerror or exc}"
-    if exc.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
-        message += " while writing it; free space there, or give --out (or --cache) a folder on another disk"
+    if exc.errno == errno.EFBIG:
+        message += f" while writing it; {_ELSEWHERE}"
     return message
+
+
+def _disk_full_error(exc: OSError) -> str:
+    """'PATH: disk full while writing it (...; 3.1 MiB free on /data); what to do': the advice
+    the error carries (a run: resume its last checkpoint), else where results can go instead."""
+    full = exc if isinstance(exc, DiskFullError) else DiskFullError.of(exc.filename, exc)
+    return str(full) if full.advice else f"{full}; {_ELSEWHERE}"
 
 
 def friendly_errors(func: Callable[..., Any]) -> Callable[..., Any]:
@@ -146,11 +158,18 @@ def friendly_errors(func: Callable[..., Any]) -> Callable[..., Any]:
     @functools.wraps(func)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         try:
+            check_finite_options(func, kwargs)  # typer passes every option by name: --radius nan, --rate inf
             return func(*args, **kwargs)
+        except DiskFullError as exc:  # a user error, with its own advice
+            _print_error(_disk_full_error(exc))
+            raise typer.Exit(2) from None
         except _user_errors() as exc:
             _print_error(str(exc))
             raise typer.Exit(2) from None
         except OSError as exc:
+            if is_disk_full(exc):  # a write outside the atomic writers (ENOSPC, or a short write)
+                _print_error(_disk_full_error(exc))
+                raise typer.Exit(2) from None
             if exc.errno not in _FILE_SYSTEM_ERRNOS:  # a broken pipe, a child process, a timeout: a fault
                 raise
             _print_error(_file_system_error(exc))
@@ -312,6 +331,14 @@ def loop_eval(
             "published for KITTI 00/05/06, City Centre, New College, Lip6, Malaga.",
         ),
     ] = None,  # fmt: skip
+    gt_threshold: Annotated[
+        float | None,
+        typer.Option(
+            "--gt-threshold",
+            help="With --gt-matrix: a matrix of similarities, whose values >= this are loops (without it, "
+            "values other than 0/1 are refused).",
+        ),
+    ] = None,  # fmt: skip
     tolerance: Annotated[int, typer.Option(help="± frames around a true place that count as correct.")] = 2,
     radius: Annotated[
         float, typer.Option(help="--gt-poses or a LOG: metres within which a frame revisits another.")
@@ -333,7 +360,8 @@ def loop_eval(
     from ssmvpr_slam.run_folder import output_dir
 
     cfg = _config(config, weights, device, out)
-    inputs = LoopEvalInputs(tuple(sequences), gt, gt_poses, gt_matrix, tolerance, radius, spacing, tuple(rear or ()))
+    inputs = LoopEvalInputs(tuple(sequences), gt, gt_poses, gt_matrix, tolerance, radius, spacing, tuple(rear or ()),
+                            gt_threshold=gt_threshold)  # fmt: skip
     with output_dir(cfg.results.out_dir, _out_option(out)):
         run_loop_eval(inputs, cfg, console)
 

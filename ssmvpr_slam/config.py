@@ -36,7 +36,7 @@ class ConfigError(SlamError, ValueError):
 class VPREvalConfig(BaseModel):
     """How `vpr-eval` scores recognition, as the paper does."""
 
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
 
     tolerance: int = Field(default=2, ge=0, description="A match within ±tolerance frames of the truth is correct.")
     plot_tolerances: list[int] = Field(default=[1, 2, 3], description="Tolerances drawn in the PR plot.")
@@ -51,7 +51,7 @@ class VPREvalConfig(BaseModel):
 
 
 class ResultsConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
 
     out_dir: str = Field(
         default="results", description="Folder each command makes its results folder in (--out overrides it)."
@@ -75,7 +75,10 @@ class ResultsConfig(BaseModel):
 
 
 class SlamConfig(BaseSettings):
-    model_config = SettingsConfigDict(env_prefix="SSMVPR_", env_nested_delimiter="__", extra="forbid")
+    # allow_inf_nan=False here and in every section's models: a NaN or inf setting passes every bound
+    # (NaN compares false) and means nothing; tests/slam/test_config.py tries inf in every float key
+    model_config = SettingsConfigDict(env_prefix="SSMVPR_", env_nested_delimiter="__", extra="forbid",
+                                      allow_inf_nan=False)  # fmt: skip
 
     vpr: VPRConfig = VPRConfig()
     vpr_eval: VPREvalConfig = VPREvalConfig()

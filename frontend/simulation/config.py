@@ -20,7 +20,7 @@ ROUTE_PRESETS = ("block_grid", "figure_eight")
 
 
 class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # no NaN or inf setting
 
 
 def _ordered_pair(value: tuple[float, float], name: str) -> tuple[float, float]:

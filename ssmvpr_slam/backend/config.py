@@ -29,7 +29,7 @@ DEFAULT_KERNEL_SCALES: dict[str, float] = {
 class _Strict(BaseModel):
     """Unknown keys are errors: a typo in a preset must not be silently ignored."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)  # no NaN or inf setting either
 
 
 class PriorNoiseConfig(_Strict):

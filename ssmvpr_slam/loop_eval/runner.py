@@ -42,6 +42,7 @@ class LoopEvalInputs:
     radius: float = 10.0
     spacing: float = 1.0
     rear: tuple[Path, ...] = ()  # a rear camera's folder per sequence, in the same order
+    gt_threshold: float | None = None  # --gt-matrix values >= this are loops (a similarity matrix); None: 0/1 only
 
 
 def _images(folder: Path, what: str) -> list[Path]:
@@ -79,6 +80,8 @@ def prepare(inputs: LoopEvalInputs, config: SlamConfig) -> Prepared:
         raise LoopTruthError(f"--tolerance must be 0 or more frames, got {inputs.tolerance}")
     if not inputs.spacing > 0:
         raise LoopTruthError(f"--spacing must be positive metres per frame, got {inputs.spacing}")
+    if inputs.gt_threshold is not None and inputs.gt_matrix is None:
+        raise LoopTruthError("--gt-threshold reads a --gt-matrix of similarities; give the matrix, or leave it out")
     if len(inputs.sequences) == 1 and is_log(inputs.sequences[0]):
         return _prepare_log(inputs, config)
     for sequence in inputs.sequences:
@@ -123,7 +126,7 @@ def _folder_truth(inputs: LoopEvalInputs, config: SlamConfig, files: list[list[P
     assert inputs.gt_matrix is not None
     positions = path_positions(n, inputs.spacing)
     loop_truth = truth.from_matrix(inputs.gt_matrix, n, inputs.tolerance, travelled(positions),
-                                   det.exclusion_keyframes, det.exclusion_distance)  # fmt: skip
+                                   det.exclusion_keyframes, det.exclusion_distance, inputs.gt_threshold)  # fmt: skip
     return positions, loop_truth
 
 
@@ -262,6 +265,7 @@ def run_loop_eval(
         "ground_truth": "the log's ground-truth poses"
         if from_log
         else str(inputs.gt_poses or inputs.gt_matrix or inputs.ground_truth or "frame-aligned"),
+        "gt_threshold": inputs.gt_threshold,
         "tolerance": inputs.tolerance,
         "radius_m": inputs.radius if by_poses else None,
         "spacing_m": inputs.spacing if not by_poses else None,

@@ -6,7 +6,9 @@ Three sources, one answer per stream frame (a sorted set of earlier stream frame
 * ground-truth poses: an earlier frame within `radius` metres, outside the detector's exclusion
   window (never a candidate, so never a loop to miss);
 * a square 0/1 loop matrix as the loop-closure literature publishes them (.npy, .csv, MATLAB
-  .mat), symmetrised, outside the exclusion window too.
+  .mat), symmetrised, outside the exclusion window too. Only 0/1 (or true/false) is read as
+  loops: a similarity matrix (0.05 .. 0.95) read as "non-zero is a loop" made every pair a
+  revisit and the recall meaningless, so other values are refused unless a threshold is given.
 A loop q -> m is correct when m lies within `tolerance` frames of a true place of q, or, with
 poses, within `radius` metres of q.
 """
@@ -20,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from loopclosure.ground_truth import GroundTruth, load_ground_truth
+from ssmvpr_common.quoting import shortened
 from ssmvpr_slam.errors import SlamError
 
 
@@ -81,9 +84,10 @@ def from_poses(
     return LoopTruth(tuple(matches), np.zeros(len(pos), np.int64), 0, pos, radius)
 
 
-def read_matrix(path: Path) -> np.ndarray:
-    """A square loop matrix from .npy, .csv (comma or whitespace separated) or MATLAB .mat (v4-v7;
-    the one square numeric variable in it)."""
+def read_matrix(path: Path, threshold: float | None = None) -> np.ndarray:
+    """A square boolean loop matrix from .npy, .csv (comma or whitespace separated) or MATLAB
+    .mat (v4-v7; the one square numeric variable in it). Without `threshold` it must hold 0/1;
+    with it, values >= threshold are loops."""
     if not path.is_file():
         raise LoopTruthError(f"{path}: no such ground-truth matrix file")
     suffix = path.suffix.lower()
@@ -100,13 +104,32 @@ def read_matrix(path: Path) -> np.ndarray:
     except LoopTruthError:
         raise
     except (ValueError, OSError, UnicodeDecodeError, NotImplementedError) as exc:
-        raise LoopTruthError(f"{path}: not a readable loop matrix ({type(exc).__name__}: {exc})") from None
+        raise LoopTruthError(
+            f"{path}: not a readable loop matrix ({type(exc).__name__}: {shortened(str(exc))})"
+        ) from None
     matrix = np.asarray(matrix)
     if matrix.ndim != 2 or matrix.shape[0] != matrix.shape[1] or matrix.dtype.kind not in "biuf":
         raise LoopTruthError(f"{path}: a loop matrix must be square and numeric, got {matrix.dtype} {matrix.shape}")
     if matrix.dtype.kind == "f" and not np.isfinite(matrix).all():
         raise LoopTruthError(f"{path}: the loop matrix holds NaN or inf")
+    if threshold is not None:
+        return matrix >= threshold
+    _check_zero_one(path, matrix)
     return matrix != 0
+
+
+def _check_zero_one(path: Path, matrix: np.ndarray) -> None:
+    """Refuse values other than 0 and 1, naming how many and their range."""
+    if matrix.dtype.kind == "b":
+        return
+    other = matrix[(matrix != 0) & (matrix != 1)]
+    if other.size:
+        low, high = float(other.min()), float(other.max())
+        found = f"of {low:.4g}" if low == high else f"between {low:.4g} and {high:.4g}"
+        raise LoopTruthError(
+            f"{path}: {other.size:,} values {found}, not 0/1; a loop matrix holds 0 or 1 "
+            "(false/true): for a similarity matrix give --gt-threshold T (values >= T are loops)"
+        )
 
 
 def _mat_variable(path: Path) -> np.ndarray:
@@ -130,9 +153,11 @@ def from_matrix(
     travelled: np.ndarray,
     exclusion_keyframes: int,
     exclusion_distance: float,
+    threshold: float | None = None,
 ) -> LoopTruth:
-    """Frame q revisits every earlier j with M[q, j] or M[j, q] set, outside the exclusion window."""
-    matrix = read_matrix(path)
+    """Frame q revisits every earlier j with M[q, j] or M[j, q] set (>= `threshold` if given),
+    outside the exclusion window."""
+    matrix = read_matrix(path, threshold)
     if matrix.shape[0] != n_frames:
         raise LoopTruthError(f"{path}: a {matrix.shape[0]}x{matrix.shape[0]} loop matrix for {n_frames} images")
     either = matrix | matrix.T

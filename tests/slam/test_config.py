@@ -296,3 +296,81 @@ def test_a_preset_chain_naming_a_file_says_presets_are_names(tmp_path: Path) -> 
     user.write_text("preset: nosuch\n")
     with pytest.raises(ConfigError, match=r"cyc1\.yaml: preset: 'nosuch' is not a preset \("):
         load_config(str(user))
+
+
+def _float_locations(value: object, path: tuple[object, ...] = ()) -> list[tuple[object, ...]]:
+    """Where a float sits in a dumped config: one location per key (its first float), list items
+    and mappings walked, so every float setting is tried once."""
+    if isinstance(value, float):
+        return [path]
+    if isinstance(value, dict):
+        return [loc for key, item in value.items() for loc in _float_locations(item, (*path, key))]
+    if isinstance(value, (list, tuple)):
+        for index, item in enumerate(value):
+            found = _float_locations(item, (*path, index))
+            if found:
+                return found[:1] if not isinstance(item, dict) else found
+    return []
+
+
+def _optional_floats_unset(model: type, path: tuple[object, ...] = ()) -> list[tuple[object, ...]]:
+    """`float | None` keys whose default is None: no float in the dump to find them by."""
+    import typing
+
+    from pydantic import BaseModel
+
+    found = []
+    for name, info in model.model_fields.items():  # type: ignore[attr-defined]
+        args = typing.get_args(info.annotation)
+        nested = [a for a in (info.annotation, *args) if isinstance(a, type) and issubclass(a, BaseModel)]
+        if nested and info.annotation is nested[0]:
+            found += _optional_floats_unset(nested[0], (*path, name))
+        elif float in args and info.default is None:
+            found.append((*path, name))
+    return found
+
+
+def _setting(defaults: dict, path: tuple[object, ...], value: float) -> dict:
+    """The smallest config file that sets the float at `path` to `value`: the sections down to
+    it, and a list that holds it whole, with that one item replaced."""
+    import copy
+
+    keys = [p for p in path if isinstance(p, str)]
+    cut = next((i for i, p in enumerate(path) if not isinstance(p, str)), len(path))
+    whole: object = defaults
+    for key in path[:cut]:
+        whole = whole[key]  # type: ignore[index]
+    whole = copy.deepcopy(whole)
+    if cut == len(path):
+        whole = value
+    else:
+        node = whole
+        for key in path[cut:-1]:
+            node = node[key]  # type: ignore[index]
+        node[path[-1]] = value  # type: ignore[index]
+    for key in reversed(keys[:cut]):
+        whole = {key: whole}
+    return whole  # type: ignore[return-value]
+
+
+def test_every_float_setting_refuses_nan_and_infinity_naming_its_key(tmp_path: Path) -> None:
+    """A NaN or infinite setting passes every bound (NaN compares false) and means nothing; a
+    config file saying `.inf` or `.nan` anywhere is refused with its key. No default is infinite."""
+    import yaml
+
+    defaults = load_config().model_dump(mode="json")
+    locations = _float_locations(defaults) + _optional_floats_unset(SlamConfig)
+    assert len(locations) > 200 and {p[0] for p in locations} == set(SlamConfig.model_fields)  # every section
+    accepted = []
+    for k, path in enumerate(locations):
+        value = float("nan") if k % 2 else float("inf")
+        file = tmp_path / "finite.yaml"
+        file.write_text(yaml.safe_dump(_setting(defaults, path, value)))
+        try:
+            load_config(file)
+        except ConfigError as error:
+            key = ".".join(str(p) for p in path)
+            assert str(file) in str(error) and key in str(error), (key, str(error))
+            continue
+        accepted.append(path)
+    assert not accepted

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -94,6 +95,29 @@ def test_vpr_eval_invalid_option_values(folders: dict[str, Path], option: str, v
 def test_run_option_errors_name_the_option_in_its_cli_spelling(tmp_path: Path) -> None:
     line = assert_user_error(invoke("run", tmp_path / "x.mcap", "--odometry", "foo"), "--odometry")
     assert "'kiss-icp'" in line and "OdometryConfig" not in line
+
+
+@pytest.mark.parametrize(
+    ("args", "option"),
+    [
+        (["map", "x.mcap", "--workers", "0"], "--workers"),  # before: 'MapConfig.workers'
+        (["run", "x.mcap", "--realtime", "--rate", "0"], "--rate"),  # before: 'PipelineConfig.realtime_rate'
+        (["run", "x.mcap", "--frames", "0"], "--frames"),
+        (["run", "x.mcap", "--pose-role", "camera"], "--pose-role"),
+        (["run", "x.mcap", "--device", "gpu"], "--device"),
+        (["demo", "--frames", "0"], "--frames"),
+        (["demo", "--odometry", "wheels"], "--odometry"),
+        (["simulate", "--frames", "0"], "--frames"),
+        (["simulate", "--seed", "-1"], "--seed"),
+        (["vpr-eval", "a", "b", "--tolerance", "-1"], "--tolerance"),
+    ],
+)
+def test_every_option_a_config_model_checks_is_named_as_typed(tmp_path: Path, args: list[str], option: str) -> None:
+    """An option's value the config models refuse names the option (and the key it sets), never
+    the model class a user never sees."""
+    out = ["--out", tmp_path / ("o.mcap" if args[0] == "simulate" else "o")]
+    line = assert_user_error(invoke(*args, *out), f"invalid value for {option}")
+    assert "Config" not in line, line
 
 
 def test_error_text_with_brackets_is_printed_verbatim(tmp_path: Path) -> None:
@@ -349,3 +373,35 @@ def test_a_full_disk_is_one_line_naming_the_file(tmp_path: Path, monkeypatch: py
     raised[0] = BrokenPipeError(errno.EPIPE, "Broken pipe")
     result = invoke("simulate", "--frames", 2, "--out", out)
     assert result.exit_code == 1  # a fault, not the one-line exit 2 of bad input
+
+
+def test_a_log_that_fills_the_disk_while_it_streams_out_names_the_log(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The MCAP writer streams into its own file: a full disk there (ENOSPC from a file object,
+    which names no file) is the same one line naming the log, and no partial log is left."""
+    import errno
+
+    import frontend.sources.mcap_writer as mcap_writer
+
+    class FullDisk:
+        """The log's file, on a disk with 20 kB left."""
+
+        def __init__(self, file: Any) -> None:
+            self.file = file
+
+        def write(self, data: bytes) -> int:
+            if self.file.tell() + len(data) > 20_000:
+                raise OSError(errno.ENOSPC, "No space left on device")
+            return self.file.write(data)
+
+        def __getattr__(self, name: str) -> Any:
+            return getattr(self.file, name)
+
+    real_writer = mcap_writer.Writer
+    monkeypatch.setattr(mcap_writer, "Writer", lambda stream, **kw: real_writer(FullDisk(stream), **kw))
+    out = tmp_path / "sim.mcap"
+    line = assert_user_error(invoke("simulate", "--frames", 3, "--out", out),
+                             f"{out}: disk full while writing it (No space left on device; ")  # fmt: skip
+    assert "free on" in line and "--out" in line
+    assert sorted(p.name for p in tmp_path.iterdir()) == []  # neither the log nor its temp file

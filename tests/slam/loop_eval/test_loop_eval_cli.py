@@ -78,6 +78,25 @@ def test_one_sequence_with_poses(tmp_path: Path, images: Path, seeded_random_bac
     assert metrics["loops"]["with_truth"] == 25 and metrics["inputs"]["radius_m"] == 0.5
 
 
+def test_a_similarity_matrix_is_one_error_line_unless_a_threshold_is_given(
+    tmp_path: Path, images: Path, seeded_random_backbone_passes: object
+) -> None:
+    """Before: a matrix of similarities (0.05 .. 0.95) was read as 0/1, every pair a loop, and
+    the run's recall was that of a detector asked to find every frame."""
+    matrix = np.random.default_rng(1).uniform(0.05, 0.5, (50, 50))
+    matrix[40, 12] = matrix[41, 13] = 0.95
+    np.save(tmp_path / "sim.npy", matrix)
+    args = ["loop-eval", images, "--gt-matrix", tmp_path / "sim.npy", "-c", small_config(tmp_path), *SMALL]
+    line = assert_user_error(invoke(*args, "--out", tmp_path / "refused"), f"{tmp_path / 'sim.npy'}: 2,500 values "
+                             f"between {matrix.min():.4g} and 0.95, not 0/1", "--gt-threshold")  # fmt: skip
+    assert len(line) < 300 and not (tmp_path / "refused").exists()
+    torch.manual_seed(0)
+    result = invoke(*args, "--gt-threshold", "0.9", "--out", tmp_path / "out")
+    assert result.exit_code == 0, result.output
+    metrics = json.loads((tmp_path / "out" / "latest" / "metrics.json").read_text())
+    assert metrics["loops"]["with_truth"] == 2 and metrics["inputs"]["gt_threshold"] == 0.9
+
+
 def test_two_passes_report_the_decisions_across_passes_apart(tmp_path: Path) -> None:
     first, second = folder(tmp_path / "a", 30, 1), folder(tmp_path / "b", 30, 2)
     result = invoke("loop-eval", first, second, "-c", small_config(tmp_path), "--out", tmp_path / "out", *SMALL)
@@ -110,6 +129,8 @@ def test_other_input_errors(tmp_path: Path, images: Path) -> None:
     (tmp_path / "gt.tum").write_text("0 0 0 0 0 0 0 1\n")
     assert_user_error(invoke("loop-eval", images, "--gt-poses", tmp_path / "gt.tum", *out), "1 poses for 50 images")
     assert_user_error(invoke("loop-eval", images, images, "--spacing", "0", *out), "--spacing must be positive")
+    assert_user_error(invoke("loop-eval", images, "--gt-poses", tmp_path / "gt.tum", "--gt-threshold", "0.5", *out),
+                      "--gt-threshold reads a --gt-matrix")  # fmt: skip
     assert_user_error(
         invoke("loop-eval", images, images, "--rear", images, *out), "one rear-camera folder per sequence"
     )

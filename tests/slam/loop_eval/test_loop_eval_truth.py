@@ -96,6 +96,56 @@ def test_loop_matrices_that_cannot_serve_are_named(tmp_path: Path) -> None:
         truth.read_matrix(tmp_path / "two.mat")
 
 
+def _similarities(n: int) -> np.ndarray:
+    """A similarity matrix as some benchmarks ship it: 0.05 .. 0.95, highest on the true loops."""
+    rng = np.random.default_rng(0)
+    matrix = rng.uniform(0.05, 0.5, (n, n))
+    matrix[45, 5] = matrix[50, 20] = 0.95
+    return matrix
+
+
+@pytest.mark.parametrize("suffix", [".npy", ".csv", ".mat"])
+def test_a_similarity_matrix_is_refused_naming_the_file_and_its_values(tmp_path: Path, suffix: str) -> None:
+    """Before: every non-zero value was a loop, so a similarity matrix made every pair a revisit."""
+    path = tmp_path / f"sim{suffix}"
+    matrix = _similarities(60)
+    if suffix == ".npy":
+        np.save(path, matrix)
+    elif suffix == ".csv":
+        np.savetxt(path, matrix, fmt="%.4f", delimiter=",")
+        matrix = np.loadtxt(path, delimiter=",")  # as rounded in the file
+    else:
+        from scipy.io import savemat
+
+        savemat(str(path), {"similarity": matrix})
+    with pytest.raises(LoopTruthError) as caught:
+        truth.from_matrix(path, 60, 2, travelled(path_positions(60, 1.0)), 30, 15.0)
+    message = str(caught.value)
+    low, high = matrix.min(), matrix.max()
+    assert message.startswith(f"{path}: 3,600 values between {low:.4g} and {high:.4g}, not 0/1"), message
+    assert "--gt-threshold" in message and "\n" not in message
+
+
+def test_with_a_threshold_values_at_or_above_it_are_loops(tmp_path: Path) -> None:
+    path = tmp_path / "sim.npy"
+    np.save(path, _similarities(60))
+    loop_truth = truth.from_matrix(path, 60, 2, travelled(path_positions(60, 1.0)), 30, 15.0, threshold=0.95)
+    assert np.flatnonzero(loop_truth.has_truth).tolist() == [45, 50]
+    assert loop_truth.matches[50].tolist() == [20]
+
+
+def test_0_1_and_boolean_matrices_need_no_threshold_and_other_integers_are_refused(tmp_path: Path) -> None:
+    matrix = np.zeros((4, 4), bool)
+    matrix[3, 0] = True
+    np.save(tmp_path / "bool.npy", matrix)
+    assert truth.read_matrix(tmp_path / "bool.npy").tolist() == matrix.tolist()
+    counts = matrix.astype(np.int64) * 2  # a count of revisits, not a 0/1 flag
+    np.save(tmp_path / "counts.npy", counts)
+    with pytest.raises(LoopTruthError, match="counts.npy: 1 values of 2, not 0/1"):
+        truth.read_matrix(tmp_path / "counts.npy")
+    assert truth.read_matrix(tmp_path / "counts.npy", threshold=1).tolist() == matrix.tolist()
+
+
 def test_scores_at_the_decision_and_over_the_decision_score() -> None:
     # two passes of 4: frames 4..7 revisit 0..3
     loop_truth, _ = truth.two_passes(names(4, "a"), names(4, "b"), None, tolerance=0)
