@@ -28,6 +28,7 @@ from typing import Any
 
 from ssmvpr_common.atomic import atomic_write_text
 from ssmvpr_slam.errors import SlamError
+from ssmvpr_slam.staging_lock import StagingLock, remove_left_over
 
 log = logging.getLogger(__name__)
 
@@ -128,18 +129,28 @@ class StagedResults:
     target: the folder to publish as (a run's folder that holds only its checkpoints so far);
     default a new `name_<stamp>` folder."""
 
-    def __init__(self, base: str | Path, name: str, target: Path | None = None) -> None:
+    def __init__(self, base: str | Path, name: str, target: Path | None = None, adopt: Path | None = None) -> None:
+        """adopt: a staging folder a killed call left (`map` goes on with its finished sessions);
+        otherwise what killed calls of `name` left in `base` is removed (and logged)."""
         self.base = Path(base)
         self.name = name
         self.stamp = datetime.now().strftime("%Y-%m-%d_%H-%M-%S")
         self.target = target
         self.base.mkdir(parents=True, exist_ok=True)
+        if adopt is None:
+            for folder in remove_left_over(self.base, name):
+                log.warning("removed %s, left unfinished by an earlier call that was killed", folder)
         # hidden, so globs for finished folders (run_*) never see a partial one
-        self.path = Path(tempfile.mkdtemp(prefix=f".{name}_{self.stamp}.", suffix=".partial", dir=self.base))
+        self.path = adopt or Path(tempfile.mkdtemp(prefix=f".{name}_{self.stamp}.", suffix=".partial", dir=self.base))
+        try:
+            self.lock = StagingLock(self.path)  # while it is held, no later call takes the folder for left over
+        except OSError as exc:
+            raise OutputError(f"{self.path}: another call is writing it ({exc.strerror or exc})") from None
         self.final: Path | None = None
 
     def publish(self) -> Path:
         """Rename the complete folder into place, then point `latest` at it."""
+        self.lock.release()
         os.chmod(self.path, _default_dir_mode())  # mkdtemp makes 0700
         if self.target is not None:
             self.final = _replace_folder(self.path, self.target)
@@ -161,7 +172,13 @@ class StagedResults:
         return final
 
     def discard(self) -> None:
+        self.lock.release()
         shutil.rmtree(self.path, ignore_errors=True)
+
+    def keep(self) -> Path:
+        """Leave the folder for a later call to adopt (its lock dropped as by a killed call)."""
+        self.lock.release(keep_file=True)
+        return self.path
 
 
 def _replace_folder(complete: Path, target: Path) -> Path:
@@ -246,7 +263,7 @@ def switch_link(link: Path, name: str) -> None:
 
 
 @contextmanager
-def _interrupts_deferred() -> Iterator[None]:
+def interrupts_deferred() -> Iterator[None]:
     """While results are written, a first Ctrl-C / SIGTERM waits for the write to finish; a
     second abandons it (the staging folder is dropped, `latest` untouched)."""
     if threading.current_thread() is not threading.main_thread():
@@ -277,7 +294,7 @@ def staged_results_dir(base: str | Path, name: str, target: Path | None = None) 
     Any exception (or a second interrupt) in the block drops the staging folder and leaves the
     previous `latest` (and `target`, if given) as it was."""
     staged = StagedResults(base, name, target)
-    with _interrupts_deferred():
+    with interrupts_deferred():
         try:
             yield staged
         except BaseException:
