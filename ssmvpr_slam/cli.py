@@ -587,6 +587,14 @@ def map_command(
     ray_address: Annotated[
         str | None, typer.Option("--ray-address", help="A running Ray cluster ('auto', host:port); default: local.")
     ] = None,
+    resume: Annotated[
+        Path | None,
+        typer.Option(
+            "--resume",
+            help="A map left unfinished (stopped or killed) to go on with; by default the "
+            "newest one with the same settings under --out is found and adopted.",
+        ),
+    ] = None,  # fmt: skip
     config: ConfigOpt = None,
     weights: WeightsOpt = None,
     device: DeviceOpt = None,
@@ -595,6 +603,7 @@ def map_command(
     """Many logs, one map: sessions run in parallel on Ray, joined by cross-session loops, solved as one graph."""
     from ssmvpr_slam.errors import OptionError
     from ssmvpr_slam.multi_session.runner import map_logs
+    from ssmvpr_slam.multi_session.stop import MapStopped
     from ssmvpr_slam.run_folder import output_dir
 
     every = [*(logs or []), *(add or [])]
@@ -606,7 +615,11 @@ def map_command(
     if workers is not None:
         cfg.map = _validated_update(cfg.map, {"workers": workers})
     with output_dir(cfg.results.out_dir, _out_option(out)):
-        map_logs(every, cfg, console, add_to=map_dir, ray_address=ray_address)
+        try:
+            map_logs(every, cfg, console, add_to=map_dir, ray_address=ray_address, resume=resume)
+        except MapStopped as stopped:  # finished sessions kept: the exit status says which signal
+            err_console.print(f"[yellow]{escape(str(stopped))}[/yellow]", highlight=False, soft_wrap=True)
+            raise typer.Exit(128 + stopped.signum) from None
 
 
 @app.command(

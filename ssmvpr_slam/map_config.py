@@ -9,7 +9,7 @@ from pydantic import BaseModel, ConfigDict, Field
 class MapConfig(BaseModel):
     """`map`: many sessions (logs) into one map through the loops between them."""
 
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
 
     workers: int = Field(default=1, ge=1, description="Ray workers, each holding the backbone once (--workers).")
     worker_cpus: float | None = Field(
@@ -23,6 +23,9 @@ class MapConfig(BaseModel):
         ge=0,
         description="GPUs Ray reserves for each worker; None: where Ray sees GPUs, they are shared among the "
         "workers (at most one each), else 0 (the backbone runs on the CPU).",
+    )
+    ray_connect_timeout_s: float = Field(
+        default=30.0, gt=0, description="Seconds a cluster at --ray-address has to answer before `map` gives up on it."
     )
     task_retries: int = Field(
         default=1, ge=0, description="Times a session whose worker died (killed, out of memory) is run again."

@@ -15,8 +15,8 @@ from __future__ import annotations
 import os
 import re
 import shutil
+import signal
 import time
-from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -31,7 +31,7 @@ from ssmvpr_common.text_files import read_text
 from ssmvpr_slam.backend.graph_optimizer import OptimizationResult
 from ssmvpr_slam.config import SlamConfig
 from ssmvpr_slam.errors import SlamError
-from ssmvpr_slam.multi_session.cross_loops import CrossLoop, find_cross_loops
+from ssmvpr_slam.multi_session.cross_loops import CrossLoop
 from ssmvpr_slam.multi_session.evaluation import evaluate_map, loop_distance
 from ssmvpr_slam.multi_session.linking import SessionLinks, graph_loops, link_sessions
 from ssmvpr_slam.multi_session.merged_graph import (
@@ -41,8 +41,12 @@ from ssmvpr_slam.multi_session.merged_graph import (
     cross_edge_inliers,
     solve_map_graph,
 )
+from ssmvpr_slam.multi_session.ray_cluster import ray_session
+from ssmvpr_slam.multi_session.scheduling import all_cross_loops, fit_codebooks, run_sessions
 from ssmvpr_slam.multi_session.session_map import SessionMap
-from ssmvpr_slam.multi_session.workers import SessionOutcome, remote_worker
+from ssmvpr_slam.multi_session.staging import CODEBOOKS, FINISHED, PLAN, MapStaging, map_plan
+from ssmvpr_slam.multi_session.stop import MapStop, MapStopped
+from ssmvpr_slam.multi_session.workers import SessionOutcome
 from ssmvpr_slam.multi_session.writer import (
     plot_map,
     write_config,
@@ -53,7 +57,7 @@ from ssmvpr_slam.multi_session.writer import (
     write_trajectories,
 )
 from ssmvpr_slam.prior_map import MAP_MANIFEST
-from ssmvpr_slam.run_folder import staged_results_dir, write_json
+from ssmvpr_slam.run_folder import interrupts_deferred, write_json
 
 
 class MapError(SlamError, ValueError):
@@ -82,80 +86,6 @@ def read_manifest(folder: Path) -> dict[str, Any]:
     if missing:
         raise MapError(f"{folder}: the results of sessions {', '.join(missing)} are missing from sessions/")
     return manifest
-
-
-def start_ray(config: SlamConfig, address: str | None) -> bool:
-    """Connect to the cluster at `address`, or start a local Ray; True when this call started it."""
-    try:
-        import ray
-    except ImportError:
-        raise MapError("`map` runs on Ray: pip install 'ssmvpr-slam[map]' (or pip install ray)") from None
-    if ray.is_initialized():
-        return False
-    os.environ.setdefault("RAY_AUTH_MODE", "disabled")  # a local instance for this process alone
-    kwargs: dict[str, Any] = {"include_dashboard": False, "log_to_driver": False, "configure_logging": False}
-    if address:
-        ray.init(address=address, **kwargs)
-    else:
-        wanted = config.map.workers * (config.map.worker_cpus or 1.0)
-        ray.init(num_cpus=int(np.ceil(max(wanted, float(os.cpu_count() or 1)))), **kwargs)
-    return True
-
-
-def run_sessions(
-    config: SlamConfig, jobs: list[tuple[int, str, str]], codebooks: Path, out_dir: Path, console: Console
-) -> list[SessionOutcome]:
-    """Every (index, name, log) as a session on the workers, each worker taking the next when
-    free; a worker that died for good is replaced and its session reported failed."""
-    import ray
-    from ray.exceptions import RayActorError, RayTaskError
-
-    workers = [remote_worker(config) for _ in range(min(config.map.workers, len(jobs)))]
-    pending = deque(jobs)
-    running: dict[Any, tuple[int, tuple[int, str, str]]] = {}
-
-    def submit(w: int) -> None:
-        job = pending.popleft()
-        running[workers[w].run_session.remote(*job, str(codebooks), str(out_dir))] = (w, job)
-
-    for w in range(len(workers)):
-        if pending:
-            submit(w)
-    outcomes = []
-    while running:
-        done, _ = ray.wait(list(running), num_returns=1)
-        w, (index, name, log) = running.pop(done[0])
-        try:
-            outcome = ray.get(done[0])
-        except RayActorError as exc:  # killed beyond its retries: a fresh worker takes the next session
-            outcome = SessionOutcome(index, name, log, error=f"its worker died ({type(exc).__name__})")
-            workers[w] = remote_worker(config)
-        except RayTaskError as exc:
-            cause = exc.cause if exc.cause is not None else exc
-            outcome = SessionOutcome(index, name, log, error=f"{type(cause).__name__}: {cause}")
-        outcomes.append(outcome)
-        if outcome.error is None:
-            console.print(f"session {escape(name)}: {outcome.keyframes} keyframes in {outcome.seconds:.0f} s")
-        else:
-            console.print(f"[red]session {escape(name)} ({escape(log)}) failed:[/red] {escape(outcome.error)}")
-        if pending:
-            submit(w)
-    return sorted(outcomes, key=lambda o: o.index)
-
-
-def _cross_loops_task(query: int, folders: list[tuple[str, str, str]], config: SlamConfig) -> list[CrossLoop]:
-    sessions = [SessionMap.load(name, log, Path(folder), config.vpr) for name, log, folder in folders]
-    return find_cross_loops(query, sessions, config)
-
-
-def all_cross_loops(sessions: list[SessionMap], config: SlamConfig) -> list[CrossLoop]:
-    """Every session's keyframes against the others' places, one Ray task per session."""
-    import ray
-
-    folders = [(s.name, s.log, str(s.folder)) for s in sessions]
-    task = ray.remote(_cross_loops_task).options(num_cpus=1)
-    futures = [task.remote(k, folders, config) for k in range(len(sessions))]
-    return [loop for part in ray.get(futures) for loop in part]
 
 
 @dataclass
@@ -201,102 +131,184 @@ def map_logs(
     console: Console | None = None,
     add_to: Path | None = None,
     ray_address: str | None = None,
+    resume: Path | None = None,
 ) -> tuple[Path, dict[str, Any]]:
-    """Make a map of `logs` (added to the map at `add_to`, if given); returns its folder and metrics."""
+    """Make a map of `logs` (added to the map at `add_to`, if given); returns its folder and
+    metrics. resume: a map left unfinished to go on with (by default the newest one of the same
+    settings under the output folder is found and adopted)."""
     console = console or Console()
     started = time.perf_counter()
     previous = read_manifest(add_to) if add_to is not None else None
     earlier = previous["sessions"] if previous else []
     if not logs:
         raise MapError("no logs given: `map` needs at least one log (two to merge anything)")
+    check_distinct(logs, earlier)
     jobs = [(len(earlier) + k, session_name(len(earlier) + k, log), str(log)) for k, log in enumerate(logs)]
-    with staged_results_dir(config.results.out_dir, "map") as staged:
-        folder = staged.path
-        sessions_dir = folder / "sessions"
-        sessions_dir.mkdir()
-        codebooks = folder / "codebooks.npz"
-        records = []
+    staging = MapStaging.open(Path(config.results.out_dir), map_plan(config, add_to), resume, console)
+    stop = MapStop()
+    try:
+        records, sessions, loops, phases = _sessions_and_loops(staging, jobs, previous, add_to, config, console,
+                                                               ray_address, stop, started)  # fmt: skip
+    except KeyboardInterrupt:  # a second signal: quit at once, what finished stays
+        raise MapStopped(stop.signum or signal.SIGINT, len(staging.finished()), len(jobs), staging.keep(),
+                         abandoned=True) from None  # fmt: skip
+    except BaseException:
+        staging.keep() if staging.finished() else staging.staged.discard()
+        raise
+    try:
+        with interrupts_deferred():
+            metrics = _write_map(staging.path, records, sessions, loops, phases, config, started)
+            final = staging.staged.publish()
+    except BaseException:
+        staging.keep()  # a second signal while writing: the sessions stay for the next call
+        raise
+    print_map_summary(console, metrics, final)
+    return final, metrics
+
+
+def check_distinct(logs: list[Path], earlier: list[dict[str, Any]]) -> None:
+    """One log is one session: a log given twice, or already in the map it joins, is refused."""
+    seen = {Path(s["log"]).resolve(): "is already a session of the map (--map)" for s in earlier}
+    for log in logs:
+        key = log.resolve()
+        if key in seen:
+            raise MapError(f"{log} {seen[key]}: each log is one session; give it once")
+        seen[key] = "is given twice"
+
+
+def _sessions_and_loops(
+    staging: MapStaging,
+    jobs: list[tuple[int, str, str]],
+    previous: dict[str, Any] | None,
+    add_to: Path | None,
+    config: SlamConfig,
+    console: Console,
+    ray_address: str | None,
+    stop: MapStop,
+    started: float,
+) -> tuple[list[dict[str, Any]], list[SessionMap], list[CrossLoop], dict[str, float]]:
+    """Steps 1 to 4 on Ray: the codebooks, the sessions (those a stopped call finished reused),
+    the cross-session loops. A stop request ends them with `MapStopped`."""
+    folder = staging.path
+    codebooks = folder / CODEBOOKS
+    records = []
+    for s in previous["sessions"] if previous else []:  # hard links: the earlier sessions' results are
+        if s["folder"] is not None and not (folder / s["folder"]).exists():  # not copied, nor changed
+            shutil.copytree(add_to / s["folder"], folder / s["folder"], copy_function=os.link, symlinks=True)  # type: ignore[operator]
+        records.append(dict(s))  # (a session that failed stays on record, without results)
+    if not codebooks.exists():
         if previous is not None and add_to is not None:
             shutil.copyfile(add_to / previous["codebooks"], codebooks)
-            for s in earlier:  # hard links: the earlier sessions' results are not copied, nor changed
-                if s["folder"] is not None:  # (a session that failed stays on record, without results)
-                    shutil.copytree(add_to / s["folder"], folder / s["folder"], copy_function=os.link, symlinks=True)
-                records.append(dict(s))
         elif config.detector.codebooks is not None:
             shutil.copyfile(config.detector.codebooks, codebooks)
-        owns_ray = start_ray(config, ray_address)
-        try:
-            import ray
+    reused = staging.reusable(jobs)
+    if reused:
+        console.print(f"reusing {len(reused)} session(s) a stopped `map` finished in {escape(str(folder))}: "
+                      f"{escape(', '.join(reused))}")  # fmt: skip
+    todo = [job for job in jobs if job[1] not in reused]
+    _remove_leftovers(staging.sessions_dir, [r["folder"] for r in records] + [r["folder"] for r in reused.values()])
 
-            phases: dict[str, float] = {"start": time.perf_counter() - started}
-            mark = time.perf_counter()
-            if not codebooks.exists():
-                with console.status(f"fitting the shared PCA codebooks on {len(logs)} logs"):
-                    fitter = remote_worker(config)
-                    ray.get(fitter.fit_codebooks.remote([str(p) for p in logs], str(codebooks)))
-                    ray.kill(fitter)
-            phases["codebooks"], mark = time.perf_counter() - mark, time.perf_counter()
-            workers = min(config.map.workers, len(jobs))
-            with console.status(f"running {len(jobs)} session(s) on {workers} Ray worker(s)"):
-                outcomes = run_sessions(config, jobs, codebooks, sessions_dir, console)
-            for outcome in outcomes:
-                relative = None if outcome.folder is None else str(Path(outcome.folder).relative_to(folder))
-                records.append({"name": outcome.name, "log": outcome.log, "folder": relative, "error": outcome.error,
-                                "keyframes": outcome.keyframes, "seconds": outcome.seconds})  # fmt: skip
-            _remove_leftovers(sessions_dir, [r["folder"] for r in records])
-            sessions = _load_sessions(records, folder, config, console)
-            if not sessions:
-                raise MapError("no session succeeded: nothing to map (see the errors above)")
-            phases["sessions"], mark = time.perf_counter() - mark, time.perf_counter()
-            with console.status(f"matching {len(sessions)} sessions against each other"):
-                loops = all_cross_loops(sessions, config) if len(sessions) > 1 else []
-            phases["cross_session_matching"] = time.perf_counter() - mark
-        finally:
-            if owns_ray:
-                ray.shutdown()
-        mark = time.perf_counter()
-        links = link_sessions(loops, sessions, config.map)
-        poses, in_graph, main = solve_maps(sessions, loops, links)
-        phases["joining_and_solving"] = time.perf_counter() - mark
-        members = links.components[0]
-        metrics = evaluate_map(sessions, len(records), members, poses, loops, in_graph, config.evaluation.loops)
-        metrics["wall_s"] = time.perf_counter() - started
-        metrics["seconds"] = phases  # where the wall time went (writing the map is the rest)
-        metrics["maps"] = [[sessions[s].name for s in c] for c in links.components]
-        metrics["session_results"] = records
-        metrics["links"] = [
-            {"sessions": [sessions[link.a].name, sessions[link.b].name], "loops": len(link.loops),
-             "disagreeing": len(link.disagreeing)}
-            for link in links.links
-        ]  # fmt: skip
-        metrics["unjoined_pairs"] = [
-            {"sessions": [sessions[a].name, sessions[b].name], "verified_loops": n}
-            for (a, b), n in links.unjoined_pairs.items()
-        ]
-        result = main.result
-        if result is not None:
-            metrics["main_map_solve"] = {"loops": result.n_loops, "outliers": result.n_outliers,
-                                         "seconds": result.seconds, "check_error": result.check_error}  # fmt: skip
-        truth = [s.gt_poses() for s in sessions]
-        distances = [loop_distance(loop, truth) for loop in loops]
-        name_of = {s.name: k for k, s in enumerate(sessions)}
-        component_of = {s: c for c, comp in enumerate(links.components) for s in comp}
-        for record in records:
-            k = name_of.get(record["name"])
-            record["map"] = None if k is None else component_of[k]
-            record["frame_in_map"] = None if k is None else links.frames[k].tolist()
-        write_map_database(folder / "database", sessions, members, poses, loops, in_graph, config)
-        write_trajectories(folder / "trajectories", sessions, poses)
-        write_map_graph(folder / "map.g2o", main.graph, main.poses)
-        write_cross_loops(folder / "cross_session_loops.csv", sessions, loops, links.kept, in_graph, distances)
-        write_config(folder, config)
-        if config.results.plots:
-            plot_map(folder / "map_top_view.png", sessions, poses, loops, in_graph, config)
-        write_json(folder / "metrics.json", metrics)
-        write_manifest(folder, {"codebooks": codebooks.name, "sessions": records, "maps": metrics["maps"]})
-    assert staged.final is not None
-    print_map_summary(console, metrics, staged.final)
-    return staged.final, metrics
+    def stopped() -> MapStopped:
+        assert stop.signum is not None
+        return MapStopped(stop.signum, len(staging.reusable(jobs)), len(jobs), staging.keep())
+
+    def finished(outcome: SessionOutcome) -> None:
+        if outcome.error is None and outcome.folder is not None:
+            staging.record_finished(_record(outcome, folder), outcome.log)
+
+    phases: dict[str, float] = {}
+    with ray_session(config, ray_address), stop.installed():
+        phases["start"], mark = time.perf_counter() - started, time.perf_counter()
+        if not codebooks.exists():
+            with console.status(f"fitting the shared PCA codebooks on {len(jobs)} logs"):
+                if not fit_codebooks(config, [Path(j[2]) for j in jobs], codebooks, stop):
+                    raise stopped()
+        phases["codebooks"], mark = time.perf_counter() - mark, time.perf_counter()
+        with console.status(f"running {len(todo)} session(s) on {min(config.map.workers, len(todo))} Ray worker(s)"):
+            outcomes = (
+                run_sessions(config, todo, codebooks, staging.sessions_dir, console, stop, finished) if todo else []
+            )
+        if stop.requested:
+            _remove_leftovers(staging.sessions_dir, [r["folder"] for r in staging.finished().values()] +
+                              [r["folder"] for r in records])  # fmt: skip
+            raise stopped()
+        by_index = {o.index: _record(o, folder) for o in outcomes}
+        by_index.update({index: reused[name] for index, name, _ in jobs if name in reused})
+        records += [{k: v for k, v in by_index[index].items() if k != "fingerprint"} for index, _, _ in jobs]
+        _remove_leftovers(staging.sessions_dir, [r["folder"] for r in records])
+        sessions = _load_sessions(records, folder, config, console)
+        if not sessions:
+            raise MapError("no session succeeded: nothing to map (see the errors above)")
+        if previous is not None and all(by_index[index]["error"] is not None for index, _, _ in jobs):
+            raise MapError(f"no added log succeeded ({len(jobs)} failed, see above): the map at {add_to} is unchanged")
+        phases["sessions"], mark = time.perf_counter() - mark, time.perf_counter()
+        with console.status(f"matching {len(sessions)} sessions against each other"):
+            loops = all_cross_loops(sessions, config, stop) if len(sessions) > 1 else []
+        if loops is None:
+            raise stopped()
+        phases["cross_session_matching"] = time.perf_counter() - mark
+    return records, sessions, loops, phases
+
+
+def _record(outcome: SessionOutcome, folder: Path) -> dict[str, Any]:
+    relative = None if outcome.folder is None else str(Path(outcome.folder).relative_to(folder))
+    return {"name": outcome.name, "log": outcome.log, "folder": relative, "error": outcome.error,
+            "keyframes": outcome.keyframes, "seconds": outcome.seconds}  # fmt: skip
+
+
+def _write_map(
+    folder: Path,
+    records: list[dict[str, Any]],
+    sessions: list[SessionMap],
+    loops: list[CrossLoop],
+    phases: dict[str, float],
+    config: SlamConfig,
+    started: float,
+) -> dict[str, Any]:
+    """Steps 5 to 7: sessions joined and solved, evaluated, every output written into `folder`."""
+    mark = time.perf_counter()
+    links = link_sessions(loops, sessions, config.map)
+    poses, in_graph, main = solve_maps(sessions, loops, links)
+    phases["joining_and_solving"] = time.perf_counter() - mark
+    members = links.components[0]
+    metrics = evaluate_map(sessions, len(records), members, poses, loops, in_graph, config.evaluation.loops)
+    metrics["wall_s"] = time.perf_counter() - started
+    metrics["seconds"] = phases  # where the wall time went (writing the map is the rest)
+    metrics["maps"] = [[sessions[s].name for s in c] for c in links.components]
+    metrics["session_results"] = records
+    metrics["links"] = [
+        {"sessions": [sessions[link.a].name, sessions[link.b].name], "loops": len(link.loops),
+         "disagreeing": len(link.disagreeing)}
+        for link in links.links
+    ]  # fmt: skip
+    metrics["unjoined_pairs"] = [
+        {"sessions": [sessions[a].name, sessions[b].name], "verified_loops": n}
+        for (a, b), n in links.unjoined_pairs.items()
+    ]
+    result = main.result
+    if result is not None:
+        metrics["main_map_solve"] = {"loops": result.n_loops, "outliers": result.n_outliers,
+                                     "seconds": result.seconds, "check_error": result.check_error}  # fmt: skip
+    truth = [s.gt_poses() for s in sessions]
+    distances = [loop_distance(loop, truth) for loop in loops]
+    name_of = {s.name: k for k, s in enumerate(sessions)}
+    component_of = {s: c for c, comp in enumerate(links.components) for s in comp}
+    for record in records:
+        k = name_of.get(record["name"])
+        record["map"] = None if k is None else component_of[k]
+        record["frame_in_map"] = None if k is None else links.frames[k].tolist()
+    write_map_database(folder / "database", sessions, members, poses, loops, in_graph, config)
+    write_trajectories(folder / "trajectories", sessions, poses)
+    write_map_graph(folder / "map.g2o", main.graph, main.poses)
+    write_cross_loops(folder / "cross_session_loops.csv", sessions, loops, links.kept, in_graph, distances)
+    write_config(folder, config)
+    if config.results.plots:
+        plot_map(folder / "map_top_view.png", sessions, poses, loops, in_graph, config)
+    write_json(folder / "metrics.json", metrics)
+    for name in (PLAN, FINISHED):  # the staging's own bookkeeping is not part of the map
+        (folder / name).unlink(missing_ok=True)
+    write_manifest(folder, {"codebooks": CODEBOOKS, "sessions": records, "maps": metrics["maps"]})
+    return metrics
 
 
 def _remove_leftovers(sessions_dir: Path, folders: list[str | None]) -> None:

@@ -16,15 +16,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 from cli_helpers import assert_user_error, clean_ssmvpr_environment, invoke  # noqa: F401
+from map_sessions import map_config, session_log
 from rich.console import Console
 from scipy.spatial import cKDTree
 
-from frontend.simulation.sessions import city_sessions
-from ssmvpr_slam.config import SlamConfig, load_config
 from ssmvpr_slam.multi_session.runner import map_logs
 from ssmvpr_slam.prior_map import PriorMap
-from ssmvpr_slam.runner import simulate_to_mcap
-from ssmvpr_slam.simulated_logs import simulated_log_path
 
 pytestmark = pytest.mark.slow
 
@@ -32,24 +29,6 @@ pytestmark = pytest.mark.slow
 # blocks, 4 at dusk round the outer streets: `SESSION_LOOPS`), so their first frames revisit
 # each other's; "elsewhere" is a session in another city (another seed)
 FRAMES = {"s0": 45, "s1": 45, "elsewhere": 40}
-
-
-def _config(weights: Path, out: Path, frames: int | None) -> SlamConfig:
-    overrides = {
-        "simulation": {"camera": {"rear": True}, "max_frames": frames},
-        "vpr": {"backbone": {"weights": str(weights)}},
-        "results": {"out_dir": str(out), "mcap": False, "plots": True},
-        "map": {"workers": 2, "codebook_images_per_session": 12},
-    }
-    return load_config("quick", overrides)
-
-
-def _log(config: SlamConfig) -> Path:
-    path = simulated_log_path(config)
-    if not path.exists():
-        path.parent.mkdir(parents=True, exist_ok=True)
-        simulate_to_mcap(config, path, Console(quiet=True))
-    return path
 
 
 class _WorkerKiller(threading.Thread):
@@ -82,14 +61,11 @@ def maps(weights_path: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[s
     out = tmp_path_factory.mktemp("maps")
     logs = {}
     for name, index, seed in (("s0", 0, 0), ("s1", 4, 0), ("elsewhere", 2, 11)):
-        config = _config(weights_path, out, FRAMES[name])
-        base = config.simulation.model_copy(update={"seed": seed})
-        simulation = city_sessions(base, 1, start=index)[0]
         logs[name] = out / f"{'session' + str(index) if seed == 0 else name}.mcap"  # the session's name
-        logs[name].symlink_to(_log(config.model_copy(update={"simulation": simulation})))
+        logs[name].symlink_to(session_log(weights_path, out, FRAMES[name], index, seed))
     garbage = out / "not_a_log.mcap"
     garbage.write_bytes(b"\x89MCAP0\r\n" + bytes(range(256)) * 4)
-    config = _config(weights_path, out, None)
+    config = map_config(weights_path, out, None)
     killer = _WorkerKiller()
     killer.start()
     try:
@@ -173,3 +149,14 @@ def test_the_map_folder_holds_every_output_and_opens_as_a_prior_map(maps):
 def test_map_options_are_checked_before_any_work(tmp_path):
     assert_user_error(invoke("map", "--add", tmp_path / "x.mcap"), "--add needs --map")
     assert_user_error(invoke("map"), "no logs")
+
+
+def test_an_add_whose_only_log_fails_exits_2_and_leaves_the_map_as_it_was(maps, tmp_path, weights_path):
+    broken = tmp_path / "broken.mcap"
+    broken.write_bytes(b"\x89MCAP0\r\n" + bytes(64))
+    out = tmp_path / "out"
+    result = invoke("map", "--map", maps["first"], "--add", broken, "-c", "quick", "--weights", weights_path,
+                    "--workers", "1", "--out", out)  # fmt: skip
+    assert_user_error(result, "no added log succeeded (1 failed", f"the map at {maps['first']} is unchanged")
+    assert "broken.mcap" in result.stdout  # the failure, by name, above the error
+    assert not list(out.glob("map_*")) and not list(out.glob(".map_*"))  # nothing published, nothing left

@@ -1,0 +1,36 @@
+"""Simulated sessions in one city for the `map` tests (tests/conftest.py puts this folder on
+sys.path): the logs are made once and cached by their settings, so the modules share them."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from rich.console import Console
+
+from frontend.simulation.sessions import city_sessions
+from ssmvpr_slam.config import SlamConfig, load_config
+from ssmvpr_slam.runner import simulate_to_mcap
+from ssmvpr_slam.simulated_logs import simulated_log_path
+
+
+def map_config(weights: Path, out: Path, frames: int | None, workers: int = 2) -> SlamConfig:
+    """The quick preset with both cameras, as the map tests run it."""
+    overrides = {
+        "simulation": {"camera": {"rear": True}, "max_frames": frames},
+        "vpr": {"backbone": {"weights": str(weights)}},
+        "results": {"out_dir": str(out), "mcap": False, "plots": True},
+        "map": {"workers": workers, "codebook_images_per_session": 12},
+    }
+    return load_config("quick", overrides)
+
+
+def session_log(weights: Path, out: Path, frames: int, index: int, seed: int = 0) -> Path:
+    """Session `index` of the city of `seed` (`frames` frames), simulated once and cached."""
+    config = map_config(weights, out, frames)
+    simulation = city_sessions(config.simulation.model_copy(update={"seed": seed}), 1, start=index)[0]
+    config = config.model_copy(update={"simulation": simulation})
+    path = simulated_log_path(config)
+    if not path.exists():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        simulate_to_mcap(config, path, Console(quiet=True))
+    return path
