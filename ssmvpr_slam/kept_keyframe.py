@@ -14,8 +14,8 @@ from frontend.odometry.base import Odometry
 from ssmvpr_slam.backend.kept_scan import keep_scan
 from ssmvpr_slam.backend.two_view import reduce_image
 from ssmvpr_slam.config import SlamConfig
-from ssmvpr_slam.mcap_output import thumbnail_jpeg
 from ssmvpr_slam.run_result import Keyframe
+from ssmvpr_slam.thumbnail import thumbnail_jpeg
 
 
 def keep_keyframe(frame: Frame, pose: np.ndarray, keyframe_id: int, config: SlamConfig, odometry: Odometry) -> Keyframe:

@@ -12,7 +12,7 @@ Topics (frame ``map``, the session's optimised frame; times are the keyframes' l
   at the first keyframe's time; loops spaced out by `loop_spacing_keyframes` (never registered)
   and prior-map loops (their other end is in another session's frame) are not drawn;
 - ``/slam/keyframes/image/compressed`` (sensor_msgs/CompressedImage, JPEG): a thumbnail per
-  keyframe (made when the keyframe was selected, `thumbnail_jpeg`: the run keeps no full image).
+  keyframe (made when the keyframe was selected, `ssmvpr_slam.thumbnail`: the run keeps no full image).
 
 Written through the frontend's MCAP writer: a temp file renamed into place on a clean close.
 """
@@ -22,7 +22,6 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from frontend.config import McapWriterConfig
@@ -41,7 +40,6 @@ TOPICS = (ODOMETRY_PATH, OPTIMISED_PATH, ODOMETRY_POSE, OPTIMISED_POSE, LOOPS, T
 
 _IN_GRAPH = (0.1, 0.8, 0.2, 1.0)
 _REJECTED = (0.9, 0.2, 0.2, 0.8)
-_JPEG_QUALITY = 80
 
 log = logging.getLogger(__name__)
 
@@ -90,45 +88,3 @@ def _loop_markers(result: RunResult, seconds: float) -> dict[str, object]:
         ros_convert.line_list_marker(rejected, seconds, FRAME, "loops_rejected", 1, _REJECTED, 0.15),
     ]
     return {"markers": markers}
-
-
-def thumbnail_jpeg(image: np.ndarray, width: int, name: str = "keyframe image") -> bytes | None:
-    """A keyframe's thumbnail: the RGB image area-averaged to `width` pixels (never enlarged),
-    as JPEG bytes (a few kB), made once when the keyframe is selected.
-
-    None, with a warning, for an array that is no picture (no pixels, not HxW or HxWxC with 1,
-    3 or 4 channels) or that cv2 cannot encode: a thumbnail only decorates trajectory.mcap, so
-    it must never be what ends a run."""
-    problem = _thumbnail_problem(image)
-    if problem is None:
-        try:
-            return _encode_thumbnail(np.ascontiguousarray(image, np.uint8), width)
-        except (cv2.error, ValueError) as error:
-            problem = f"cv2 could not encode it ({error})"
-    log.warning("%s: no thumbnail in trajectory.mcap, the %s array %s", name, np.shape(image), problem)
-    return None
-
-
-def _thumbnail_problem(image: np.ndarray) -> str | None:
-    """Why `image` cannot become a thumbnail, or None."""
-    shape = np.shape(image)
-    if len(shape) not in (2, 3) or (len(shape) == 3 and shape[2] not in (1, 3, 4)):
-        return "is not an HxW or HxWxC (C = 1, 3, 4) picture"
-    if shape[0] == 0 or shape[1] == 0:
-        return "has no pixels"
-    return None
-
-
-def _encode_thumbnail(image: np.ndarray, width: int) -> bytes:
-    """JPEG bytes of a uint8 picture that `_thumbnail_problem` passed, at most `width` wide."""
-    h, w = image.shape[:2]
-    if w > width:
-        image = cv2.resize(image, (width, max(1, round(h * width / w))), interpolation=cv2.INTER_AREA)
-    if image.ndim == 2 or image.shape[2] == 1:
-        image = cv2.cvtColor(image, cv2.COLOR_GRAY2RGB)
-    ok, jpeg = cv2.imencode(
-        ".jpg", cv2.cvtColor(image[:, :, :3], cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, _JPEG_QUALITY]
-    )
-    if not ok:
-        raise ValueError("imencode returned no data")
-    return jpeg.tobytes()

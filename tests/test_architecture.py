@@ -88,3 +88,21 @@ def test_a_long_module_says_why_and_the_core_reads_in_one_sitting() -> None:
             unexplained.append(str(path.relative_to(ROOT)))
     assert unexplained == []
     assert (ROOT / "ssmvpr_slam" / "system.py").read_text(encoding="utf-8").count("\n") < 300
+
+
+def test_the_slam_core_imports_no_reader_writer_or_simulator() -> None:
+    """`ssmvpr_slam.system` is the method's flow: importing it loads no log reader or writer, no
+    ROS or MCAP library and no simulator (the simulation's settings models aside). Checked in a
+    fresh interpreter, where nothing else has imported them yet."""
+    import subprocess
+    import sys
+
+    probe = ("import sys, ssmvpr_slam.system; print('\\n'.join(m for m in sys.modules if m.startswith("
+             "('frontend.sources', 'frontend.simulation', 'rosbags', 'mcap', 'ssmvpr_slam.mcap_output'))))")  # fmt: skip
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True, cwd=ROOT)
+    loaded = set(done.stdout.split())
+    assert loaded <= {"frontend.simulation", "frontend.simulation.config"}, sorted(loaded)
+    # the control: a reader's module does load them (the probe sees what it should)
+    done = subprocess.run([sys.executable, "-c", probe.replace("ssmvpr_slam.system", "frontend.sources.mcap_source")],
+                          capture_output=True, text=True, check=True, cwd=ROOT)  # fmt: skip
+    assert "mcap" in done.stdout.split()

@@ -26,7 +26,7 @@ def _result() -> RunResult:
     rng = np.random.default_rng(0)
 
     def thumbnail() -> bytes:
-        return mcap_output.thumbnail_jpeg(rng.integers(0, 256, (240, 320, 3), dtype=np.uint8), 80)
+        return thumbnail.thumbnail_jpeg(rng.integers(0, 256, (240, 320, 3), dtype=np.uint8), 80)
 
     kfs = tuple(Keyframe(k, 2 * k, 10.0 + k, odom[k], None, None, None, thumbnail=thumbnail()) for k in range(N))
     proposal = LoopProposal(11, 0, 0, 0.8, 0.5, 0, 0.0, True, "accepted", "forward")

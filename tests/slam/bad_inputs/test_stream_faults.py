@@ -24,7 +24,7 @@ from frontend.frame import Frame
 from frontend.odometry.logged import LoggedPoseOdometry
 from frontend.simulation import SimulationConfig, TraverseSimulator
 from frontend.sources import McapFrameWriter, ros_convert, ros_msgdefs
-from ssmvpr_slam import mcap_output
+from ssmvpr_slam import thumbnail
 from ssmvpr_slam.backend.pose_graph import PoseGraph
 from ssmvpr_slam.config import load_config
 from ssmvpr_slam.system import SlamSystem
@@ -171,6 +171,6 @@ def test_an_empty_image_from_any_source_is_a_counted_skip_of_the_frame() -> None
 @pytest.mark.parametrize("shape", [(0, 0, 3), (10, 0, 3), (5,), (4, 4, 2)])
 def test_a_thumbnail_never_ends_a_run(shape: tuple[int, ...], caplog: pytest.LogCaptureFixture) -> None:
     with caplog.at_level("WARNING"):
-        assert mcap_output.thumbnail_jpeg(np.zeros(shape, np.uint8), 80, "keyframe 3 (frame 9)") is None
+        assert thumbnail.thumbnail_jpeg(np.zeros(shape, np.uint8), 80, "keyframe 3 (frame 9)") is None
     assert "keyframe 3 (frame 9): no thumbnail in trajectory.mcap" in caplog.text
-    assert mcap_output.thumbnail_jpeg(np.zeros((240, 1, 3), np.uint8), 80)  # thin, but a picture
+    assert thumbnail.thumbnail_jpeg(np.zeros((240, 1, 3), np.uint8), 80)  # thin, but a picture
