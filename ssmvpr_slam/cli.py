@@ -536,6 +536,17 @@ def _live_view(enabled: bool, port: int, console: Console) -> Iterator[Any]:
         view.close()
 
 
+def _weights_first(cfg) -> None:  # noqa: ANN001
+    """Find the weights (or fetch them into the cache) before any other work: a wrong path or
+    a failed download ends the call in seconds, not after a simulation or a Ray start."""
+    from loopclosure.weights import resolve_weights
+
+    backbone = cfg.vpr.backbone
+    if backbone.weights != "random":
+        given = Path(backbone.weights).expanduser() if backbone.weights else None
+        backbone.weights = str(resolve_weights(given, allow_download=backbone.allow_download, progress=True))
+
+
 def _resume(log: Path, folder: Path, weights: Path | None, device: str | None, refused: dict[str, Any]) -> None:
     """`run LOG --resume DIR`: the checkpoint's own settings, prior map and results folder; only
     where the weights are and which device runs them may change."""
@@ -602,7 +613,7 @@ def map_command(
 ) -> None:
     """Many logs, one map: sessions run in parallel on Ray, joined by cross-session loops, solved as one graph."""
     from ssmvpr_slam.errors import OptionError
-    from ssmvpr_slam.multi_session.runner import map_logs
+    from ssmvpr_slam.multi_session.runner import check_distinct, map_logs, read_manifest
     from ssmvpr_slam.multi_session.stop import MapStopped
     from ssmvpr_slam.run_folder import output_dir
 
@@ -611,9 +622,11 @@ def map_command(
         raise OptionError("--add needs --map: the map folder the sessions join")
     if not every:
         raise OptionError("no logs: give the logs to map (or --map DIR --add LOG)")
+    check_distinct(every, read_manifest(map_dir)["sessions"] if map_dir is not None else [])  # before the weights
     cfg = _config(config, weights, device, out)
     if workers is not None:
         cfg.map = _validated_update(cfg.map, {"workers": workers})
+    _weights_first(cfg)
     with output_dir(cfg.results.out_dir, _out_option(out)):
         try:
             map_logs(every, cfg, console, add_to=map_dir, ray_address=ray_address, resume=resume)
@@ -651,6 +664,7 @@ def demo(
     cfg.frontend.odometry.kind = _odometry_kind(odometry)  # type: ignore[assignment]
     if cfg.frontend.odometry.kind == "logged":
         cfg.pipeline.use_lidar_for_loops = False
+    _weights_first(cfg)
     with output_dir(cfg.results.out_dir, _out_option(out)):
         log = simulated_log_path(cfg)  # in the user cache, reused by the next demo with the same settings
         if log.is_file():

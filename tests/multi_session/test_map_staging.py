@@ -149,10 +149,10 @@ def test_map_refuses_the_same_log_twice_on_the_command_line(tmp_path):
     assert_user_error(invoke("map", log, log, "--out", tmp_path / "out"), "is given twice")
 
 
-def test_ray_address_auto_with_no_cluster_is_one_line(tmp_path):
+def test_ray_address_auto_with_no_cluster_is_one_line(tmp_path, weights_path):
     log = tmp_path / "a.mcap"
     log.write_bytes(b"x")
-    assert_user_error(invoke("map", log, "--ray-address", "auto", "--out", tmp_path / "out"),
+    assert_user_error(invoke("map", log, "--ray-address", "auto", "--weights", weights_path, "--out", tmp_path / "out"),
                       "--ray-address auto: no Ray cluster is running", "ray start --head")  # fmt: skip
 
 
@@ -166,7 +166,7 @@ def _silent_server() -> tuple[socket.socket, int]:
     return server, server.getsockname()[1]
 
 
-def test_a_cluster_address_where_no_ray_answers_is_one_line_within_the_timeout(tmp_path):
+def test_a_cluster_address_where_no_ray_answers_is_one_line_within_the_timeout(tmp_path, weights_path):
     log = tmp_path / "a.mcap"
     log.write_bytes(b"x")
     config = tmp_path / "map.yaml"
@@ -174,7 +174,18 @@ def test_a_cluster_address_where_no_ray_answers_is_one_line_within_the_timeout(t
     server, port = _silent_server()
     try:
         start = time.monotonic()
-        result = invoke("map", log, "--ray-address", f"127.0.0.1:{port}", "-c", config, "--out", tmp_path / "out")
+        result = invoke(
+            "map",
+            log,
+            "--ray-address",
+            f"127.0.0.1:{port}",
+            "-c",
+            config,
+            "--weights",
+            weights_path,
+            "--out",
+            tmp_path / "out",
+        )
         took = time.monotonic() - start
     finally:
         server.close()
@@ -184,6 +195,17 @@ def test_a_cluster_address_where_no_ray_answers_is_one_line_within_the_timeout(t
     closed.bind(("127.0.0.1", 0))
     port = closed.getsockname()[1]
     closed.close()  # nobody listens there now
-    result = invoke("map", log, "--ray-address", f"127.0.0.1:{port}", "-c", config, "--out", tmp_path / "out")
+    result = invoke(
+        "map",
+        log,
+        "--ray-address",
+        f"127.0.0.1:{port}",
+        "-c",
+        config,
+        "--weights",
+        weights_path,
+        "--out",
+        tmp_path / "out",
+    )
     assert_user_error(result, f"--ray-address 127.0.0.1:{port}")
     assert not list((tmp_path / "out").glob(".map_*"))  # nothing left behind
