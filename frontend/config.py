@@ -150,7 +150,7 @@ class KissIcpConfig(_Model):
         description="Threads of its registration, at most the cores (0 = all cores): ICP on one scan keeps a few "
         "busy, and more only wait. kiss-icp fixes one cap per process at its first registration "
         "(frontend/odometry/kiss_threads.py): where the odometry runs in the main process (pipeline.overlap "
-        "off), the first built of this and backend.registration.lidar.max_threads counts for both",
+        "off), the first built of this and backend.registration.lidar.max_num_threads counts for both",
     )
     fixed_threshold: float | None = Field(
         None, gt=0.0, description="m; constant correspondence threshold sigma; None: kiss-icp's adaptive one"
@@ -218,8 +218,6 @@ class PoseFileConfig(_Model):
     rotation_tolerance: float = Field(
         1e-3, gt=0.0, description="max |R^T R - I| (or |q| - 1) before a line is rejected"
     )
-    timestamp_decimals: int = Field(9, ge=0, le=12, description="decimals of the timestamps in written TUM files")
-    value_digits: int = Field(10, ge=6, le=17, description="significant digits per value")
 
 
 # --------------------------------------------------------------------------- keyframes

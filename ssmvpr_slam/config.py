@@ -27,6 +27,7 @@ from ssmvpr_slam.evaluation.config import EvaluationConfig
 from ssmvpr_slam.map_config import MapConfig
 from ssmvpr_slam.pipeline_config import PipelineConfig
 from ssmvpr_slam.presets import PRESETS_DIR, available_presets
+from ssmvpr_slam.retired_settings import retired_key
 
 
 class ConfigError(SlamError, ValueError):
@@ -138,6 +139,8 @@ def load_config(config: str | Path | None = None, overrides: dict[str, Any] | No
         data = _read_with_base(path)
         source = str(path)
     data = _merge(data, overrides or {})
+    if (retired := retired_key(data)) is not None:
+        raise ConfigError(f"config {source}: {retired}")
     try:
         return SlamConfig(**data)
     except SettingsError as exc:  # a nested SSMVPR_ variable whose value is not the JSON it must be

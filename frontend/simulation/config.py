@@ -105,7 +105,6 @@ class CityConfig(_Model):
     car_slot_length_m: float = Field(7.0, gt=1.0, description="kerb length per parked-car slot")
     car_size_m: tuple[float, float, float] = Field((4.3, 1.8, 1.5), description="length width height")
     car_kerb_gap_m: float = Field(0.3, ge=0.0, description="gap between a parked car and the kerb")
-    intersection_clearance_m: float = Field(4.0, ge=0.0, description="no cars this close to a crossing")
     facade_palette: list[RGB] = Field(
         default=[
             (0.62, 0.30, 0.22),  # brick red

@@ -159,7 +159,7 @@ class LidarRegistrationConfig(_Strict):
     max_points_per_voxel: int = Field(20, ge=1, description="points kept per voxel of the target map")
     max_range: float = Field(100.0, gt=0, description="m; points farther away are dropped")
     convergence_criterion: float = Field(1e-4, gt=0, description="ICP stops once a pose update's norm is below this")
-    max_threads: int = Field(
+    max_num_threads: int = Field(
         4,
         ge=0,
         description="Threads of the loop ICP, at most the cores (0 = all cores), as the odometry's: kiss-icp fixes "

@@ -83,7 +83,7 @@ class SeededIcp:
 
     def __init__(self, config: LidarRegistrationConfig) -> None:
         self.config = config
-        claim_kiss_icp_threads(config.max_threads, "backend.registration.lidar.max_threads")
+        claim_kiss_icp_threads(config.max_num_threads, "backend.registration.lidar.max_num_threads")
         self._screen = self._registration(config.screening_iterations)
         self._stages = [self._registration(stage.max_iterations) for stage in config.stages]
 
@@ -91,7 +91,7 @@ class SeededIcp:
         return Registration(
             max_num_iterations=iterations,
             convergence_criterion=self.config.convergence_criterion,
-            max_num_threads=self.config.max_threads,
+            max_num_threads=self.config.max_num_threads,
         )
 
     def prepare(self, points: np.ndarray) -> IcpCloud:

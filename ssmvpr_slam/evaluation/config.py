@@ -34,9 +34,6 @@ class TrajectoryMetricsConfig(_Strict):
     kitti_step_frames: int = Field(
         10, ge=1, description="first frames of KITTI segments are this many poses apart (devkit: 10)"
     )
-    association_max_dt: float = Field(
-        0.01, ge=0, description="s; max timestamp difference when associating trajectories"
-    )
 
 
 class LoopMetricsConfig(_Strict):

@@ -56,7 +56,7 @@ def test_odometry_then_loop_registration_with_other_caps_is_reported(
         pytest.skip("one core: every cap is the same")
     with caplog.at_level(logging.WARNING):
         KissIcpOdometry(KissIcpConfig(max_num_threads=0))
-        SeededIcp(LidarRegistrationConfig(max_threads=1))
+        SeededIcp(LidarRegistrationConfig(max_num_threads=1))
     [warning] = _warnings(caplog)
-    assert warning.startswith("backend.registration.lidar.max_threads=1 has no effect")
+    assert warning.startswith("backend.registration.lidar.max_num_threads=1 has no effect")
     assert "frontend.odometry.kiss_icp.max_num_threads" in warning

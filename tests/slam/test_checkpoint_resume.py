@@ -107,7 +107,7 @@ LIDAR_CONFIG = (
     + FRONTEND
     + """\
   odometry: {kind: kiss_icp, kiss_icp: {max_num_threads: 1}}
-backend: {registration: {lidar: {max_threads: 1, loop_spacing_keyframes: 3}}}
+backend: {registration: {lidar: {max_num_threads: 1, loop_spacing_keyframes: 3}}}
 pipeline: {overlap: OVERLAP}
 results: {plots: false, checkpoint_every_keyframes: 4, checkpoint_every_s: null}
 """
