@@ -743,23 +743,31 @@ def weights_path(weights: WeightsOpt = None) -> None:
     epilog=_examples(
         "ssmvpr-slam config --diff -c fast",
         "SSMVPR_DETECTOR__CALIBRATED__ACCEPT=5 ssmvpr-slam config --diff",
-        "ssmvpr-slam config --explain | grep calibrated",
+        "ssmvpr-slam config --explain            (the settings users tune)",
+        "ssmvpr-slam config --explain --all | grep calibrated",
     ),
 )
 @friendly_errors
 def show_config(
     config: ConfigOpt = None,
     diff: Annotated[bool, typer.Option("--diff", help="Only what differs from the default preset as shipped.")] = False,
-    explain: Annotated[bool, typer.Option("--explain", help="One line per key: key, value and what it does.")] = False,
+    explain: Annotated[
+        bool, typer.Option("--explain", help="The settings users tune: key, value, unit, default and what it does.")
+    ] = False,
+    every: Annotated[bool, typer.Option("--all", help="With --explain: every setting, one line each.")] = False,
 ) -> None:
     """Print the effective configuration (preset + file + environment) as YAML."""
     import yaml
 
     from ssmvpr_slam.config import config_diff, dump_config, explain_config, preset_config
+    from ssmvpr_slam.errors import OptionError
+    from ssmvpr_slam.settings_in_front import explain_in_front
 
     cfg = _config(config)
+    if every and not explain:
+        raise OptionError("--all goes with --explain (the YAML and --diff show every setting already)")
     if explain:
-        text = explain_config(cfg)
+        text = explain_config(cfg) if every else explain_in_front(cfg, preset_config())
     elif diff:
         changed = config_diff(cfg, preset_config())
         text = yaml.safe_dump(changed, sort_keys=False).rstrip() if changed else "# the default preset, unchanged"

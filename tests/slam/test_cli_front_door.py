@@ -10,14 +10,16 @@ from typing import get_args
 
 import pytest
 import yaml
-from cli_helpers import clean_ssmvpr_environment, invoke  # noqa: F401
+from cli_helpers import assert_user_error, clean_ssmvpr_environment, invoke  # noqa: F401
 
 from frontend.config import FolderSourceConfig, OdometryConfig
 from loopclosure.config import BackboneConfig, SequenceMatchConfig
 from loopclosure.weights import FetchSource
 from ssmvpr_slam.backend.graph_optimizer import KERNEL_NAMES
 from ssmvpr_slam.cli import app
+from ssmvpr_slam.config import load_config
 from ssmvpr_slam.presets import available_presets
+from ssmvpr_slam.settings_in_front import IN_FRONT, setting
 
 COMMANDS = [["run"], ["demo"], ["simulate"], ["vpr-eval"], ["loop-eval"], ["optimize"], ["fit-pca"], ["config"],
             ["weights", "fetch"], ["weights", "path"]]  # fmt: skip
@@ -76,12 +78,54 @@ def test_config_diff_shows_what_a_preset_and_the_environment_change() -> None:
     assert changed["detector"] == {"calibrated": {"accept": 5.0}}  # the environment, and nothing else of it
 
 
-def test_config_explain_gives_each_key_its_description() -> None:
-    result = invoke("config", "--explain")
-    assert result.exit_code == 0
-    lines = {line.split(":")[0]: line for line in result.output.splitlines() if not line.startswith("#")}
+def _explained(*args: str, env: dict[str, str] | None = None) -> dict[str, str]:
+    result = invoke("config", "--explain", *args, env={"COLUMNS": "400", **(env or {})})
+    assert result.exit_code == 0, result.output
+    return {line.split(":")[0]: line for line in result.output.splitlines() if not line.startswith("#")}
+
+
+def test_config_explain_shows_the_settings_users_tune_with_unit_value_and_default() -> None:
+    lines = _explained(env={"SSMVPR_DETECTOR__CALIBRATED__ACCEPT": "5"})
+    assert list(lines) == [key for key, _ in IN_FRONT] and 15 <= len(lines) <= 25
+    assert lines["detector.calibrated.accept"].startswith(
+        "detector.calibrated.accept: 5.0  [spreads]  (default: 6.0)  # "
+    )
+    assert lines["frontend.keyframes.min_distance_m"].startswith(
+        "frontend.keyframes.min_distance_m: 1.0  [m]  (default: 1.0)"
+    )
+    assert lines["vpr.backbone.device"].startswith('vpr.backbone.device: "auto"  (default: "auto")  # Where VGG16 runs')
+
+
+def test_config_explain_all_gives_every_key_its_description() -> None:
+    lines = _explained("--all")
+    assert len(lines) > 300 and set(key for key, _ in IN_FRONT) < set(lines)
     assert "detector.calibrated.accept" in lines and "#" in lines["detector.calibrated.accept"]
     assert lines["vpr.backbone.device"].startswith('vpr.backbone.device: "auto"')
+    assert_user_error(invoke("config", "--all"), "--all goes with --explain")
+
+
+def test_every_setting_in_front_is_one_the_settings_have() -> None:
+    config = load_config()
+    for key, _ in IN_FRONT:
+        setting(config, key)  # KeyError for a key renamed or removed since
+    with pytest.raises(KeyError):
+        setting(config, "detector.no_such_key")
+
+
+@pytest.mark.parametrize(
+    ("yaml", "says"),
+    [
+        ("backend:\n  registration:\n    lidar:\n      max_threads: 2\n",
+         "backend.registration.lidar.max_threads was renamed backend.registration.lidar.max_num_threads"),
+        ("frontend:\n  pose_files:\n    value_digits: 12\n", "frontend.pose_files.value_digits was removed"),
+        ("evaluation:\n  trajectory:\n    association_max_dt: 0.1\n", "association_max_dt was removed"),
+    ],
+)  # fmt: skip
+def test_a_retired_setting_in_a_users_file_is_named_with_what_became_of_it(
+    tmp_path: Path, yaml: str, says: str
+) -> None:
+    (tmp_path / "old.yaml").write_text(yaml)
+    assert_user_error(invoke("config", "-c", tmp_path / "old.yaml"), str(tmp_path / "old.yaml"), says)
 
 
 def _ring_graph(tmp_path: Path) -> Path:
