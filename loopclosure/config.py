@@ -180,6 +180,11 @@ class SpatialConfig(_Strict):
     # Unnormalised stage-II codes (best cell by L2) measured better on Corridor: top-1 0.84 vs 0.70.
     pca: PCAConfig = PCAConfig(dim=100, l2_normalize_output=False)
     chunk_candidates: int = Field(default=64, ge=1, description="Candidates scored per batched matmul.")
+    device: Literal["auto", "cpu", "cuda"] = Field(
+        default="auto",
+        description="Where stage II runs: cpu is numpy (the reference), cuda torch with every candidate in one "
+        "batch; auto follows the backbone (cuda when it runs on a GPU).",
+    )
 
 
 class DatabaseConfig(_Strict):

@@ -36,7 +36,7 @@ from loopclosure.recognizer import Recognition, Recognizer
 from loopclosure.saved_state import saved_finite, saved_ints
 from loopclosure.sequence_gate import SequenceGate
 from loopclosure.sequence_matcher import SequenceMatch, SequenceMatcher
-from loopclosure.spatial import spatial_scores
+from loopclosure.spatial_torch import stage2_scores
 
 log = logging.getLogger(__name__)
 
@@ -515,7 +515,7 @@ class LoopDetector:
     def _score_places(self, grid: np.ndarray, places: np.ndarray) -> np.ndarray:
         """Stage-II scores of an earlier keyframe's grid against database places (sequence terms)."""
         assert self.database is not None
-        return spatial_scores(grid, self.database.stage2[places], self.vpr.spatial.chunk_candidates).scores
+        return stage2_scores(grid, self.database.stage2[places], self.vpr).scores
 
     def _query(self, codes: PlaceCodes, keyframe_id: int, rear: bool = False) -> LoopProposal | None:
         """Stage I, stage II and sequence matching of one image of the keyframe."""

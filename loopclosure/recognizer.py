@@ -11,7 +11,7 @@ from loopclosure.database import PlaceDatabase
 from loopclosure.encoder import PlaceCodes
 from loopclosure.errors import LoopClosureInputError
 from loopclosure.filtering import Candidates
-from loopclosure.spatial import spatial_scores
+from loopclosure.spatial_torch import stage2_scores
 
 
 @dataclass(frozen=True)
@@ -86,7 +86,7 @@ class Recognizer:
             empty = np.empty(0, np.float32)
             return Recognition(candidates, places, empty, np.empty((0, 2), np.int64), empty)
 
-        spatial = spatial_scores(codes.stage2[0], self.database.stage2[places], self.config.spatial.chunk_candidates)
+        spatial = stage2_scores(codes.stage2[0], self.database.stage2[places], self.config)
         final = (spatial.scores + boost) / (1.0 + float(boost.max(initial=0.0)))
         order = np.argsort(-final, kind="stable")
         return Recognition(candidates, places[order], final[order], spatial.shifts[order], spatial.scores[order])

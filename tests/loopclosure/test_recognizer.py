@@ -244,3 +244,23 @@ def test_sequences_rank_gardens_point_at_least_as_well_as_single_frames(real, le
         s_auc = _auc(*map(np.array, zip(*single)), tol)
         q_auc = _auc(*map(np.array, zip(*sequence)), tol)
         assert q_auc >= s_auc, (tol, s_auc, q_auc)
+
+
+def test_stage_two_in_one_torch_batch_scores_real_grids_as_numpy_does(real):
+    """Gardens Point's real conv4_2 grids (float16 storage, as the database keeps them): the
+    torch batch (`vpr.spatial.device: cuda` on a GPU; run here on the CPU) gives numpy's scores,
+    up to a best cell that two BLAS pick differently on a float32 tie."""
+    from loopclosure.spatial_torch import spatial_scores_torch
+
+    _, db, _, query_codes, _, _ = real
+    grids = db.stage2[np.arange(len(db))]
+    differ, pairs, worst = 0, 0, 0.0
+    for q in range(N):
+        reference = spatial_scores(query_codes.stage2[q], grids)
+        batch = spatial_scores_torch(query_codes.stage2[q], grids, "cpu")
+        differ += int((batch.raw != reference.raw).sum())
+        pairs += len(grids)
+        worst = max(worst, float(np.abs(batch.scores - reference.scores).max()))
+        assert int(np.argmax(batch.scores)) == int(np.argmax(reference.scores))
+    assert differ <= pairs // 20, (differ, pairs)
+    assert worst < 0.01, worst

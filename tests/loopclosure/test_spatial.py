@@ -19,6 +19,7 @@ from loopclosure.spatial import (
     spatial_score_literal,
     spatial_scores,
 )
+from loopclosure.spatial_torch import spatial_scores_torch, stage2_scores
 
 
 @st.composite
@@ -190,3 +191,50 @@ def test_float16_storage_scores_as_its_float32_values():
     half, full = spatial_scores(query, stored, chunk=4), spatial_scores(query, stored.astype(np.float32), chunk=4)
     np.testing.assert_array_equal(half.raw, full.raw)
     np.testing.assert_array_equal(half.shifts, full.shifts)
+
+
+@given(grids())
+@settings(max_examples=80, deadline=None)
+def test_the_torch_batch_equals_the_literal_algorithm(grid):
+    """Stage II on a torch device (run here on the CPU): small integer codes make every distance
+    exact, so it must give the paper's loop's scores and numpy's shifts exactly."""
+    query, cands = grid
+    result = spatial_scores_torch(query, cands, "cpu")
+    np.testing.assert_array_equal(result.raw, [spatial_score_literal(query, cand) for cand in cands])
+    reference = spatial_scores(query, cands)
+    np.testing.assert_array_equal(result.scores, reference.scores)
+    np.testing.assert_array_equal(result.shifts, reference.shifts)
+
+
+def test_the_torch_batch_takes_float16_storage_and_no_candidates():
+    rng = np.random.default_rng(3)
+    query = rng.normal(size=(13, 13, 16)).astype(np.float32)
+    stored = rng.normal(size=(5, 13, 13, 16)).astype(np.float16)
+    stored[2] = query.astype(np.float16)  # the place itself: every cell keeps its place
+    result = spatial_scores_torch(query, stored, "cpu")
+    assert result.scores[2] == 1.0 and tuple(result.shifts[2]) == (0, 0)
+    np.testing.assert_array_equal(result.raw, spatial_scores(query, stored).raw)
+    empty = spatial_scores_torch(query, stored[:0], "cpu")
+    assert empty.scores.shape == (0,) and empty.shifts.shape == (0, 2)
+    with pytest.raises(ValueError, match="do not match"):
+        spatial_scores_torch(query, stored[:, :12], "cpu")
+
+
+def test_stage_two_runs_where_the_settings_say():
+    import torch
+
+    from loopclosure.config import VPRConfig
+    from loopclosure.errors import LoopClosureInputError
+    from loopclosure.spatial_torch import _device
+
+    assert _device("cpu", "cuda") == "cpu"
+    assert _device("auto", "cpu") == "cpu"  # the backbone on the CPU: numpy, whatever the machine has
+    assert _device("auto", "auto") == ("cuda" if torch.cuda.is_available() else "cpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(LoopClosureInputError, match="vpr.spatial.device: cuda"):
+            _device("cuda", "auto")
+    rng = np.random.default_rng(0)
+    query = rng.normal(size=(4, 4, 8)).astype(np.float32)
+    cands = rng.normal(size=(3, 4, 4, 8)).astype(np.float32)
+    config = VPRConfig.model_validate({"spatial": {"device": "cpu"}})
+    np.testing.assert_array_equal(stage2_scores(query, cands, config).raw, spatial_scores(query, cands).raw)

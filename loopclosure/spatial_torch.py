@@ -1,0 +1,87 @@
+"""Stage II on a torch device: the same scores as `loopclosure.spatial`, all candidates at once.
+
+On a GPU, stage II of the default preset (50 candidates and the sequence terms, each a
+169 x 169 x 100 product and the consistency counts) is a handful of small kernels instead of
+numpy on the CPU beside the backbone. The candidates' grids go to the device as stored
+(float16: half the bytes) and are widened there. Products run in full float32 (no TF32, no
+reduced-precision sums, as for stage I's exact search), so the best cells match numpy's up to
+the order a BLAS sums in: a candidate whose two best query cells tie to float32 rounding may
+pick the other one (a count or two of its raw score); the tests bound how often.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import numpy as np
+
+from loopclosure.config import VPRConfig
+from loopclosure.errors import LoopClosureInputError
+from loopclosure.spatial import SpatialResult, max_raw_score, spatial_scores
+
+
+def spatial_scores_torch(query: np.ndarray, candidates: np.ndarray, device: str) -> SpatialResult:
+    """`spatial.spatial_scores` on `device` (cuda, or cpu for the tests), in one batch."""
+    import torch
+
+    from loopclosure.device_search import full_float32
+
+    if candidates.ndim != 4 or candidates.shape[1:] != query.shape:
+        raise ValueError(f"candidate grids {candidates.shape} do not match the query grid {query.shape}")
+    n, gh, gw, d = candidates.shape
+    if n == 0:
+        return SpatialResult(np.empty(0, np.float32), np.empty(0, np.int64), np.empty((0, 2), np.int64))
+    q = torch.from_numpy(np.ascontiguousarray(query, dtype=np.float32).reshape(gh * gw, d)).to(device)
+    c = torch.from_numpy(np.require(candidates, requirements=["C", "W"])).to(device).float().reshape(-1, d)
+    with full_float32():
+        affinity = c @ (2.0 * q.T)
+    affinity -= (q * q).sum(1)[None, :]
+    best = affinity.argmax(1).reshape(n, gh, gw)
+    raw, shifts = _consistency_counts(best, gh, gw)
+    raw_np = raw.cpu().numpy()
+    return SpatialResult((raw_np / max_raw_score(gh, gw)).astype(np.float32), raw_np, shifts.cpu().numpy())
+
+
+def _consistency_counts(best: Any, gh: int, gw: int) -> tuple[Any, Any]:
+    """`spatial.consistency_counts` in torch (the same closed form: squared group sizes per row
+    and per column of each candidate's displacement codes)."""
+    import torch
+
+    n = best.shape[0]
+    dev = best.device
+    rows, cols = best // gw, best % gw
+    d_row = rows - torch.arange(gh, device=dev)[None, :, None] + (gh - 1)
+    d_col = cols - torch.arange(gw, device=dev)[None, None, :] + (gw - 1)
+    n_codes = (2 * gh - 1) * (2 * gw - 1)
+    code = d_row * (2 * gw - 1) + d_col
+    cand = torch.arange(n, device=dev)
+    row_key = (cand[:, None, None] * gh + torch.arange(gh, device=dev)[None, :, None]) * n_codes + code
+    col_key = (cand[:, None, None] * gw + torch.arange(gw, device=dev)[None, None, :]) * n_codes + code
+    row_counts = torch.bincount(row_key.reshape(-1), minlength=n * gh * n_codes).reshape(n, -1)
+    col_counts = torch.bincount(col_key.reshape(-1), minlength=n * gw * n_codes).reshape(n, -1)
+    raw = (row_counts.long() ** 2).sum(1) + (col_counts.long() ** 2).sum(1)
+    totals = torch.bincount((cand[:, None, None] * n_codes + code).reshape(-1), minlength=n * n_codes)
+    dominant = totals.reshape(n, n_codes).argmax(1)
+    shifts = torch.stack((dominant // (2 * gw - 1), dominant % (2 * gw - 1)), dim=1)
+    return raw, shifts - torch.tensor([gh - 1, gw - 1], device=dev)
+
+
+def stage2_scores(query: np.ndarray, candidates: np.ndarray, vpr: VPRConfig) -> SpatialResult:
+    """Stage II where `vpr.spatial.device` says: numpy on the CPU (the reference), or torch on
+    the GPU (auto: where the backbone runs on one)."""
+    device = _device(vpr.spatial.device, vpr.backbone.device)
+    if device == "cpu":
+        return spatial_scores(query, candidates, vpr.spatial.chunk_candidates)
+    return spatial_scores_torch(query, candidates, device)
+
+
+@functools.cache
+def _device(spatial: str, backbone: str) -> str:
+    import torch
+
+    if spatial == "auto":  # the backbone's: cuda when it runs on a GPU
+        return "cuda" if backbone in ("auto", "cuda") and torch.cuda.is_available() else "cpu"
+    if spatial == "cuda" and not torch.cuda.is_available():
+        raise LoopClosureInputError("vpr.spatial.device: cuda, but torch sees no CUDA device")
+    return spatial
