@@ -3,7 +3,7 @@
 `nan` passes any `x <= 0` check a command makes (every comparison with NaN is false), so
 `loop-eval --radius nan` ran to an all-n/a result with exit status 0; `inf` passes them too and
 means nothing as metres or a rate. The check runs on the parsed values of whichever command is
-called (from `cli.friendly_errors`, which wraps each one), before its work starts, so a float
+called (from `cli.errors.friendly_errors`, which wraps each one), before its work starts, so a float
 option added later is covered without a check of its own.
 """
 

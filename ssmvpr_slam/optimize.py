@@ -1,5 +1,6 @@
 """`ssmvpr-slam optimize`: a pose-graph file solved robustly, judged against ground truth when
-given, written as a new results folder. The command line (cli.py) only parses the options."""
+given, written as a new results folder. The command line (`cli/evaluation.py`) only parses the
+options."""
 
 from __future__ import annotations
 

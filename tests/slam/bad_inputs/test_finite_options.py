@@ -1,5 +1,5 @@
 """Every float option of every command refuses NaN and infinity in one line naming the option,
-through one check (`ssmvpr_slam.finite_options`, run by `cli.friendly_errors`), before any
+through one check (`ssmvpr_slam.finite_options`, run by `cli.errors.friendly_errors`), before any
 work. Before: `loop-eval --radius nan` passed the `radius <= 0` check (NaN compares false) and
 ran to an all-n/a result with exit status 0.
 
