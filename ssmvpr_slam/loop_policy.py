@@ -3,16 +3,20 @@ match facing the wrong way, or further than the odometry allows), a revisit's lo
 by one registered a moment ago, ICP against a local map around the match, two views of the
 images, and a loop no geometry verified admitted only when earlier loops of its revisit agree
 (`loop_consistency`). The policy reads the run's keyframes and loops as the core hands them in,
-so a run resumed from its checkpoint decides as the uninterrupted one did."""
+so a run resumed from its checkpoint decides as the uninterrupted one did. The verdicts it gives
+a loop it refuses or holds back (implausible, turned, spaced, unverified, confirmed) are written
+here too: a loop's whole story reads in this module; `LoopRegistrar` only registers."""
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import replace
 
 import numpy as np
 
 from loopclosure.detector import LoopDetector, LoopProposal
+from ssmvpr_slam.backend.config import LoopRegistrationConfig
 from ssmvpr_slam.backend.loop_consistency import LoopPose, support
 from ssmvpr_slam.backend.loop_registration import LoopRegistrar, LoopRegistration, build_local_map, carry_loop
 from ssmvpr_slam.backend.se3 import yaw_of
@@ -56,17 +60,18 @@ class LoopPolicy:
             odometry_yaw = yaw_of(np.linalg.inv(match.odom_pose)[:3, :3] @ kf.odom_pose[:3, :3])
             off = abs(math.degrees(math.remainder(proposal.yaw_guess - odometry_yaw, 2.0 * math.pi)))
             if off > gate.max_heading_deg:
-                return self.registrar.turned(proposal.yaw_guess, odometry_yaw)
+                return turned(self.registration_config, proposal.yaw_guess, odometry_yaw)
         if self.odometry_kind in gate.sources:
             offset = float(np.linalg.norm(kf.odom_pose[:3, 3] - match.odom_pose[:3, 3]))
             if offset > gate.limit(travelled_since):
-                return self.registrar.implausible(offset, travelled_since)
+                return implausible(self.registration_config, offset, travelled_since)
         if kf.scan is not None and match.scan is not None:
             lidar = self.registration_config.lidar
             recent = self._carried(keyframes, loops, kf, match, lidar.loop_spacing_keyframes - 1)
             if recent is not None:  # registered a moment ago: the odometry carries it here
                 record, carried = recent
-                return self.registrar.spaced(carried, record.proposal.query_id, record.proposal.match_id)
+                return spaced(self.registration_config, carried, record.proposal.query_id,
+                                       record.proposal.match_id)  # fmt: skip
             half = lidar.local_map_half_window
             window = keyframes[max(0, match.id - half) : match.id + half + 1]
             with_scans = [(k.scan.points, k.odom_pose) for k in window if k.scan is not None]
@@ -108,7 +113,7 @@ class LoopPolicy:
             return registration
         loop = self._loop_pose(keyframes, proposal, registration.T_mq)
         if loop is None:
-            return self.registrar.unverified(registration, 0)
+            return unverified(registration_config, registration, 0)
         earlier = [
             e
             for r in loops
@@ -120,8 +125,8 @@ class LoopPolicy:
         ]
         agreeing = support(loop, earlier, registration_config.consistency)
         if agreeing < registration_config.consistency.min_support:
-            return self.registrar.unverified(registration, agreeing)
-        return self.registrar.confirmed(registration, agreeing)
+            return unverified(registration_config, registration, agreeing)
+        return confirmed(registration, agreeing)
 
     def _loop_pose(self, keyframes: Sequence[Keyframe], proposal: LoopProposal, T_mq: np.ndarray) -> LoopPose | None:
         """The loop's ends for the consistency check (None: a prior-map place without a pose)."""
@@ -199,3 +204,72 @@ def loop_to_carry(loops: Sequence[LoopRecord], query_id: int, match_id: int, rea
         if q < query_id and abs(match_id - m) <= reach and _session_icp_loop(record):
             return record
     return None
+
+
+# ---- the verdicts: what the policy decided for a loop it did not (or not yet) let in, and why,
+# naming the setting that decided; registration only registers
+
+
+def spaced(config: LoopRegistrationConfig, carried: np.ndarray, query_id: int, match_id: int) -> LoopRegistration:
+    """No registration: the accepted ICP loop query_id -> match_id of the same revisit is
+    within `lidar.loop_spacing_keyframes`. Not a factor (accepted False); T_mq is that loop
+    carried here by odometry (`carry_loop`), what the graph already implies."""
+    spacing = config.lidar.loop_spacing_keyframes
+    return LoopRegistration(
+        T_mq=carried,
+        accepted=False,
+        reason=f"spaced: loop {query_id} -> {match_id} of this revisit is within {spacing} keyframes "
+        "(backend.registration.lidar.loop_spacing_keyframes)",
+        inlier_ratio=float("nan"),
+        rmse=float("nan"),
+        method="spaced",
+    )
+
+
+def implausible(config: LoopRegistrationConfig, offset_m: float, travelled_m: float) -> LoopRegistration:
+    """No registration: odometry puts the two keyframes `offset_m` apart after `travelled_m`
+    of driving between them, beyond what its drift explains (`odometry_gate`)."""
+    gate = config.odometry_gate
+    return _refused(
+        f"implausible: odometry puts the keyframes {offset_m:.1f} m apart, beyond "
+        f"{gate.limit(travelled_m):.1f} m ({gate.base_m:g} m + {gate.per_m_travelled:g} x {travelled_m:.0f} m "
+        "driven between them; backend.registration.odometry_gate)"
+    )
+
+
+def turned(config: LoopRegistrationConfig, claimed_yaw: float, odometry_yaw: float) -> LoopRegistration:
+    """No registration: the match says the query faces `claimed_yaw` relative to the place,
+    the odometry says `odometry_yaw`, more than `odometry_gate.max_heading_deg` apart."""
+    gate = config.odometry_gate
+    return _refused(
+        f"implausible: the match puts the heading at {math.degrees(claimed_yaw):.0f} deg to the place, "
+        f"the odometry at {math.degrees(odometry_yaw):.0f} deg, more than {gate.max_heading_deg:g} deg apart "
+        "(backend.registration.odometry_gate.max_heading_deg)"
+    )
+
+
+def unverified(config: LoopRegistrationConfig, prior: LoopRegistration, agreeing: int) -> LoopRegistration:
+    """No factor: nothing verified the loop's geometry and too few earlier loops of its revisit
+    agree with it (`consistency`). T_mq stays the place prior, for the loops after it to check against."""
+    need = config.consistency.min_support
+    return replace(
+        prior,
+        accepted=False,
+        reason=f"unverified: {agreeing} of the {need} earlier loops of the revisit needed agree "
+        f"(backend.registration.consistency); {prior.reason}",
+        sigmas=np.full(6, np.nan),
+        method="unverified",
+    )
+
+
+def confirmed(prior: LoopRegistration, agreeing: int) -> LoopRegistration:
+    """The place prior as a factor: `agreeing` earlier loops of the revisit vouch for it."""
+    return replace(prior, reason=f"{prior.reason}; {agreeing} earlier loops of the revisit agree")
+
+
+def _refused(reason: str) -> LoopRegistration:
+    """A loop the odometry gate refuses before any registration: no pose, never a factor."""
+    return LoopRegistration(
+        T_mq=np.eye(4), accepted=False, reason=reason, inlier_ratio=float("nan"), rmse=float("nan"),
+        method="implausible",
+    )  # fmt: skip

@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -225,58 +225,6 @@ class LoopRegistrar:
             method=f"two_view_{est.model}",
         )
 
-    def spaced(self, carried: np.ndarray, query_id: int, match_id: int) -> LoopRegistration:
-        """No registration: the accepted ICP loop query_id -> match_id of the same revisit is
-        within `lidar.loop_spacing_keyframes`. Not a factor (accepted False); T_mq is that loop
-        carried here by odometry (`carry_loop`), what the graph already implies."""
-        spacing = self.config.lidar.loop_spacing_keyframes
-        return LoopRegistration(
-            T_mq=carried,
-            accepted=False,
-            reason=f"spaced: loop {query_id} -> {match_id} of this revisit is within {spacing} keyframes "
-            "(backend.registration.lidar.loop_spacing_keyframes)",
-            inlier_ratio=float("nan"),
-            rmse=float("nan"),
-            method="spaced",
-        )
-
-    def implausible(self, offset_m: float, travelled_m: float) -> LoopRegistration:
-        """No registration: odometry puts the two keyframes `offset_m` apart after `travelled_m`
-        of driving between them, beyond what its drift explains (`odometry_gate`)."""
-        gate = self.config.odometry_gate
-        return _implausible(
-            f"implausible: odometry puts the keyframes {offset_m:.1f} m apart, beyond "
-            f"{gate.limit(travelled_m):.1f} m ({gate.base_m:g} m + {gate.per_m_travelled:g} x {travelled_m:.0f} m "
-            "driven between them; backend.registration.odometry_gate)"
-        )
-
-    def turned(self, claimed_yaw: float, odometry_yaw: float) -> LoopRegistration:
-        """No registration: the match says the query faces `claimed_yaw` relative to the place,
-        the odometry says `odometry_yaw`, more than `odometry_gate.max_heading_deg` apart."""
-        gate = self.config.odometry_gate
-        return _implausible(
-            f"implausible: the match puts the heading at {math.degrees(claimed_yaw):.0f} deg to the place, "
-            f"the odometry at {math.degrees(odometry_yaw):.0f} deg, more than {gate.max_heading_deg:g} deg apart "
-            "(backend.registration.odometry_gate.max_heading_deg)"
-        )
-
-    def unverified(self, prior: LoopRegistration, agreeing: int) -> LoopRegistration:
-        """No factor: nothing verified the loop's geometry and too few earlier loops of its revisit
-        agree with it (`consistency`). T_mq stays the place prior, for the loops after it to check against."""
-        need = self.config.consistency.min_support
-        return replace(
-            prior,
-            accepted=False,
-            reason=f"unverified: {agreeing} of the {need} earlier loops of the revisit needed agree "
-            f"(backend.registration.consistency); {prior.reason}",
-            sigmas=np.full(6, np.nan),
-            method="unverified",
-        )
-
-    def confirmed(self, prior: LoopRegistration, agreeing: int) -> LoopRegistration:
-        """The place prior as a factor: `agreeing` earlier loops of the revisit vouch for it."""
-        return replace(prior, reason=f"{prior.reason}; {agreeing} earlier loops of the revisit agree")
-
     def yaw_prior(self, yaw_guess: float, why: str, inlier_ratio: float = 0.0) -> LoopRegistration:
         """Place prior from the visual match alone: zero translation within the place radius,
         yaw from the spatial matching's column shift, loose roll and pitch."""
@@ -293,14 +241,6 @@ class LoopRegistrar:
             sigmas=sigmas,
             method="yaw_prior",
         )
-
-
-def _implausible(reason: str) -> LoopRegistration:
-    """A loop the odometry gate refuses before any registration: no pose, never a factor."""
-    return LoopRegistration(
-        T_mq=np.eye(4), accepted=False, reason=reason, inlier_ratio=float("nan"), rmse=float("nan"),
-        method="implausible",
-    )  # fmt: skip
 
 
 def _finite_yaw(yaw: float) -> float:

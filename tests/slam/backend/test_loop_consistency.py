@@ -9,6 +9,7 @@ import math
 import numpy as np
 import pytest
 
+from ssmvpr_slam import loop_policy
 from ssmvpr_slam.backend.config import LoopConsistencyConfig, LoopRegistrationConfig, TwoViewConfig
 from ssmvpr_slam.backend.loop_consistency import LoopPose, agrees, disagreement, support
 from ssmvpr_slam.backend.loop_registration import LoopRegistrar
@@ -70,11 +71,11 @@ def test_support_counts_only_loops_of_the_same_revisit_within_the_window() -> No
 def test_unverified_and_confirmed_registrations() -> None:
     registrar = LoopRegistrar(LoopRegistrationConfig(two_view=TwoViewConfig(on_geometry_failure="consistent")))
     prior = registrar.yaw_prior(0.3, "only 3 ORB matches")
-    refused = registrar.unverified(prior, 1)
+    refused = loop_policy.unverified(registrar.config, prior, 1)
     assert not refused.accepted and refused.method == "unverified" and np.isnan(refused.sigmas).all()
     assert refused.reason.startswith("unverified: 1 of the 2 earlier loops of the revisit needed agree")
     np.testing.assert_array_equal(refused.T_mq, prior.T_mq)  # what later loops check against
-    kept = registrar.confirmed(prior, 2)
+    kept = loop_policy.confirmed(prior, 2)
     assert kept.accepted and kept.method == "yaw_prior" and kept.reason.endswith("2 earlier loops of the revisit agree")
 
 

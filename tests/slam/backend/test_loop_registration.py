@@ -6,6 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
+from ssmvpr_slam import loop_policy
 from ssmvpr_slam.backend.config import LoopRegistrationConfig
 from ssmvpr_slam.backend.loop_registration import LoopRegistrar, build_local_map, carry_loop
 from ssmvpr_slam.backend.se3 import invert, make_pose, rot_z, rotation_angle, yaw_of
@@ -242,7 +243,7 @@ def test_the_odometry_gate_allows_a_base_plus_a_share_of_the_path_and_says_so():
     gate = config.odometry_gate
     assert gate.sources == ["kiss_icp"]  # logged poses (wheel odometry of any drift) are not gated by default
     assert gate.limit(0.0) == 10.0 and gate.limit(500.0) == pytest.approx(20.0)
-    refused = LoopRegistrar(config).implausible(107.25, 95.0)
+    refused = loop_policy.implausible(config, 107.25, 95.0)
     assert not refused.accepted and refused.method == "implausible"
     assert refused.reason.startswith("implausible: odometry puts the keyframes 107.2 m apart, beyond 11.9 m")
     assert "10 m + 0.02 x 95 m driven between them" in refused.reason
