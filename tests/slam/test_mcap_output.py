@@ -25,10 +25,10 @@ def _result() -> RunResult:
     optimised[:, 1, 3] = 0.1 * np.arange(N)
     rng = np.random.default_rng(0)
 
-    def thumbnail() -> bytes:
+    def jpeg() -> bytes:
         return thumbnail.thumbnail_jpeg(rng.integers(0, 256, (240, 320, 3), dtype=np.uint8), 80)
 
-    kfs = tuple(Keyframe(k, 2 * k, 10.0 + k, odom[k], None, None, None, thumbnail=thumbnail()) for k in range(N))
+    kfs = tuple(Keyframe(k, 2 * k, 10.0 + k, odom[k], None, None, None, thumbnail=jpeg()) for k in range(N))
     proposal = LoopProposal(11, 0, 0, 0.8, 0.5, 0, 0.0, True, "accepted", "forward")
     rejected = LoopProposal(6, 1, 1, 0.7, 0.5, 0, 0.0, True, "accepted", "forward")
     not_accepted = LoopProposal(7, 2, 2, 0.3, 0.2, 0, 0.0, False, "sequence score too low", "forward")
