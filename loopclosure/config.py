@@ -138,7 +138,8 @@ class FilteringConfig(_Strict):
     ivf_nprobe: int = Field(
         default=64,
         ge=1,
-        description="IVF lists searched per query vector (4096 lists, street-like codes: recall@N 0.93 at 100k places).",
+        description="IVF lists searched per query vector: more finds more of the exact candidates, slower "
+        "(docs/benchmarks.md).",
     )
     ivf_codes: Literal["flat", "sq8"] = Field(
         default="flat",
@@ -282,8 +283,7 @@ class SequenceMatchConfig(_Strict):
         default=10,
         ge=1,
         description="Only the best K stage-II candidates (plus the continued sequences) get sequence terms; "
-        "None: all N. K=10 measured as good as or better than all 50 (Corridor L=5: 0.948 vs 0.938) at a "
-        "fifth of the cost.",
+        "None: all N (docs/benchmarks.md measures K against all).",
     )
     continuations: int = Field(
         default=3, ge=0, description="The previous query's best sequences continued as candidates (per direction)."

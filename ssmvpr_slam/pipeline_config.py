@@ -47,7 +47,7 @@ class PipelineConfig(BaseModel):
     realtime_max_lag_s: float = Field(
         default=3.0, ge=0.0, allow_inf_nan=False,
         description="Real time: a keyframe later than this (from its frame being due) skips recognition: the sensor "
-        "data that may queue up. The PCA fit after the warm-up holds the stream about 2.5 s once (docs/streaming.md).",
+        "data that may queue up; it must absorb the one PCA fit that ends the warm-up (docs/streaming.md).",
     )  # fmt: skip
     registration_worker: Literal["auto"] | bool = Field(
         default="auto", description="Register accepted loops in a worker thread while later keyframes are "

@@ -293,8 +293,7 @@ class OdometryGateConfig(_Strict):
     per_m_travelled: float = Field(
         0.02,
         ge=0,
-        description="m allowed per metre driven between the two keyframes (kiss-icp drifts 0.4-0.6 % of the "
-        "distance on the simulated routes; its right loops there lie within 10.3 m)",
+        description="m allowed per metre driven between the two keyframes: above the odometry's drift (docs/method.md)",
     )
     max_heading_deg: float | None = Field(
         90.0,
@@ -327,8 +326,8 @@ class LoopConsistencyConfig(_Strict):
         "within their places' spread; a symmetric street seen backwards slides two keyframe spacings a keyframe)"
     )  # fmt: skip
     per_m_travelled: float = Field(
-        0.1, ge=0, description="m allowed per metre driven on the two stretches between the loops (a wheel "
-        "odometry's drift; the simulated one drifts up to 13 %)"
+        0.1, ge=0, description="m allowed per metre driven on the two stretches between the loops: above a "
+        "wheel odometry's drift"
     )  # fmt: skip
     max_rotation_deg: float = Field(25.0, gt=0, le=180, description="deg of disagreement in rotation")
 
