@@ -9,21 +9,18 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
+
+from ssmvpr_common.settings_model import SettingsModel
 
 # Topic value meaning "do not read / write this stream at all".
 TOPIC_OFF = ""
 
 
-class _Model(BaseModel):
-    # allow_inf_nan=False: a setting of NaN or inf passes every bound (NaN compares false) and means nothing
-    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
-
-
 # --------------------------------------------------------------------------- sources
 
 
-class McapWriterConfig(_Model):
+class McapWriterConfig(SettingsModel):
     """How :class:`~frontend.sources.mcap_writer.McapFrameWriter` lays out a log."""
 
     camera_topic: str = Field("/camera/image_raw", description="forward camera images when image_format is raw (Image)")
@@ -52,7 +49,7 @@ class McapWriterConfig(_Model):
     rotation_tolerance: float = Field(1e-3, gt=0.0, description="a pose whose |R^T R - I| exceeds this is refused")
 
 
-class McapSourceConfig(_Model):
+class McapSourceConfig(SettingsModel):
     """How an MCAP log is read and its streams associated into frames.
 
     A topic left ``None`` is found by message type; ``""`` switches the stream off.
@@ -88,7 +85,7 @@ class McapSourceConfig(_Model):
     max_time_gap_s: float = Field(5.0, gt=0.0, description="a stream's time leaping further forward is warned about")
 
 
-class KittiSourceConfig(_Model):
+class KittiSourceConfig(SettingsModel):
     """A KITTI odometry sequence folder (``sequences/XX``)."""
 
     camera: Literal["auto", "image_2", "image_0", "none"] = Field(
@@ -102,7 +99,7 @@ class KittiSourceConfig(_Model):
     max_time_gap_s: float = Field(5.0, gt=0.0, description="a time leaping further forward is warned about")
 
 
-class FolderSourceConfig(_Model):
+class FolderSourceConfig(SettingsModel):
     """A folder of images with an optional TUM or KITTI poses file."""
 
     image_dir: str | None = Field(None, description="sub-folder with the images (auto)")
@@ -118,7 +115,7 @@ class FolderSourceConfig(_Model):
     frame_period_s: float = Field(0.1, gt=0.0, description="timestamp step when no times are known")
 
 
-class SourceConfig(_Model):
+class SourceConfig(SettingsModel):
     """Which data source :func:`~frontend.sources.open_source` builds, and its settings."""
 
     kind: Literal["auto", "mcap", "rosbag", "kitti", "folder"] = Field(
@@ -134,7 +131,7 @@ class SourceConfig(_Model):
 # --------------------------------------------------------------------------- odometry
 
 
-class KissIcpConfig(_Model):
+class KissIcpConfig(SettingsModel):
     """kiss-icp's ``KISSConfig`` fields, flattened, plus our input guards."""
 
     max_range: float = Field(100.0, gt=0.0, description="m; farther returns are dropped")
@@ -171,7 +168,7 @@ class KissIcpConfig(_Model):
         return self
 
 
-class DriftConfig(_Model):
+class DriftConfig(SettingsModel):
     """Seeded drift injected into logged poses, so loop closures have something to fix.
 
     Per step of length d metres: translation scaled by (1 + translation_scale_error),
@@ -190,7 +187,7 @@ class DriftConfig(_Model):
     rotation_noise_per_sqrt_m: float = Field(0.0, ge=0.0, description="rad / sqrt(m)")
 
 
-class LoggedOdometryConfig(_Model):
+class LoggedOdometryConfig(SettingsModel):
     """Odometry read from the log's poses (optionally degraded by :class:`DriftConfig`)."""
 
     pose_source: Literal["logged", "gt"] = Field(
@@ -199,7 +196,7 @@ class LoggedOdometryConfig(_Model):
     drift: DriftConfig = Field(default_factory=DriftConfig)
 
 
-class OdometryConfig(_Model):
+class OdometryConfig(SettingsModel):
     """Which odometry :func:`~frontend.odometry.make_odometry` builds."""
 
     kind: Literal["auto", "kiss_icp", "logged"] = Field(
@@ -212,7 +209,7 @@ class OdometryConfig(_Model):
 # --------------------------------------------------------------------------- pose files
 
 
-class PoseFileConfig(_Model):
+class PoseFileConfig(SettingsModel):
     """Reading and writing TUM / KITTI trajectory files (:mod:`frontend.poses_io`, :mod:`ssmvpr_common.trajectory_io`)."""
 
     rotation_tolerance: float = Field(
@@ -223,7 +220,7 @@ class PoseFileConfig(_Model):
 # --------------------------------------------------------------------------- keyframes
 
 
-class KeyframeConfig(_Model):
+class KeyframeConfig(SettingsModel):
     """A frame becomes a keyframe when any enabled threshold is reached (None = off)."""
 
     min_distance_m: float | None = Field(1.0, gt=0.0, description="m moved since the last keyframe")
@@ -231,7 +228,7 @@ class KeyframeConfig(_Model):
     max_interval_s: float | None = Field(None, gt=0.0, description="s elapsed since the last keyframe")
 
 
-class FrontendConfig(_Model):
+class FrontendConfig(SettingsModel):
     """Everything the front end needs; nested into the application's settings."""
 
     source: SourceConfig = Field(default_factory=SourceConfig)

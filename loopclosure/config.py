@@ -8,14 +8,12 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
+
+from ssmvpr_common.settings_model import SettingsModel
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)  # no NaN or inf setting
-
-
-class BackboneConfig(_Strict):
+class BackboneConfig(SettingsModel):
     """VGG16 truncated after the deepest layer SSM-VPR reads."""
 
     weights: str | None = Field(
@@ -66,7 +64,7 @@ class BackboneConfig(_Strict):
     )
 
 
-class CubeConfig(_Strict):
+class CubeConfig(SettingsModel):
     """How a conv map is cut into cubes: LxLxC windows at a stride, each flattened."""
 
     cube_size: int = Field(ge=1, description="L: side of a cube, in conv-map cells.")
@@ -76,7 +74,7 @@ class CubeConfig(_Strict):
     )
 
 
-class PCAConfig(_Strict):
+class PCAConfig(SettingsModel):
     dim: int = Field(default=100, ge=1, description="Dimensions a cube vector is projected to.")
     whiten: bool = Field(default=False, description="Divide each PCA component by its standard deviation.")
     l2_normalize_output: bool = Field(
@@ -87,7 +85,7 @@ class PCAConfig(_Strict):
     seed: int = Field(default=0, ge=0, le=2**32 - 1, description="Of the subsample and of sklearn (0 .. 2**32 - 1).")
 
 
-class FilteringConfig(_Strict):
+class FilteringConfig(SettingsModel):
     """Stage I: histogram voting over nearest stage-I vectors."""
 
     cubes: CubeConfig = CubeConfig(cube_size=7, stride=2)
@@ -174,7 +172,7 @@ class FilteringConfig(_Strict):
         return self.neighbours_per_vector or self.num_candidates
 
 
-class SpatialConfig(_Strict):
+class SpatialConfig(SettingsModel):
     """Stage II: anchor row/column consistency on the conv4_2 grid."""
 
     cubes: CubeConfig = CubeConfig(cube_size=3, stride=2)
@@ -188,7 +186,7 @@ class SpatialConfig(_Strict):
     )
 
 
-class DatabaseConfig(_Strict):
+class DatabaseConfig(SettingsModel):
     """How place codes are stored: float, or int8 with one float32 scale per vector (x ~ q * s,
     s = max|x| / 127): 19.2 kB per place instead of 40.2 kB (docs/benchmarks.md, "Speed")."""
 
@@ -200,7 +198,7 @@ class DatabaseConfig(_Strict):
     )
 
 
-class FrameCorrelationConfig(_Strict):
+class FrameCorrelationConfig(SettingsModel):
     """The RAS 2020 prior: candidates near the last recognitions get extra votes."""
 
     enabled: bool = Field(
@@ -216,7 +214,7 @@ class FrameCorrelationConfig(_Strict):
     )
 
 
-class VPRConfig(_Strict):
+class VPRConfig(SettingsModel):
     """The complete SSM-VPR recogniser."""
 
     backbone: BackboneConfig = BackboneConfig()
@@ -261,7 +259,7 @@ def grid_side(map_side: int, cubes: CubeConfig) -> int:
     return (map_side - cubes.cube_size) // cubes.stride + 1
 
 
-class SequenceMatchConfig(_Strict):
+class SequenceMatchConfig(SettingsModel):
     """Sequence matching on stage-II scores (SeqSLAM's idea on SSM-VPR scores).
 
     The score of query q -> place r averages s(q-k, r -/+ k) over k = 0..L-1: one frame can
@@ -305,7 +303,7 @@ class SequenceMatchConfig(_Strict):
         return self
 
 
-class SequenceGateConfig(_Strict):
+class SequenceGateConfig(SettingsModel):
     """The sequence prior as a gate: a closure needs L consistent recognitions in a row."""
 
     enabled: bool = Field(
@@ -317,7 +315,7 @@ class SequenceGateConfig(_Strict):
     allow_reverse: bool = Field(default=True, description="Accept revisits travelled in the opposite direction.")
 
 
-class CalibratedDecisionConfig(_Strict):
+class CalibratedDecisionConfig(SettingsModel):
     """The decision score that transfers between worlds (detector.decision: calibrated).
 
     A keyframe's scores are centred on its own field (the mean stage-II score of its stage-I
@@ -376,7 +374,7 @@ class CalibratedDecisionConfig(_Strict):
         return self
 
 
-class RearCameraConfig(_Strict):
+class RearCameraConfig(SettingsModel):
     """A backward-looking camera, queried against the forward camera's places (never added).
 
     At a street driven the other way it looks where the forward camera looked on the earlier
@@ -417,7 +415,7 @@ class RearCameraConfig(_Strict):
     )
 
 
-class DetectorConfig(_Strict):
+class DetectorConfig(SettingsModel):
     """Streaming loop-closure detection over keyframes."""
 
     exclusion_keyframes: int = Field(default=30, ge=0, description="The most recent keyframes are never candidates.")

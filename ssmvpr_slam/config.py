@@ -14,12 +14,13 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, Field, ValidationError
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict, SettingsError
 
 from frontend.config import FrontendConfig
 from frontend.simulation.config import SimulationConfig
 from loopclosure.config import DetectorConfig, SequenceMatchConfig, VPRConfig
+from ssmvpr_common.settings_model import SettingsModel
 from ssmvpr_common.text_files import read_text
 from ssmvpr_slam.backend.config import BackendConfig
 from ssmvpr_slam.errors import SlamError
@@ -34,10 +35,8 @@ class ConfigError(SlamError, ValueError):
     """A preset or config file that cannot be used; the message names it."""
 
 
-class VPREvalConfig(BaseModel):
+class VPREvalConfig(SettingsModel):
     """How `vpr-eval` scores recognition, as the paper does."""
-
-    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
 
     tolerance: int = Field(default=2, ge=0, description="A match within ±tolerance frames of the truth is correct.")
     plot_tolerances: list[int] = Field(default=[1, 2, 3], description="Tolerances drawn in the PR plot.")
@@ -51,9 +50,7 @@ class VPREvalConfig(BaseModel):
     )
 
 
-class ResultsConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
-
+class ResultsConfig(SettingsModel):
     out_dir: str = Field(
         default="results", description="Folder each command makes its results folder in (--out overrides it)."
     )

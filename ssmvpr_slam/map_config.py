@@ -3,13 +3,13 @@ shared codebooks, and when two sessions are joined. `SlamConfig` nests them as `
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
+
+from ssmvpr_common.settings_model import SettingsModel
 
 
-class MapConfig(BaseModel):
+class MapConfig(SettingsModel):
     """`map`: many sessions (logs) into one map through the loops between them."""
-
-    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
 
     workers: int = Field(default=1, ge=1, description="Ray workers, each holding the backbone once (--workers).")
     worker_cpus: float | None = Field(

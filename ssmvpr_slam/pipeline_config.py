@@ -6,12 +6,12 @@ from __future__ import annotations
 import os
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import Field
+
+from ssmvpr_common.settings_model import SettingsModel
 
 
-class PipelineConfig(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
-
+class PipelineConfig(SettingsModel):
     use_lidar_for_loops: bool = Field(default=True, description="Register loops by ICP when scans exist.")
     max_frames: int | None = Field(
         default=None, ge=1, description="Stop after this many frames of the log (`run --frames`); None: all of it."

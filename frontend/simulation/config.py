@@ -11,16 +11,19 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from frontend.errors import FrontendInputError
+from ssmvpr_common.settings_model import SettingsModel
 
 RGB = tuple[float, float, float]
 ROUTE_PRESETS = ("block_grid", "figure_eight")
 
 
-class _Model(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)  # no NaN or inf setting
+class _Model(SettingsModel):
+    """The shared policy, frozen: a city and route built from these settings must not change under them."""
+
+    model_config = ConfigDict(frozen=True)
 
 
 def _ordered_pair(value: tuple[float, float], name: str) -> tuple[float, float]:

@@ -8,7 +8,9 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import Field, field_validator
+
+from ssmvpr_common.settings_model import SettingsModel
 
 RobustKernelKind = Literal["cauchy", "huber", "dcs", "geman_mcclure", "tukey", "none"]
 OdometryKind = Literal["kiss_icp", "logged"]  # frontend.odometry.kind once `auto` is resolved
@@ -26,20 +28,14 @@ DEFAULT_KERNEL_SCALES: dict[str, float] = {
 }
 
 
-class _Strict(BaseModel):
-    """Unknown keys are errors: a typo in a preset must not be silently ignored."""
-
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)  # no NaN or inf setting either
-
-
-class PriorNoiseConfig(_Strict):
+class PriorNoiseConfig(SettingsModel):
     """Anchors the first keyframe; tight so the graph has no gauge freedom."""
 
     rot_sigma: float = Field(1e-3, gt=0, description="rad")
     trans_sigma: float = Field(1e-3, gt=0, description="m")
 
 
-class OdometryNoiseConfig(_Strict):
+class OdometryNoiseConfig(SettingsModel):
     """Odometry factor sigmas: a floor plus an optional part proportional to distance travelled."""
 
     rot_sigma: float = Field(0.01, gt=0, description="rad per odometry edge")
@@ -48,14 +44,14 @@ class OdometryNoiseConfig(_Strict):
     trans_sigma_per_m: float = Field(0.0, ge=0, description="m added per metre travelled")
 
 
-class LoopNoiseConfig(_Strict):
+class LoopNoiseConfig(SettingsModel):
     """Default loop factor sigmas, used when the caller gives no sigmas / information."""
 
     rot_sigma: float = Field(0.05, gt=0, description="rad")
     trans_sigma: float = Field(0.2, gt=0, description="m")
 
 
-class RobustKernelConfig(_Strict):
+class RobustKernelConfig(SettingsModel):
     """M-estimator wrapped around every loop factor (odometry stays Gaussian)."""
 
     kind: RobustKernelKind = Field("cauchy", description="M-estimator of the loop factors; none: plain least squares")
@@ -73,7 +69,7 @@ class RobustKernelConfig(_Strict):
         return self.scale if self.scale is not None else DEFAULT_KERNEL_SCALES[self.kind]
 
 
-class ISAM2Config(_Strict):
+class ISAM2Config(SettingsModel):
     """Incremental solver settings."""
 
     relinearize_threshold: float = Field(
@@ -85,7 +81,7 @@ class ISAM2Config(_Strict):
     )
 
 
-class GncConfig(_Strict):
+class GncConfig(SettingsModel):
     """GNC's settings: of `optimize`, and of a run's optional final robust pass (`enabled`)."""
 
     enabled: bool = Field(
@@ -106,7 +102,7 @@ class GncConfig(_Strict):
     )
 
 
-class PoseGraphConfig(_Strict):
+class PoseGraphConfig(SettingsModel):
     """Everything `PoseGraph` needs."""
 
     prior: PriorNoiseConfig = PriorNoiseConfig()
@@ -135,7 +131,7 @@ class PoseGraphConfig(_Strict):
         return self if noise is None else self.model_copy(update={"odometry": noise})
 
 
-class IcpStageConfig(_Strict):
+class IcpStageConfig(SettingsModel):
     """One pass of kiss-icp's point-to-point ICP; stages run coarse to fine."""
 
     max_correspondence_distance: float = Field(gt=0, description="m")
@@ -150,7 +146,7 @@ def _default_stages() -> list[IcpStageConfig]:
     ]
 
 
-class LidarRegistrationConfig(_Strict):
+class LidarRegistrationConfig(SettingsModel):
     """Scan-to-(local)map registration of a loop with kiss-icp."""
 
     voxel_size: float = Field(1.0, gt=0, description="m; kiss-icp map voxel size")
@@ -231,7 +227,7 @@ def _optical_to_flu() -> list[list[float]]:
     return [[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]
 
 
-class TwoViewConfig(_Strict):
+class TwoViewConfig(SettingsModel):
     """Place prior without LiDAR: rotation from two-view geometry, translation from a radius."""
 
     fx: float | None = Field(None, gt=0, description="px; None = from hfov_deg and image width")
@@ -278,7 +274,7 @@ def _gated_sources() -> list[OdometryKind]:
     return ["kiss_icp"]
 
 
-class OdometryGateConfig(_Strict):
+class OdometryGateConfig(SettingsModel):
     """A session loop is refused before registration when the odometry puts its two keyframes
     farther apart than the odometry's drift over the path between them could explain. Appearance
     aliases across a city (the rear camera on the KITTI 06 route shape: 197 wrong loops 17-385 m
@@ -310,7 +306,7 @@ class OdometryGateConfig(_Strict):
         return self.base_m + self.per_m_travelled * travelled_m
 
 
-class LoopConsistencyConfig(_Strict):
+class LoopConsistencyConfig(SettingsModel):
     """When a loop no geometry verified may still become a factor (two_view.on_geometry_failure:
     consistent): earlier loops of the same revisit must agree with it. Loops q_j -> m_j and
     q -> m agree when loop j, carried along both visits by odometry to (m, q), lands within these
@@ -332,7 +328,7 @@ class LoopConsistencyConfig(_Strict):
     max_rotation_deg: float = Field(25.0, gt=0, le=180, description="deg of disagreement in rotation")
 
 
-class LoopRegistrationConfig(_Strict):
+class LoopRegistrationConfig(SettingsModel):
     """Both registration paths, and the odometry check before either."""
 
     lidar: LidarRegistrationConfig = LidarRegistrationConfig()
@@ -341,7 +337,7 @@ class LoopRegistrationConfig(_Strict):
     consistency: LoopConsistencyConfig = LoopConsistencyConfig()
 
 
-class BackendConfig(_Strict):
+class BackendConfig(SettingsModel):
     """Root of the back end's configuration."""
 
     pose_graph: PoseGraphConfig = PoseGraphConfig()

@@ -4,14 +4,12 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
+
+from ssmvpr_common.settings_model import SettingsModel
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)  # no NaN or inf setting
-
-
-class TrajectoryMetricsConfig(_Strict):
+class TrajectoryMetricsConfig(SettingsModel):
     """ATE / RPE / drift, following evo's definitions; KITTI relative error, the devkit's."""
 
     alignment: Literal["se3", "sim3", "none"] = Field(
@@ -36,7 +34,7 @@ class TrajectoryMetricsConfig(_Strict):
     )
 
 
-class LoopMetricsConfig(_Strict):
+class LoopMetricsConfig(SettingsModel):
     """When a keyframe is a revisit, and when an accepted loop counts as correct."""
 
     revisit_radius: float = Field(5.0, gt=0, description="m; ground-truth revisit distance")
@@ -56,7 +54,7 @@ class LoopMetricsConfig(_Strict):
         return self
 
 
-class PlotConfig(_Strict):
+class PlotConfig(SettingsModel):
     """Figure output."""
 
     dpi: int = Field(120, ge=30, description="dots per inch of a run's PNG plots")
@@ -64,7 +62,7 @@ class PlotConfig(_Strict):
     height_in: float = Field(6.0, gt=0, description="height of a run's plots, in inches (some plots use a fraction)")
 
 
-class EvaluationConfig(_Strict):
+class EvaluationConfig(SettingsModel):
     """Root of the evaluation configuration."""
 
     trajectory: TrajectoryMetricsConfig = TrajectoryMetricsConfig()

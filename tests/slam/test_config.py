@@ -6,6 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from pydantic import ValidationError
 
 import ssmvpr_slam.config as config_module
 from loopclosure.config import DetectorConfig
@@ -374,3 +375,29 @@ def test_every_float_setting_refuses_nan_and_infinity_naming_its_key(tmp_path: P
             continue
         accepted.append(path)
     assert not accepted
+
+
+def test_every_settings_model_follows_the_one_policy() -> None:
+    """Every section of the settings, in every package, is a `SettingsModel`: unknown keys refused,
+    assignments checked, no NaN or infinity (the simulation's scene frozen on top)."""
+    from pydantic import BaseModel
+
+    from ssmvpr_common.settings_model import SettingsModel
+
+    def sections(model: type[BaseModel], key: str) -> list[tuple[str, type[BaseModel]]]:
+        found = []
+        for name, info in model.model_fields.items():
+            kind = info.annotation
+            if isinstance(kind, type) and issubclass(kind, BaseModel):
+                found += [(f"{key}{name}", kind), *sections(kind, f"{key}{name}.")]
+        return found
+
+    models = sections(SlamConfig, "")
+    assert len(models) > 40
+    outside = [key for key, kind in models if not issubclass(kind, SettingsModel)]
+    assert outside == []
+    config = load_config()
+    with pytest.raises(ValidationError):
+        config.backend.registration.lidar.max_num_threads = -1  # checked when set, as when loaded
+    with pytest.raises(ValidationError):
+        config.simulation.city.block_size_m = 10.0  # the scene is frozen
