@@ -143,15 +143,20 @@ def test_a_log_given_twice_or_already_in_the_map_is_refused(tmp_path):
     check_distinct([log, tmp_path / "b.mcap"], [])
 
 
-def test_map_refuses_the_same_log_twice_on_the_command_line(tmp_path):
-    log = tmp_path / "a.mcap"
+def _a_log(folder: Path) -> Path:
+    """A log file for the tests refused before any log is read."""
+    log = folder / "a.mcap"
     log.write_bytes(b"x")
+    return log
+
+
+def test_map_refuses_the_same_log_twice_on_the_command_line(tmp_path):
+    log = _a_log(tmp_path)
     assert_user_error(invoke("map", log, log, "--out", tmp_path / "out"), "is given twice")
 
 
 def test_ray_address_auto_with_no_cluster_is_one_line(tmp_path, weights_path):
-    log = tmp_path / "a.mcap"
-    log.write_bytes(b"x")
+    log = _a_log(tmp_path)
     assert_user_error(invoke("map", log, "--ray-address", "auto", "--weights", weights_path, "--out", tmp_path / "out"),
                       "--ray-address auto: no Ray cluster is running", "ray start --head")  # fmt: skip
 
@@ -167,25 +172,18 @@ def _silent_server() -> tuple[socket.socket, int]:
 
 
 def test_a_cluster_address_where_no_ray_answers_is_one_line_within_the_timeout(tmp_path, weights_path):
-    log = tmp_path / "a.mcap"
-    log.write_bytes(b"x")
+    log = _a_log(tmp_path)
     config = tmp_path / "map.yaml"
     config.write_text("preset: quick\nmap:\n  ray_connect_timeout_s: 6\n")
+
+    def map_at(port: int):  # noqa: ANN202
+        return invoke("map", log, "--ray-address", f"127.0.0.1:{port}", "-c", config, "--weights", weights_path,
+                      "--out", tmp_path / "out")  # fmt: skip
+
     server, port = _silent_server()
     try:
         start = time.monotonic()
-        result = invoke(
-            "map",
-            log,
-            "--ray-address",
-            f"127.0.0.1:{port}",
-            "-c",
-            config,
-            "--weights",
-            weights_path,
-            "--out",
-            tmp_path / "out",
-        )
+        result = map_at(port)
         took = time.monotonic() - start
     finally:
         server.close()
@@ -195,17 +193,6 @@ def test_a_cluster_address_where_no_ray_answers_is_one_line_within_the_timeout(t
     closed.bind(("127.0.0.1", 0))
     port = closed.getsockname()[1]
     closed.close()  # nobody listens there now
-    result = invoke(
-        "map",
-        log,
-        "--ray-address",
-        f"127.0.0.1:{port}",
-        "-c",
-        config,
-        "--weights",
-        weights_path,
-        "--out",
-        tmp_path / "out",
-    )
+    result = map_at(port)
     assert_user_error(result, f"--ray-address 127.0.0.1:{port}")
     assert not list((tmp_path / "out").glob(".map_*"))  # nothing left behind

@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 import pytest
 from cli_helpers import clean_ssmvpr_environment, invoke  # noqa: F401
+from small_logs import small_camera_log
 
 from loopclosure.detector import LoopProposal
 from ssmvpr_slam.backend.loop_registration import LoopRegistration
@@ -144,20 +145,12 @@ def test_run_viewer_serves_a_page_a_browser_draws(tmp_path: Path, weights_path: 
     chromium = _chromium_or_skip()
     from playwright.sync_api import sync_playwright
 
-    from frontend.simulation.config import SimulationConfig
-    from frontend.simulation.simulator import TraverseSimulator
-    from frontend.sources import write_frames
-
-    log = tmp_path / "two_laps.mcap"
-    sim = SimulationConfig(frame_rate_hz=2.0, city={"block_size_m": 10.0}, route={"preset": "block_grid", "laps": 2},
-                           max_frames=40, lidar={"enabled": False}, camera={"width": 96, "height": 64})  # fmt: skip
-    write_frames(TraverseSimulator(sim).frames(), log)
-    config = tmp_path / "small.yaml"
-    config.write_text(
-        "vpr: {backbone: {input_size: 112, device: cpu}, filtering: {pca: {dim: 8}}, spatial: {pca: {dim: 8}}}\n"
-        "detector: {pca_warmup_keyframes: 10, exclusion_keyframes: 5, exclusion_distance: 0.0}\n"
-        "results: {plots: false}\n"
-    )
+    small = small_camera_log(
+        tmp_path, "detector: {pca_warmup_keyframes: 10, exclusion_keyframes: 5, exclusion_distance: 0.0}\n"
+        "results: {plots: false}\n", "two_laps", frame_rate_hz=2.0, city={"block_size_m": 10.0},
+        route={"preset": "block_grid", "laps": 2}, max_frames=40,
+    )  # fmt: skip
+    log, config = small.log, small.config
     port = free_port()
     done: dict[str, Any] = {}
 

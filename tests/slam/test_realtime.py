@@ -12,6 +12,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 from cli_helpers import assert_user_error, clean_ssmvpr_environment, invoke  # noqa: F401
+from small_logs import EVERY_FRAME, small_camera_log
 
 from frontend.frame import Frame
 from ssmvpr_slam.pipeline import SlamPipeline
@@ -117,21 +118,8 @@ def test_the_pipeline_skips_recognition_while_behind_and_catches_up(cost: float,
 def small_log(tmp_path_factory: pytest.TempPathFactory) -> SimpleNamespace:
     """16 frames at 5 Hz of a simulated street, no LiDAR (logged odometry), and a config that
     makes every frame a keyframe and runs its backbone small."""
-    from frontend.simulation.config import SimulationConfig
-    from frontend.simulation.simulator import TraverseSimulator
-    from frontend.sources import write_frames
-
-    base = tmp_path_factory.mktemp("realtime")
-    log = base / "small.mcap"
-    sim = SimulationConfig(max_frames=16, lidar={"enabled": False}, camera={"width": 96, "height": 64})
-    write_frames(TraverseSimulator(sim).frames(), log)
-    config = base / "small.yaml"
-    config.write_text(
-        "vpr: {backbone: {input_size: 112, device: cpu}, filtering: {pca: {dim: 8}}, spatial: {pca: {dim: 8}}}\n"
-        "detector: {pca_warmup_keyframes: 10}\nresults: {plots: false}\n"
-        "frontend: {keyframes: {min_distance_m: null, min_angle_deg: null, max_interval_s: 0.1}}\n"  # every frame
-    )
-    return SimpleNamespace(log=log, config=config)
+    settings = "detector: {pca_warmup_keyframes: 10}\nresults: {plots: false}\n" + EVERY_FRAME
+    return small_camera_log(tmp_path_factory.mktemp("realtime"), settings, max_frames=16)
 
 
 def _run(small_log: SimpleNamespace, out: Path, weights_path: Path, *options: str) -> tuple[dict, str]:

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 import pytest
 from cli_helpers import assert_user_error, clean_ssmvpr_environment, invoke  # noqa: F401
+from small_logs import EVERY_FRAME, small_camera_log
 
 import ssmvpr_slam.runner as runner_module
 from ssmvpr_slam.checkpoint_loading import load_checkpoint
@@ -27,22 +28,11 @@ from ssmvpr_slam.checkpoint_loading import load_checkpoint
 
 @pytest.fixture(scope="module")
 def small_log(tmp_path_factory: pytest.TempPathFactory) -> SimpleNamespace:
-    from frontend.simulation.config import SimulationConfig
-    from frontend.simulation.simulator import TraverseSimulator
-    from frontend.sources import write_frames
-
-    base = tmp_path_factory.mktemp("disk_full")
-    log = base / "small.mcap"
-    sim = SimulationConfig(max_frames=16, lidar={"enabled": False}, camera={"width": 96, "height": 64})
-    write_frames(TraverseSimulator(sim).frames(), log)
-    config = base / "small.yaml"
-    config.write_text(
-        "vpr: {backbone: {input_size: 112, device: cpu}, filtering: {pca: {dim: 8}}, spatial: {pca: {dim: 8}}}\n"
+    settings = (
         "detector: {pca_warmup_keyframes: 10}\n"
-        "results: {plots: false, mcap: false, checkpoint_every_keyframes: 2, checkpoint_every_s: null}\n"
-        "frontend: {keyframes: {min_distance_m: null, min_angle_deg: null, max_interval_s: 0.1}}\n"  # every frame
+        "results: {plots: false, mcap: false, checkpoint_every_keyframes: 2, checkpoint_every_s: null}\n" + EVERY_FRAME
     )
-    return SimpleNamespace(log=log, config=config)
+    return small_camera_log(tmp_path_factory.mktemp("disk_full"), settings, max_frames=16)
 
 
 def _snapshot(folder: Path) -> dict[str, str]:
