@@ -34,7 +34,6 @@ precision, keyframes judged, the first revisit and the first right loop accepted
 from __future__ import annotations
 
 import argparse
-import hashlib
 import json
 import sys
 import time
@@ -47,6 +46,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from bench_loop_decisions import MemoBackbone  # noqa: E402  (tools/ is the script's folder)
 
 SHORT = {f"gp30@{s}": ("gardens_point_half", "day_right", "night_right", s, 30) for s in (0, 20, 40, 60, 70)}
 SHORT |= {f"nl50@{s}": ("nordland64_half", "summer", "winter", s, 50) for s in range(0, 301, 50)}
@@ -65,26 +66,6 @@ VARIANTS = ("default", "blind", "low", "no_prior", "zero_fill", "iqr", "linear")
 
 def log(msg: str) -> None:
     print(f"[bench_first_revisit] {msg}", file=sys.stderr, flush=True)
-
-
-class MemoBackbone:
-    """The real backbone, remembering each image's maps across the variants of one set."""
-
-    calibrates_on_stream = False
-
-    def __init__(self, backbone: Any) -> None:
-        self.backbone = backbone
-        self.config = backbone.config
-        self.memo: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
-
-    def stream_calibration(self) -> None:
-        return None
-
-    def __call__(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        key = hashlib.sha1(np.ascontiguousarray(images).tobytes()).digest()
-        if key not in self.memo:
-            self.memo[key] = self.backbone(images)
-        return self.memo[key]
 
 
 def variant_config(base: Any, variant: str) -> Any:
