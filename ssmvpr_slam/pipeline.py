@@ -40,6 +40,7 @@ from ssmvpr_slam.prior_map import PriorMap
 from ssmvpr_slam.realtime import SensorClock
 from ssmvpr_slam.run_result import RunResult, StreamEnd
 from ssmvpr_slam.run_state import KeyframeInput, RunState
+from ssmvpr_slam.stop_signals import stop_signals_handled
 from ssmvpr_slam.system import SlamSystem
 
 log = logging.getLogger(__name__)
@@ -66,15 +67,8 @@ class StopFlag:
             self.requested = True
             log.warning("stop requested (%s): finishing the current frame", signal.Signals(signum).name)
 
-        if threading.current_thread() is not threading.main_thread():
-            yield self  # signal handlers can only be installed from the main thread
-            return
-        previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
-        try:
+        with stop_signals_handled(handler):
             yield self
-        finally:
-            for s, h in previous.items():
-                signal.signal(s, h)
 
 
 class SlamPipeline:

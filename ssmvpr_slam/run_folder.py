@@ -19,7 +19,6 @@ import os
 import shutil
 import signal
 import tempfile
-import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from datetime import datetime
@@ -29,6 +28,7 @@ from typing import Any
 from ssmvpr_common.atomic import atomic_write_text
 from ssmvpr_slam.errors import SlamError
 from ssmvpr_slam.staging_lock import StagingLock, remove_left_over
+from ssmvpr_slam.stop_signals import stop_signals_handled
 
 log = logging.getLogger(__name__)
 
@@ -266,9 +266,6 @@ def switch_link(link: Path, name: str) -> None:
 def interrupts_deferred() -> Iterator[None]:
     """While results are written, a first Ctrl-C / SIGTERM waits for the write to finish; a
     second abandons it (the staging folder is dropped, `latest` untouched)."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
     received: list[int] = []
 
     def handler(signum: int, _frame: object) -> None:
@@ -279,12 +276,8 @@ def interrupts_deferred() -> Iterator[None]:
             return
         raise KeyboardInterrupt
 
-    previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
-    try:
+    with stop_signals_handled(handler):
         yield
-    finally:
-        for s, h in previous.items():
-            signal.signal(s, h)
 
 
 @contextmanager

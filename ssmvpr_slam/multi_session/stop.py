@@ -10,12 +10,12 @@ from __future__ import annotations
 
 import logging
 import signal
-import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
 from ssmvpr_slam.errors import SlamError
+from ssmvpr_slam.stop_signals import stop_signals_handled
 
 log = logging.getLogger(__name__)
 
@@ -52,12 +52,5 @@ class MapStop:
             log.warning("%s: stopping the map; finished sessions are kept (send it again to quit at once)",
                         signal.Signals(signum).name)  # fmt: skip
 
-        if threading.current_thread() is not threading.main_thread():
+        with stop_signals_handled(handler):
             yield self
-            return
-        previous = {s: signal.signal(s, handler) for s in (signal.SIGINT, signal.SIGTERM)}
-        try:
-            yield self
-        finally:
-            for s, h in previous.items():
-                signal.signal(s, h)
