@@ -478,9 +478,22 @@ def test_rear_camera_switched_off_or_missing(codebooks: str) -> None:
 # ------------------------------------------------------------------------- state for checkpoints
 
 
+def saved(det: LoopDetector, folder: Path) -> tuple[dict[str, np.ndarray], PlaceDatabase]:
+    """The detector's state through an .npz as a checkpoint writes it, and its database through
+    `folder`: what a resume reads back."""
+    import io
+
+    buffer = io.BytesIO()
+    np.savez(buffer, **det.state_arrays())
+    det.database.save(folder)
+    buffer.seek(0)
+    with np.load(buffer, allow_pickle=False) as data:
+        state = {name: data[name] for name in data.files}
+    return state, PlaceDatabase.load(folder)
+
+
 def test_a_detector_restored_from_its_state_continues_exactly(tmp_path: Path, codebooks: str) -> None:
     """state_arrays + the saved database -> a new detector proposes what the first would have."""
-    import io
 
     fronts = list(range(20)) + [3, 4, 5, 200, 201, 202, 203, 204, 6, 7]
     rears: list[int | None] = [None] * 20 + [None, None, None, 14, 13, 12, 11, None, None, None]
@@ -497,14 +510,8 @@ def test_a_detector_restored_from_its_state_continues_exactly(tmp_path: Path, co
     for cut in (21, 24):  # inside the forward revisit, and inside the rear one
         first = detector(codebooks=codebooks, keyframes=5, distance=2.0)
         assert drive(first, range(cut)) == whole[:cut]
-        buffer = io.BytesIO()
-        np.savez(buffer, **first.state_arrays())
-        first.database.save(tmp_path / f"db{cut}")
-        buffer.seek(0)
-        with np.load(buffer, allow_pickle=False) as data:
-            state = {name: data[name] for name in data.files}
         second = detector(keyframes=5, distance=2.0)  # no codebooks: they come with the database
-        second.load_state_arrays(state, PlaceDatabase.load(tmp_path / f"db{cut}"))
+        second.load_state_arrays(*saved(first, tmp_path / f"db{cut}"))
         assert drive(second, range(cut, len(fronts))) == whole[cut:]
 
 
@@ -626,7 +633,6 @@ def test_a_seam_too_early_for_a_fit_keeps_the_warmup() -> None:
 def test_early_codebooks_round_trip_through_a_saved_map_and_a_resume(tmp_path: Path) -> None:
     """The stream's own codebooks, fitted after its first keyframes: saved with the places, a
     detector loaded from the map and the state continues exactly as the uninterrupted one."""
-    import io
 
     scenes = list(range(12)) + list(range(12))
     make = lambda: detector(keyframes=3, decision="calibrated", direction="forward")  # noqa: E731
@@ -640,13 +646,7 @@ def test_early_codebooks_round_trip_through_a_saved_map_and_a_resume(tmp_path: P
     feed(first, scenes[:12], 0)
     first.break_sequence()
     assert feed(first, scenes[12:cut], 12) == whole[:cut][12:]
-    buffer = io.BytesIO()
-    np.savez(buffer, **first.state_arrays())
-    first.database.save(tmp_path / "db")
-    buffer.seek(0)
-    with np.load(buffer, allow_pickle=False) as data:
-        state = {name: data[name] for name in data.files}
-    loaded = PlaceDatabase.load(tmp_path / "db")
+    state, loaded = saved(first, tmp_path / "db")
     assert loaded.codebooks.same_as(first.encoder.codebooks)  # the map records the codes' codebooks
     second = make()  # no codebooks of its own: it takes the map's
     second.load_state_arrays(state, loaded)
@@ -659,7 +659,6 @@ def test_early_codebooks_round_trip_through_a_saved_map_and_a_resume(tmp_path: P
 def test_a_calibrated_detector_restored_from_its_state_continues_exactly(
     tmp_path: Path, codebooks: str, decision: str
 ) -> None:
-    import io
 
     scenes = list(range(30)) + list(range(8, 20)) + [300, 301]
     det = lambda: detector(codebooks=codebooks, keyframes=5, decision=decision, direction="forward")  # noqa: E731
@@ -669,14 +668,8 @@ def test_a_calibrated_detector_restored_from_its_state_continues_exactly(
     cut = 36
     first = det()
     assert feed(first, scenes[:cut], 0) == whole[:cut]
-    buffer = io.BytesIO()
-    np.savez(buffer, **first.state_arrays())
-    first.database.save(tmp_path / "db")
-    buffer.seek(0)
-    with np.load(buffer, allow_pickle=False) as data:
-        state = {name: data[name] for name in data.files}
     second = detector(keyframes=5, decision=decision, direction="forward")
-    second.load_state_arrays(state, PlaceDatabase.load(tmp_path / "db"))
+    second.load_state_arrays(*saved(first, tmp_path / "db"))
     assert feed(second, scenes[cut:], cut) == whole[cut:]
     assert second.links.pairs == uncut.links.pairs
 
