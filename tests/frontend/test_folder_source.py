@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import importlib.util
 import logging
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+from tool_module import load_tool
 
 from frontend.config import FolderSourceConfig, SourceConfig
 from frontend.errors import FrontendInputError
@@ -102,9 +102,7 @@ def test_folder_to_mcap_converter(tmp_path: Path) -> None:
     data = tmp_path / "trav"
     images = _images(data / "images", [f"{i}.png" for i in range(1, 4)])
     write_tum(data / "poses.txt", np.array([1.0, 2.0, 3.0]), _poses(3))
-    spec = importlib.util.spec_from_file_location("folder_to_mcap", ROOT / "tools" / "folder_to_mcap.py")
-    tool = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(tool)
+    tool = load_tool("folder_to_mcap")
     out = tmp_path / "bag" / "trav.mcap"
     assert tool.main([str(data), str(out), "--pose-role", "both", "--image-format", "png"]) == 0
     assert detect_kind(out.parent) == "mcap"  # a bag folder holding one .mcap

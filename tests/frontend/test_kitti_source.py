@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import importlib.util
 import logging
 import re
 from pathlib import Path
@@ -10,6 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from tool_module import load_tool
 
 from frontend.config import KittiSourceConfig, SourceConfig
 from frontend.errors import FrontendInputError
@@ -139,17 +139,10 @@ def test_files_pair_with_frames_by_number_not_position(tmp_path: Path, caplog: p
     assert "frame 1 (times.txt line 2) has no image file" in messages and "first 000009.png" in messages
 
 
-def _load_tool(name: str):
-    spec = importlib.util.spec_from_file_location(name, ROOT / "tools" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 def test_kitti_to_mcap_converter(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
     seq, truth = _make_sequence(tmp_path)
     out = tmp_path / "seq05.mcap"
-    tool = _load_tool("kitti_to_mcap")
+    tool = load_tool("kitti_to_mcap")
     assert tool.main([str(seq), str(out), "--max-frames", "3"]) == 0
     assert "wrote 3 frames" in capsys.readouterr().out
     source = open_source(out, SourceConfig(kind="auto"))

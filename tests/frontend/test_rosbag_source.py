@@ -9,6 +9,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from tool_module import load_tool
 
 from frontend.config import McapSourceConfig
 from frontend.errors import FrontendInputError
@@ -87,14 +88,8 @@ def test_a_file_that_is_no_bag(tmp_path: Path) -> None:
 def test_the_converter_turns_a_bag_back_into_the_same_frames(
     logs: dict[str, Path], fmt: str, tmp_path: Path, capsys: pytest.CaptureFixture
 ) -> None:
-    import importlib.util
 
-    spec = importlib.util.spec_from_file_location(
-        "rosbag_to_mcap", Path(__file__).parents[2] / "tools" / "rosbag_to_mcap.py"
-    )
-    assert spec is not None and spec.loader is not None
-    tool = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(tool)
+    tool = load_tool("rosbag_to_mcap")
     out = tmp_path / "back.mcap"
     assert tool.main([str(logs[fmt]), str(out), "--image-format", "png"]) == 0
     assert "wrote 8 frames" in capsys.readouterr().out

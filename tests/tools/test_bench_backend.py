@@ -2,25 +2,18 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
-
-TOOL = Path(__file__).resolve().parents[2] / "tools" / "bench_backend.py"
+from tool_module import load_tool
 
 
 @pytest.fixture(scope="module")
 def bench():  # noqa: ANN201
-    spec = importlib.util.spec_from_file_location("bench_backend", TOOL)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["bench_backend"] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_tool("bench_backend")
 
 
 @pytest.mark.parametrize("kind", ["random", "local", "grouped"])

@@ -2,24 +2,20 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from tool_module import load_tool
 
 TOOL = Path(__file__).resolve().parents[2] / "tools" / "trace_keyframe_calls.py"
 
 
 @pytest.fixture(scope="module")
 def tool():  # noqa: ANN201
-    spec = importlib.util.spec_from_file_location("trace_keyframe_calls", TOOL)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["trace_keyframe_calls"] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_tool("trace_keyframe_calls")
 
 
 def test_visits_collapse_runs_and_returns_count_modules_entered_again(tool) -> None:  # noqa: ANN001
