@@ -314,13 +314,7 @@ class Backbone:
 
 def load_backbone(config: BackboneConfig, progress: bool = False) -> Backbone:
     """Resolve weights as configured (explicit path, env, cache, download) and build the net."""
-    if config.weights == "random":
-        return Backbone(config, None)
-    from loopclosure.weights import load_state_dict, resolve_weights
+    from loopclosure.weights import configured_weights, load_state_dict
 
-    path = resolve_weights(
-        Path(config.weights).expanduser() if config.weights else None,
-        allow_download=config.allow_download,
-        progress=progress,
-    )
-    return Backbone(config, load_state_dict(path))
+    path = configured_weights(config, progress)
+    return Backbone(config, None if path is None else load_state_dict(path))

@@ -60,6 +60,8 @@ from ssmvpr_common.atomic import atomic_write
 if TYPE_CHECKING:
     import torch
 
+    from loopclosure.config import BackboneConfig
+
 __all__ = [
     "CONV_FEATURE_INDICES",
     "ENV_CACHE",
@@ -73,6 +75,7 @@ __all__ = [
     "default_cache_dir",
     "fetch_weights",
     "load_state_dict",
+    "configured_weights",
     "resolve_weights",
     "validate_state_dict",
 ]
@@ -221,6 +224,15 @@ def resolve_weights(
                 log.warning("VGG16 weights from %s failed: %s", name, reason)
                 failures.append(f"{_source_label(name)}: {reason}")
     raise WeightsNotFoundError(_not_found_message(cached, source, failures))
+
+
+def configured_weights(config: BackboneConfig, progress: bool = False) -> Path | None:
+    """The weights file the backbone settings give: `weights`, else as `resolve_weights` finds one
+    (downloading only if `allow_download`); None for random weights."""
+    if config.weights == "random":
+        return None
+    given = Path(config.weights).expanduser() if config.weights else None
+    return resolve_weights(given, allow_download=config.allow_download, progress=progress)
 
 
 def fetch_weights(

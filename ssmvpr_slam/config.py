@@ -351,3 +351,14 @@ def _plain(value: Any) -> Any:
     if isinstance(value, Path):
         return str(value)
     return value
+
+
+def resolve_weights_first(config: SlamConfig) -> None:
+    """Find the VGG16 weights (or fetch them into the cache) and write their path into `config`,
+    before any other work: a wrong path or a failed download ends a call in seconds, not after a
+    simulation or a Ray start."""
+    from loopclosure.weights import configured_weights
+
+    path = configured_weights(config.vpr.backbone, progress=True)
+    if path is not None:
+        config.vpr.backbone.weights = str(path)

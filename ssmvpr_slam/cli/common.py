@@ -106,14 +106,3 @@ def odometry_kind(name: str) -> str:
 def validated_update(model: Any, updates: dict[str, Any]) -> Any:
     """Like model_copy(update=...), but the new values are validated (e.g. --frames 0)."""
     return type(model).model_validate({**model.model_dump(), **updates})
-
-
-def weights_first(cfg: SlamConfig) -> None:
-    """Find the weights (or fetch them into the cache) before any other work: a wrong path or
-    a failed download ends the call in seconds, not after a simulation or a Ray start."""
-    from loopclosure.weights import resolve_weights
-
-    backbone = cfg.vpr.backbone
-    if backbone.weights != "random":
-        given = Path(backbone.weights).expanduser() if backbone.weights else None
-        backbone.weights = str(resolve_weights(given, allow_download=backbone.allow_download, progress=True))

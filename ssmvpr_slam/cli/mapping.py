@@ -1,5 +1,5 @@
-"""`map`: many logs, one map. The work is in `multi_session.runner`; the command checks what
-can be checked before Ray starts (the logs given, the weights) and calls it."""
+"""`map`: many logs, one map. The work is in `multi_session.runner` (which checks the logs given
+and finds the weights before Ray starts); the command parses its options and calls it."""
 
 from __future__ import annotations
 
@@ -21,7 +21,6 @@ from ssmvpr_slam.cli.common import (
     make_config,
     out_option,
     validated_update,
-    weights_first,
 )
 from ssmvpr_slam.cli.errors import friendly_errors
 
@@ -67,7 +66,7 @@ def map_command(
 ) -> None:
     """Many logs, one map: sessions run in parallel on Ray, joined by cross-session loops, solved as one graph."""
     from ssmvpr_slam.errors import OptionError
-    from ssmvpr_slam.multi_session.runner import check_distinct, map_logs, read_manifest
+    from ssmvpr_slam.multi_session.runner import map_logs
     from ssmvpr_slam.multi_session.stop import MapStopped
     from ssmvpr_slam.run_folder import output_dir
 
@@ -76,11 +75,9 @@ def map_command(
         raise OptionError("--add needs --map: the map folder the sessions join")
     if not every:
         raise OptionError("no logs: give the logs to map (or --map DIR --add LOG)")
-    check_distinct(every, read_manifest(map_dir)["sessions"] if map_dir is not None else [])  # before the weights
     cfg = make_config(config, weights, device, out)
     if workers is not None:
         cfg.map = validated_update(cfg.map, {"workers": workers})
-    weights_first(cfg)
     with output_dir(cfg.results.out_dir, out_option(out)):
         try:
             map_logs(every, cfg, console, add_to=map_dir, ray_address=ray_address, resume=resume)

@@ -26,7 +26,6 @@ from ssmvpr_slam.cli.common import (
     odometry_kind,
     out_option,
     validated_update,
-    weights_first,
 )
 from ssmvpr_slam.cli.errors import friendly_errors
 
@@ -174,6 +173,7 @@ def demo(
 ) -> None:
     """Simulate the default loopy traverse, run it, evaluate, and print before/after (`-c quick`: a
     short one, a few minutes). The log is kept in the user cache and reused."""
+    from ssmvpr_slam.config import resolve_weights_first
     from ssmvpr_slam.run_folder import output_dir
     from ssmvpr_slam.runner import run_log
     from ssmvpr_slam.simulated_logs import demo_log, with_demo_odometry
@@ -182,7 +182,7 @@ def demo(
     if frames is not None:
         cfg.simulation = validated_update(cfg.simulation, {"max_frames": frames})
     cfg = with_demo_odometry(cfg, odometry_kind(odometry))
-    weights_first(cfg)
+    resolve_weights_first(cfg)
     with output_dir(cfg.results.out_dir, out_option(out)):
         log = demo_log(cfg, console)  # in the user cache, reused by the next demo with the same settings
         run_log(log, cfg, console=console, name="demo")

@@ -29,7 +29,7 @@ from rich.table import Table
 from ssmvpr_common.errors import SsmvprError
 from ssmvpr_common.text_files import read_text
 from ssmvpr_slam.backend.graph_optimizer import OptimizationResult
-from ssmvpr_slam.config import SlamConfig
+from ssmvpr_slam.config import SlamConfig, resolve_weights_first
 from ssmvpr_slam.errors import SlamError
 from ssmvpr_slam.multi_session.cross_loops import CrossLoop
 from ssmvpr_slam.multi_session.evaluation import evaluate_map, loop_distance
@@ -143,6 +143,8 @@ def map_logs(
     if not logs:
         raise MapError("no logs given: `map` needs at least one log (two to merge anything)")
     check_distinct(logs, earlier)
+    config = config.model_copy(deep=True)
+    resolve_weights_first(config)  # before Ray: a wrong path would fail every session, late
     jobs = [(len(earlier) + k, session_name(len(earlier) + k, log), str(log)) for k, log in enumerate(logs)]
     staging = MapStaging.open(Path(config.results.out_dir), map_plan(config, add_to), resume, console)
     stop = MapStop()
