@@ -45,6 +45,9 @@ def map_plan(config: SlamConfig, add_to: Path | None) -> dict[str, Any]:
     settings["results"].pop("out_dir", None)
     for key in _NOT_IN_PLAN:
         settings["map"].pop(key, None)
+    backbone = settings["vpr"]["backbone"]
+    if backbone["weights"] not in (None, "random"):  # one file, however the call named it
+        backbone["weights"] = str(Path(backbone["weights"]).expanduser().resolve())
     digest = hashlib.sha256(json.dumps(settings, sort_keys=True).encode()).hexdigest()
     return {"settings_sha256": digest, "add_to": None if add_to is None else str(add_to.resolve())}
 

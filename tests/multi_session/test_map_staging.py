@@ -109,6 +109,15 @@ def test_settings_that_only_change_speed_keep_the_plan(tmp_path):
     assert map_plan(_config(tmp_path), tmp_path) != map_plan(_config(tmp_path), None)
 
 
+def test_one_weights_file_named_two_ways_keeps_the_plan(tmp_path, monkeypatch):
+    weights = tmp_path / "w.pth"
+    named = [_config(tmp_path), _config(tmp_path)]
+    named[0].vpr.backbone.weights = str(weights)
+    monkeypatch.chdir(tmp_path)
+    named[1].vpr.backbone.weights = "./w.pth"  # the same file, named another way
+    assert map_plan(named[0], None) == map_plan(named[1], None)
+
+
 def test_resume_refuses_a_folder_of_other_settings_or_not_a_map(tmp_path):
     config = _config(tmp_path)
     out = tmp_path / "out"
