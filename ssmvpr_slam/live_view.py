@@ -40,7 +40,8 @@ _CAMERA_IN_BODY = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]]
 
 
 class LiveViewError(SlamError, RuntimeError):
-    """The live view could not start (viser missing, the port taken)."""
+    """The live view could not start (viser missing, nothing to serve on: a taken port is not this, viser
+    takes the next free one and the run prints where)."""
 
 
 class LiveView:
