@@ -137,6 +137,27 @@ def _chromium_or_skip() -> str:
     return CHROMIUM
 
 
+def _served_port(port: int, runner: threading.Thread, wait_s: float = 180.0) -> int:
+    """The port the run's view answers HTTP on: `port`, or one of the next few when viser moved on
+    because `port` was taken. The server starts once the backbone is loaded, so this polls; a run
+    that ends first fails here with its output (a plain socket probe, so a slow browser cannot make
+    the run outlast the wait)."""
+    import urllib.request
+
+    deadline = time.monotonic() + wait_s
+    while True:
+        for candidate in range(port, port + 4):
+            try:
+                with urllib.request.urlopen(f"http://127.0.0.1:{candidate}", timeout=2):
+                    return candidate
+            except OSError:
+                continue
+        assert runner.is_alive() and time.monotonic() < deadline, (
+            "the run ended (or timed out) before its view answered"
+        )
+        time.sleep(0.2)
+
+
 @pytest.mark.slow
 def test_run_viewer_serves_a_page_a_browser_draws(tmp_path: Path, weights_path: Path) -> None:
     """`run --viewer` on a short simulated log (two laps of a small block): the run's page,
@@ -156,7 +177,7 @@ def test_run_viewer_serves_a_page_a_browser_draws(tmp_path: Path, weights_path: 
 
     def run() -> None:
         done["result"] = invoke("run", log, "-c", config, "--weights", weights_path, "--out", tmp_path / "out",
-                                "--viewer", "--viewer-port", str(port), "--realtime", "--rate", "2")  # fmt: skip
+                                "--viewer", "--viewer-port", str(port), "--realtime", "--rate", "1")  # fmt: skip
 
     runner = threading.Thread(target=run)
     runner.start()
@@ -168,19 +189,9 @@ def test_run_viewer_serves_a_page_a_browser_draws(tmp_path: Path, weights_path: 
                   "--disable-background-networking", "--disable-component-update", "--no-first-run"],
         )  # fmt: skip
         page = browser.new_page(viewport={"width": 1000, "height": 700})
-        deadline = time.monotonic() + 120
-        served = None
-        while served is None:  # the server starts once the backbone is loaded
-            for candidate in range(port, port + 4):  # viser takes the next port when the one asked is taken
-                try:
-                    page.goto(f"http://127.0.0.1:{candidate}", timeout=5000)
-                    served = candidate
-                    break
-                except Exception:
-                    continue
-            if served is None:
-                assert time.monotonic() < deadline and runner.is_alive(), done
-                time.sleep(0.5)
+        served = _served_port(port, runner)
+        # the page's scripts load slowly on a busy machine: wait for the answer, not for every asset
+        page.goto(f"http://127.0.0.1:{served}", wait_until="commit", timeout=120000)
         page.wait_for_selector("text=keyframes", timeout=60000)
         time.sleep(5)  # a few keyframes more, drawn
         page.screenshot(path=str(shot))
