@@ -13,7 +13,7 @@ from frontend.frame import Frame
 from frontend.odometry.base import Odometry
 from ssmvpr_slam.backend.kept_scan import keep_scan
 from ssmvpr_slam.backend.two_view import reduce_image
-from ssmvpr_slam.config import SlamConfig
+from ssmvpr_slam.config.slam import SlamConfig
 from ssmvpr_slam.run_result import Keyframe
 from ssmvpr_slam.thumbnail import thumbnail_jpeg
 

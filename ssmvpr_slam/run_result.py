@@ -2,7 +2,7 @@
 
 `SlamSystem.finish()` builds one `RunResult`; nothing downstream changes it. Evaluation
 (`ssmvpr_slam.evaluation.run_report.evaluate`) turns it into a `RunReport`, and the writers
-(`ssmvpr_slam.writers`) turn both into files. Keeping the result immutable is what lets a
+(`ssmvpr_slam.results.writers`) turn both into files. Keeping the result immutable is what lets a
 writer run twice, or a checkpoint be written while the run goes on, without side effects.
 """
 
@@ -18,7 +18,7 @@ from loopclosure.detector import LoopProposal
 from ssmvpr_slam.backend.kept_scan import KeptScan
 from ssmvpr_slam.backend.loop_registration import LoopRegistration
 from ssmvpr_slam.backend.two_view import ReducedImage
-from ssmvpr_slam.realtime import RealtimeStats
+from ssmvpr_slam.app.realtime import RealtimeStats
 
 if TYPE_CHECKING:  # only for annotations: the result module stays light to import
     from loopclosure.database import PlaceDatabase

@@ -3,8 +3,8 @@
 As kiss-slam separates `KissSLAM` from its pipeline, `SlamSystem` holds the method
 (odometry -> keyframes -> SSM-VPR loops -> iSAM2 pose graph) and nothing else:
 ``process(frame)`` per frame, ``finish()`` once at the end. The loop that feeds it
-(`ssmvpr_slam.pipeline`), the files (`ssmvpr_slam.writers`, `ssmvpr_slam.checkpoint`) and
-the command line (`ssmvpr_slam.runner`) live elsewhere, so the core can be driven by a test,
+(`ssmvpr_slam.app.pipeline`), the files (`ssmvpr_slam.results.writers`, `ssmvpr_slam.checkpoint.saving`) and
+the command line (`ssmvpr_slam.app.runner`) live elsewhere, so the core can be driven by a test,
 a benchmark or a resumed run alike.
 
 ``process`` is two halves that share nothing but the configuration: ``front(frame)`` (odometry,
@@ -33,12 +33,12 @@ from loopclosure.database import PlaceDatabase
 from loopclosure.detector import LoopDetector
 from loopclosure.encoder import Encoder
 from ssmvpr_slam.backend.pose_graph import PoseGraph, PoseGraphError
-from ssmvpr_slam.config import SlamConfig
+from ssmvpr_slam.config.slam import SlamConfig
 from ssmvpr_slam.kept_keyframe import keep_keyframe
 from ssmvpr_slam.loop_policy import LoopPolicy
 from ssmvpr_slam.loop_registrations import AppliedRegistration, LoopRegistrations
 from ssmvpr_slam.prior_map import PriorMap
-from ssmvpr_slam.result_assembly import assemble_result, odometry_stats_of
+from ssmvpr_slam.results.assembly import assemble_result, odometry_stats_of
 from ssmvpr_slam.run_result import (
     Keyframe,
     LoopRecord,

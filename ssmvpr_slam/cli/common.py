@@ -12,10 +12,10 @@ from typing import TYPE_CHECKING, Annotated, Any
 import typer
 from rich.console import Console
 
-from ssmvpr_slam.presets import available_presets
+from ssmvpr_slam.config.presets import available_presets
 
 if TYPE_CHECKING:
-    from ssmvpr_slam.config import SlamConfig
+    from ssmvpr_slam.config.slam import SlamConfig
 
 app = typer.Typer(
     name="ssmvpr-slam",
@@ -81,7 +81,7 @@ def make_config(
     config: str | None, weights: Path | None = None, device: str | None = None, out: Path | None = None
 ) -> SlamConfig:
     """The configuration of `--config` (preset + file + environment) with the common options applied."""
-    from ssmvpr_slam.config import load_config
+    from ssmvpr_slam.config.slam import load_config
 
     cfg = load_config(config)
     if weights is not None:

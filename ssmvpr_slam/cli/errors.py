@@ -16,7 +16,7 @@ from rich.markup import escape
 
 from ssmvpr_common.disk_full import DiskFullError, is_disk_full
 from ssmvpr_slam.cli.common import err_console
-from ssmvpr_slam.finite_options import check_finite_options
+from ssmvpr_slam.cli.finite_options import check_finite_options
 
 
 def _user_errors() -> tuple[type[BaseException], ...]:
@@ -48,9 +48,9 @@ def option_of_field() -> dict[tuple[type[Any], str], str]:
     from frontend.config import FolderSourceConfig, OdometryConfig
     from frontend.simulation.config import SimulationConfig
     from loopclosure.config import BackboneConfig, FilteringConfig, SequenceMatchConfig
-    from ssmvpr_slam.config import VPREvalConfig
-    from ssmvpr_slam.map_config import MapConfig
-    from ssmvpr_slam.pipeline_config import PipelineConfig
+    from ssmvpr_slam.config.slam import VPREvalConfig
+    from ssmvpr_slam.config.map import MapConfig
+    from ssmvpr_slam.config.pipeline import PipelineConfig
 
     return {
         (OdometryConfig, "kind"): "--odometry (frontend.odometry.kind)",

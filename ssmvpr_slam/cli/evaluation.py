@@ -75,7 +75,7 @@ def vpr_eval(
     out: OutOpt = None,
 ) -> None:
     """Recognition on a VPR benchmark: PR curves, AUC, recall@N, timings (the paper's protocol)."""
-    from ssmvpr_slam.run_folder import output_dir
+    from ssmvpr_slam.results.run_folder import output_dir
     from ssmvpr_slam.vpr.evaluate import run_vpr_eval
 
     cfg = make_config(config, weights, device, out)
@@ -162,7 +162,7 @@ def loop_eval(
     """Loop-closure detection benchmark through the detector `run` builds: precision and recall at its
     decision, maximum recall at 100% precision, PR curve (metrics.json, loops.csv, pr.png)."""
     from ssmvpr_slam.loop_eval.runner import LoopEvalInputs, run_loop_eval
-    from ssmvpr_slam.run_folder import output_dir
+    from ssmvpr_slam.results.run_folder import output_dir
 
     cfg = make_config(config, weights, device, out)
     inputs = LoopEvalInputs(tuple(sequences), gt, gt_poses, gt_matrix, tolerance, radius, spacing, tuple(rear or ()),
@@ -234,7 +234,7 @@ def optimize(
 ) -> None:
     """Optimise a g2o / TORO pose graph robustly; write optimised.g2o, TUM and metrics.json into a new
     optimize_<stamp> folder (and latest-optimize)."""
-    from ssmvpr_slam.optimize import run_optimize
+    from ssmvpr_slam.app.optimize import run_optimize
 
     run_optimize(graph, console, gt=gt, gt_edges=gt_edges, gt_radius=gt_radius, times=times, kernel=kernel, gnc=gnc,
                  check=check, refine=refine, batch=batch, from_odometry=from_odometry, out=out)  # fmt: skip

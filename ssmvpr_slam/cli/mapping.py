@@ -68,7 +68,7 @@ def map_command(
     from ssmvpr_slam.errors import OptionError
     from ssmvpr_slam.multi_session.runner import map_logs
     from ssmvpr_slam.multi_session.stop import MapStopped
-    from ssmvpr_slam.run_folder import output_dir
+    from ssmvpr_slam.results.run_folder import output_dir
 
     every = [*(logs or []), *(add or [])]
     if add and map_dir is None:

@@ -100,11 +100,11 @@ def run(
     out: OutOpt = None,
 ) -> None:
     """Process a logged traverse end to end: odometry, SSM-VPR loops, iSAM2, evaluation."""
-    from ssmvpr_slam.run_folder import output_dir
-    from ssmvpr_slam.runner import run_log
+    from ssmvpr_slam.results.run_folder import output_dir
+    from ssmvpr_slam.app.runner import run_log
 
     if resume is not None:
-        from ssmvpr_slam.resume import prepare_resume
+        from ssmvpr_slam.checkpoint.resume import prepare_resume
 
         options = {"--config": config, "--odometry": odometry, "--map": map_dir, "--no-lidar-loops": no_lidar_loops,
                    "--out": out, "--frames": frames, "--pose-role": pose_role, "--realtime": realtime,
@@ -139,7 +139,7 @@ def _live_view(enabled: bool, port: int, console: Console) -> Iterator[Any]:
     if not enabled:
         yield None
         return
-    from ssmvpr_slam.live_view import LiveView
+    from ssmvpr_slam.app.live_view import LiveView
 
     view = LiveView(port)
     console.print(f"live view: [bold]{view.url}[/bold]")
@@ -173,10 +173,10 @@ def demo(
 ) -> None:
     """Simulate the default loopy traverse, run it, evaluate, and print before/after (`-c quick`: a
     short one, a few minutes). The log is kept in the user cache and reused."""
-    from ssmvpr_slam.config import resolve_weights_first
-    from ssmvpr_slam.run_folder import output_dir
-    from ssmvpr_slam.runner import run_log
-    from ssmvpr_slam.simulated_logs import demo_log, with_demo_odometry
+    from ssmvpr_slam.config.slam import resolve_weights_first
+    from ssmvpr_slam.results.run_folder import output_dir
+    from ssmvpr_slam.app.runner import run_log
+    from ssmvpr_slam.app.simulated_logs import demo_log, with_demo_odometry
 
     cfg = make_config(config, weights, device, out)
     if frames is not None:
@@ -215,8 +215,8 @@ def simulate(
 ) -> None:
     """Render a loopy city traverse (camera, LiDAR, ground truth, drifting odometry) to MCAP."""
     from frontend.simulation.config import SimulationConfig
-    from ssmvpr_slam.run_folder import output_dir, output_file
-    from ssmvpr_slam.runner import simulate_sessions, simulate_to_mcap
+    from ssmvpr_slam.results.run_folder import output_dir, output_file
+    from ssmvpr_slam.app.runner import simulate_sessions, simulate_to_mcap
 
     cfg = make_config(config)
     if sim_config is not None:

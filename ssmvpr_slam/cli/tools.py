@@ -12,7 +12,7 @@ from rich.markup import escape
 
 from ssmvpr_slam.cli.common import ConfigOpt, DeviceOpt, WeightsOpt, app, console, examples, make_config, weights_app
 from ssmvpr_slam.cli.errors import friendly_errors
-from ssmvpr_slam.presets import available_presets
+from ssmvpr_slam.config.presets import available_presets
 
 
 @app.command(
@@ -33,7 +33,7 @@ def fit_pca(
     device: DeviceOpt = None,
 ) -> None:
     """Fit the PCA codebooks on a reference set or any image folder."""
-    from ssmvpr_slam.run_folder import output_file
+    from ssmvpr_slam.results.run_folder import output_file
     from ssmvpr_slam.vpr.codebooks import fit_codebooks
 
     cfg = make_config(config, weights, device)
@@ -91,9 +91,9 @@ def show_config(
     """Print the effective configuration (preset + file + environment) as YAML."""
     import yaml
 
-    from ssmvpr_slam.config import config_diff, dump_config, explain_config, preset_config
+    from ssmvpr_slam.config.slam import config_diff, dump_config, explain_config, preset_config
     from ssmvpr_slam.errors import OptionError
-    from ssmvpr_slam.settings_in_front import explain_in_front
+    from ssmvpr_slam.config.in_front import explain_in_front
 
     cfg = make_config(config)
     if every and not explain:

@@ -16,9 +16,9 @@ import numpy as np
 from frontend.keyframes import KeyframeSelector
 from frontend.sources import open_source
 from frontend.sources.base import Source
-from ssmvpr_slam.config import SlamConfig
+from ssmvpr_slam.config.slam import SlamConfig
 from ssmvpr_slam.loop_eval.stream import ImagePair
-from ssmvpr_slam.loop_eval.truth import LoopTruthError
+from ssmvpr_slam.loop_eval.revisit_truth import LoopTruthError
 
 
 @dataclass(frozen=True)

@@ -19,7 +19,7 @@ import numpy as np
 
 from loopclosure.detector import LoopProposal
 from loopclosure.metrics import PRCurve, pr_auc, precision_recall_curve, recall_at_full_precision
-from ssmvpr_slam.loop_eval.truth import LoopTruth
+from ssmvpr_slam.loop_eval.revisit_truth import LoopTruth
 
 
 @dataclass(frozen=True)

@@ -11,8 +11,8 @@ import numpy as np
 
 from loopclosure.backbone import Backbone
 from loopclosure.detector import LoopProposal
-from loopclosure.images import read_image
-from ssmvpr_slam.config import SlamConfig
+from loopclosure.backbone_input import read_image
+from ssmvpr_slam.config.slam import SlamConfig
 from ssmvpr_slam.system import build_detector
 
 

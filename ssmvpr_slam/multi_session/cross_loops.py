@@ -22,7 +22,7 @@ import numpy as np
 from loopclosure.database import PlaceDatabase
 from loopclosure.detector import PLACE_LINKS_KEY, RUNNER_UPS_KEY, LoopDetector, LoopProposal
 from ssmvpr_slam.backend.loop_registration import LoopRegistrar, LoopRegistration, build_local_map, carry_loop
-from ssmvpr_slam.config import SlamConfig
+from ssmvpr_slam.config.slam import SlamConfig
 from ssmvpr_slam.multi_session.session_map import SessionMap
 
 

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ssmvpr_slam.backend.se3 import invert, yaw_of
-from ssmvpr_slam.map_config import MapConfig
+from ssmvpr_slam.config.map import MapConfig
 from ssmvpr_slam.multi_session.cross_loops import CrossLoop
 from ssmvpr_slam.multi_session.session_map import SessionMap
 

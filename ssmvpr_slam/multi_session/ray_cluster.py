@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from ssmvpr_slam.config import SlamConfig
+from ssmvpr_slam.config.slam import SlamConfig
 from ssmvpr_slam.errors import SlamError
 
 _PROBE = """

@@ -29,7 +29,7 @@ from rich.table import Table
 from ssmvpr_common.errors import SsmvprError
 from ssmvpr_common.text_files import read_text
 from ssmvpr_slam.backend.graph_optimizer import OptimizationResult
-from ssmvpr_slam.config import SlamConfig, resolve_weights_first
+from ssmvpr_slam.config.slam import SlamConfig, resolve_weights_first
 from ssmvpr_slam.errors import SlamError
 from ssmvpr_slam.multi_session.cross_loops import CrossLoop
 from ssmvpr_slam.multi_session.evaluation import evaluate_map, loop_distance
@@ -57,7 +57,7 @@ from ssmvpr_slam.multi_session.writer import (
     write_trajectories,
 )
 from ssmvpr_slam.prior_map import MAP_MANIFEST
-from ssmvpr_slam.run_folder import interrupts_deferred, write_json
+from ssmvpr_slam.results.run_folder import interrupts_deferred, write_json
 
 
 class MapError(SlamError, ValueError):

@@ -14,7 +14,7 @@ from typing import Any
 from rich.console import Console
 from rich.markup import escape
 
-from ssmvpr_slam.config import SlamConfig
+from ssmvpr_slam.config.slam import SlamConfig
 from ssmvpr_slam.multi_session.cross_loops import CrossLoop, find_cross_loops
 from ssmvpr_slam.multi_session.session_map import SessionMap
 from ssmvpr_slam.multi_session.stop import MapStop

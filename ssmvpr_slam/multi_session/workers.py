@@ -20,7 +20,7 @@ import numpy as np
 from rich.console import Console
 
 from ssmvpr_common.errors import SsmvprError
-from ssmvpr_slam.config import SlamConfig
+from ssmvpr_slam.config.slam import SlamConfig
 
 log = logging.getLogger(__name__)
 
@@ -97,7 +97,7 @@ class SessionWorker:
         """`run` the log as one session; a failure of its input is the outcome, not a crash."""
         import time
 
-        from ssmvpr_slam.runner import run_log
+        from ssmvpr_slam.app.runner import run_log
 
         start = time.perf_counter()
         cfg = session_config(self.config, Path(codebooks), Path(out_dir))

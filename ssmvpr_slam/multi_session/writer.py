@@ -26,12 +26,12 @@ from loopclosure.detector import PLACE_LINKS_KEY, RUNNER_UPS_KEY
 from ssmvpr_common.atomic import atomic_write_text
 from ssmvpr_common.trajectory_io import write_kitti, write_tum
 from ssmvpr_slam.backend.g2o_io import write_g2o
-from ssmvpr_slam.config import SlamConfig, dump_config
+from ssmvpr_slam.config.slam import SlamConfig, dump_config
 from ssmvpr_slam.multi_session.cross_loops import CrossLoop, merged_place_links
 from ssmvpr_slam.multi_session.merged_graph import MapGraph
 from ssmvpr_slam.multi_session.session_map import SessionMap
 from ssmvpr_slam.prior_map import MAP_MANIFEST, save_map
-from ssmvpr_slam.run_folder import write_json
+from ssmvpr_slam.results.run_folder import write_json
 
 MAP_VERSION = 1
 CROSS_LOOP_COLUMNS = [

@@ -23,18 +23,18 @@ from loopclosure.database import PlaceDatabase, PlaceInfo
 from loopclosure.device_search import check_search_device
 from loopclosure.encoder import Encoder, PlaceCodes
 from loopclosure.frame_correlation import FrameCorrelationPrior
-from loopclosure.ground_truth import GroundTruth, correct_mask, load_ground_truth, truth_windows
-from loopclosure.images import list_images, read_image
+from loopclosure.benchmark_truth import GroundTruth, correct_mask, load_ground_truth, truth_windows
+from loopclosure.backbone_input import list_images, read_image
 from loopclosure.metrics import precision_recall_curve, recall_at_n, summarize
 from loopclosure.pca import Codebooks
-from loopclosure.recognizer import Recognizer
+from loopclosure.two_stage import Recognizer
 from loopclosure.sampling import evenly_spaced
 from loopclosure.sequence_matcher import SequenceMatcher
 from loopclosure.spatial import spatial_scores
 from ssmvpr_common.atomic import atomic_write_text
-from ssmvpr_slam.config import SlamConfig, dump_config
+from ssmvpr_slam.config.slam import SlamConfig, dump_config
 from ssmvpr_slam.prior_map import encoder_signature
-from ssmvpr_slam.run_folder import staged_results_dir, write_json
+from ssmvpr_slam.results.run_folder import staged_results_dir, write_json
 
 
 @dataclass

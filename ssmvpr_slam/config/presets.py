@@ -7,7 +7,7 @@ from pathlib import Path
 
 
 def _presets_dir() -> Path:
-    """The YAML presets: shipped in the package (`ssmvpr_slam/presets`, a wheel install), or the
+    """The YAML presets: shipped in the package (`ssmvpr_slam/config/presets`, a wheel install), or the
     checkout's top-level `configs/` (an editable install), which pyproject maps to the same place."""
     here = Path(__file__).resolve().parent
     packaged = here / "presets"

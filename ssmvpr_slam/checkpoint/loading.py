@@ -5,7 +5,7 @@ config.yaml edited since) is one CheckpointError naming the file and what is wro
 traceback from deep inside the restore or a silently wrong resumed run. checkpoint.json is
 validated by its model (`checkpoint_record`); what spans files (keyframes.npz against the
 record, loops against the keyframes and the graph's handles) is checked here. The layout is in
-`ssmvpr_slam.checkpoint`, which writes it."""
+`ssmvpr_slam.checkpoint.saving`, which writes it."""
 
 from __future__ import annotations
 
@@ -31,8 +31,8 @@ from ssmvpr_slam.backend.loop_registration import LoopRegistration
 from ssmvpr_slam.backend.noise import check_sigmas
 from ssmvpr_slam.backend.se3 import DEFAULT_ROTATION_TOLERANCE, as_pose
 from ssmvpr_slam.backend.two_view import ReducedImage
-from ssmvpr_slam.checkpoint import META, Checkpoint, CheckpointMeta, find_checkpoint
-from ssmvpr_slam.checkpoint_record import FORMAT, FORMAT_VERSION, CheckpointError, CheckpointRecord, read_record
+from ssmvpr_slam.checkpoint.saving import META, Checkpoint, CheckpointMeta, find_checkpoint
+from ssmvpr_slam.checkpoint.record import FORMAT, FORMAT_VERSION, CheckpointError, CheckpointRecord, read_record
 from ssmvpr_slam.run_result import Keyframe, LoopRecord, RunResult, StreamEnd, frozen_array
 
 

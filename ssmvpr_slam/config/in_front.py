@@ -10,7 +10,7 @@ from typing import Any
 
 from pydantic import BaseModel
 
-from ssmvpr_slam.config import SlamConfig
+from ssmvpr_slam.config.slam import SlamConfig
 
 # (key, unit): the unit as the value is read ("" for a choice or a switch)
 IN_FRONT: tuple[tuple[str, str], ...] = (

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from rich.table import Table
 
-from ssmvpr_slam.run_metrics import RunMetrics
+from ssmvpr_slam.results.metrics import RunMetrics
 
 
 def _three(value: float | None) -> str:

@@ -12,11 +12,11 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
-from ssmvpr_slam.checkpoint import Checkpoint
-from ssmvpr_slam.checkpoint_loading import load_checkpoint
-from ssmvpr_slam.checkpoint_record import CheckpointError
-from ssmvpr_slam.config import SlamConfig, load_config, settings_variables
-from ssmvpr_slam.run_folder import check_writable
+from ssmvpr_slam.checkpoint.saving import Checkpoint
+from ssmvpr_slam.checkpoint.loading import load_checkpoint
+from ssmvpr_slam.checkpoint.record import CheckpointError
+from ssmvpr_slam.config.slam import SlamConfig, load_config, settings_variables
+from ssmvpr_slam.results.run_folder import check_writable
 
 
 @dataclass(frozen=True)

@@ -3,7 +3,7 @@
 Strict, so a resume never runs on a field a hand edit or a damaged disk changed in kind (a
 count that became text, 12.5 or true; NaN seconds). A field that fails is one line naming the
 file, the field and what it must be; the checks that span files (keyframes against
-keyframes.npz, loops against the graph) stay with the reader, `ssmvpr_slam.checkpoint_loading`."""
+keyframes.npz, loops against the graph) stay with the reader, `ssmvpr_slam.checkpoint.loading`."""
 
 from __future__ import annotations
 

@@ -71,7 +71,7 @@ class PipelineConfig(SettingsModel):
         ge=0,
         description="Hand the allocator's free pages back to the OS (glibc malloc_trim) every this many keyframes; "
         "0 never. Without it a long run's memory grew about 1.2 MB per keyframe of memory it no longer used "
-        "(ssmvpr_slam/heap.py).",
+        "(ssmvpr_slam/app/heap.py).",
     )
 
 

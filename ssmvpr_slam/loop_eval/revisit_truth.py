@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from loopclosure.ground_truth import GroundTruth, load_ground_truth
+from loopclosure.benchmark_truth import GroundTruth, load_ground_truth
 from ssmvpr_common.quoting import shortened
 from ssmvpr_slam.errors import SlamError
 

@@ -10,7 +10,7 @@ the same functions as the final results):
 - `write_database`: the place database with map poses and scans (a prior map for `--map`);
 - `write_metrics`: metrics.json;
 - `write_plots`: top view, translation error, loop precision/recall;
-- `write_trajectory_mcap`: trajectory.mcap for Foxglove (`ssmvpr_slam.mcap_output`).
+- `write_trajectory_mcap`: trajectory.mcap for Foxglove (`ssmvpr_slam.results.mcap_output`).
 """
 
 from __future__ import annotations
@@ -25,11 +25,11 @@ import numpy as np
 from ssmvpr_common.atomic import atomic_write_text
 from ssmvpr_common.trajectory_io import write_kitti, write_tum
 from ssmvpr_slam.backend.g2o_io import write_g2o
-from ssmvpr_slam.config import SlamConfig, dump_config
+from ssmvpr_slam.config.slam import SlamConfig, dump_config
 from ssmvpr_slam.evaluation.run_report import RunReport
 from ssmvpr_slam.prior_map import REAR_FOLDER, save_map
-from ssmvpr_slam.run_folder import write_json
-from ssmvpr_slam.run_metrics import RunInputs, RunMetrics
+from ssmvpr_slam.results.run_folder import write_json
+from ssmvpr_slam.results.metrics import RunInputs, RunMetrics
 from ssmvpr_slam.run_result import Keyframe, LoopRecord, RunResult, has_ground_truth
 
 LOOP_COLUMNS = [
@@ -55,7 +55,7 @@ def write_results(
     if config.results.plots:
         write_plots(folder, result, report, config)
     if config.results.mcap:
-        from ssmvpr_slam.mcap_output import write_trajectory_mcap
+        from ssmvpr_slam.results.mcap_output import write_trajectory_mcap
 
         write_trajectory_mcap(folder / "trajectory.mcap", result)  # thumbnails were made per keyframe
     return metrics

@@ -4,7 +4,7 @@ odometry re-derived by replaying the frames the checkpoint had seen.
 The odometry's state is not serialisable (kiss-icp's voxel map lives in C++), so a resume reads
 the log again from its start, feeding the frames before the checkpoint to the odometry only;
 everything else (keyframes, loops, the detector, the pose graph) comes back from the files
-`ssmvpr_slam.checkpoint` wrote."""
+`ssmvpr_slam.checkpoint.saving` wrote."""
 
 from __future__ import annotations
 
@@ -21,8 +21,8 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from frontend.errors import FrontendInputError
 from frontend.frame import Frame
 from loopclosure.errors import LoopClosureInputError
-from ssmvpr_slam.checkpoint import Checkpoint, CheckpointError
-from ssmvpr_slam.pipeline import SlamPipeline
+from ssmvpr_slam.checkpoint.saving import Checkpoint, CheckpointError
+from ssmvpr_slam.app.pipeline import SlamPipeline
 from ssmvpr_slam.run_result import LoopRecord, RunResult, StageTimes, StreamEnd
 from ssmvpr_slam.run_state import FrontCounts, RunState
 from ssmvpr_slam.system import SlamSystem

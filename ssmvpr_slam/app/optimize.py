@@ -18,7 +18,7 @@ from ssmvpr_slam.backend.graph_optimizer import KERNEL_NAMES, OptimizerSettings,
 from ssmvpr_slam.backend.gtsam_errors import gtsam_reason
 from ssmvpr_slam.errors import OptionError
 from ssmvpr_slam.evaluation.graph_metrics import loop_classification_scores, trajectory_ate
-from ssmvpr_slam.run_folder import output_dir, staged_results_dir, write_json
+from ssmvpr_slam.results.run_folder import output_dir, staged_results_dir, write_json
 
 
 def run_optimize(

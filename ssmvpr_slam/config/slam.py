@@ -25,10 +25,10 @@ from ssmvpr_common.text_files import read_text
 from ssmvpr_slam.backend.config import BackendConfig
 from ssmvpr_slam.errors import SlamError
 from ssmvpr_slam.evaluation.config import EvaluationConfig
-from ssmvpr_slam.map_config import MapConfig
-from ssmvpr_slam.pipeline_config import PipelineConfig
-from ssmvpr_slam.presets import PRESETS_DIR, available_presets
-from ssmvpr_slam.retired_settings import retired_key
+from ssmvpr_slam.config.map import MapConfig
+from ssmvpr_slam.config.pipeline import PipelineConfig
+from ssmvpr_slam.config.presets import PRESETS_DIR, available_presets
+from ssmvpr_slam.config.retired import retired_key
 
 
 class ConfigError(SlamError, ValueError):
