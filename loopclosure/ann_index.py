@@ -24,7 +24,7 @@ GPU holds every stage-I vector and scans them all for a query. Both propose, and
 exact re-scoring decides.
 
 The index is not saved with a map: the first query after loading builds it (exact: one norm
-pass over the codes; IVF: 278 s for 1M places on this 2-core machine). A retrain at a growth
+pass over the codes; IVF: a training run, minutes at a million places, docs/benchmarks.md). A retrain at a growth
 milestone stalls that one query for as long; doing it beside the stream is left to a caller
 that needs it.
 
@@ -53,10 +53,10 @@ Rows = Callable[[int, int], np.ndarray]  # (start, stop) vector ids -> float32 (
 
 @contextlib.contextmanager
 def faiss_threads(n: int) -> Iterator[None]:
-    """faiss's OpenMP threads for one call (with 2 shared cores, 2 spinning threads were measured
-    10-300x slower than 1 while another process ran), and its brute force through BLAS: the
-    wheel's default (128000 queries before BLAS) scans 16 queries 3.4x slower (85 vs 25 ms at
-    160k vectors)."""
+    """faiss's OpenMP threads for one call (on shared cores, spinning threads take them from each
+    other and from other processes), and its brute force through BLAS from a few queries on (the
+    wheel's default waits for thousands, which scans a keyframe's queries slower; the figures are
+    in docs/benchmarks.md, "Thread settings")."""
     import faiss
 
     before = faiss.omp_get_max_threads(), faiss.cvar.distance_compute_blas_threshold

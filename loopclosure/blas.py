@@ -1,9 +1,9 @@
 """One BLAS thread around the method's many small matrix products, at almost no cost per call.
 
-Right after a backbone pass torch's threads still hold the cores, and two BLAS threads on
-these small products were measured 10-80x slower (tools/bench_vpr.py). `threadpool_limits`
-looks up the loaded libraries on every call (4.6 ms in a SLAM run, about 13 ms a keyframe); a
-`ThreadpoolController` looks once. It is looked up again only after an import, which is how
+Right after a backbone pass torch's threads still hold the cores, and a second BLAS thread on
+these small products fights them for the cores instead of helping. `threadpool_limits` looks up
+the loaded libraries on every call, which costs more than the products it guards; a
+`ThreadpoolController` looks once (docs/benchmarks.md, "Thread settings"). It is looked up again only after an import, which is how
 a new BLAS (OpenCV's, scipy's) would arrive; in a steady stream there is none.
 """
 

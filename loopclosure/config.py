@@ -176,7 +176,7 @@ class SpatialConfig(SettingsModel):
     """Stage II: anchor row/column consistency on the conv4_2 grid."""
 
     cubes: CubeConfig = CubeConfig(cube_size=3, stride=2)
-    # Unnormalised stage-II codes (best cell by L2) measured better on Corridor: top-1 0.84 vs 0.70.
+    # Unnormalised stage-II codes: the best cell is found by L2, which normalising hurt (docs/method.md).
     pca: PCAConfig = PCAConfig(dim=100, l2_normalize_output=False)
     chunk_candidates: int = Field(default=64, ge=1, description="Candidates scored per batched matmul.")
     device: Literal["auto", "cpu", "cuda"] = Field(

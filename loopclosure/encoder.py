@@ -9,11 +9,11 @@ from dataclasses import dataclass
 import numpy as np
 
 from loopclosure.backbone import Backbone
+from loopclosure.backbone_input import as_rgb, resize_square, too_small
 from loopclosure.blas import one_blas_thread
 from loopclosure.config import VPRConfig
 from loopclosure.cubes import extract_cubes
 from loopclosure.errors import LoopClosureInputError
-from loopclosure.images import as_rgb, resize_square, too_small
 from loopclosure.pca import Codebooks, fit_pca
 
 log = logging.getLogger(__name__)
@@ -81,8 +81,8 @@ class Encoder:
     def project(self, raw: RawCubes) -> PlaceCodes:
         if self.codebooks is None:
             raise LoopClosureInputError("no PCA codebooks: fit them (ssmvpr-slam fit-pca) or load a database")
-        # One BLAS thread: right after a backbone pass torch's threads still hold the cores and
-        # a 2-thread BLAS on these small products was measured 50-80x slower (tools/bench_vpr.py).
+        # One BLAS thread: right after a backbone pass torch's threads still hold the cores, and a
+        # second BLAS thread on these small products fights them (docs/benchmarks.md).
         with one_blas_thread():
             return PlaceCodes(self.codebooks.stage1.transform(raw.stage1), self.codebooks.stage2.transform(raw.stage2))
 
@@ -155,7 +155,7 @@ class _FitSamples:
     def fit(self) -> Codebooks:
         if not self.stage1:
             raise LoopClosureInputError("no images to fit the PCA codebooks on")
-        # one BLAS thread: right after backbone passes a 2-thread BLAS fit was measured 10x slower
+        # one BLAS thread: right after backbone passes, torch's threads still hold the cores
         with one_blas_thread():
             return self._fit_both()
 

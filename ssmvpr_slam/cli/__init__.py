@@ -14,9 +14,8 @@ import sys
 
 # Before torch (imported inside the commands) loads its OpenMP runtime: idle OpenMP threads sleep
 # instead of spinning. kiss-icp's threads, faiss's and the backbone's share the cores of one
-# process, and spinning threads took them from each other: the SLAM stream's backbone measured
-# about 2x slower without this on the shared 2-core machine (docs/slam_demo.md). An explicit
-# OMP_WAIT_POLICY in the environment wins.
+# process, and spinning threads take the cores from each other (docs/benchmarks.md, "Thread
+# settings"). An explicit OMP_WAIT_POLICY in the environment wins.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 from ssmvpr_slam.cli import evaluation, mapping, slam, tools  # noqa: F401  (importing them registers the commands)
