@@ -12,13 +12,13 @@ from typing import TYPE_CHECKING
 from ssmvpr_common.lazy_exports import lazy_exports
 
 if TYPE_CHECKING:
+    from loopclosure.backbone_input import list_images, read_image
     from loopclosure.config import DetectorConfig, VPRConfig
     from loopclosure.database import PlaceDatabase
     from loopclosure.detector import LoopDetector, LoopProposal
     from loopclosure.errors import LoopClosureError, LoopClosureInputError
-    from loopclosure.images import list_images, read_image
     from loopclosure.place_recognizer import PlaceRecognizer
-    from loopclosure.recognizer import Recognition
+    from loopclosure.two_stage import Recognition
 
 _EXPORTS = {
     "DetectorConfig": "loopclosure.config",
@@ -28,10 +28,10 @@ _EXPORTS = {
     "LoopProposal": "loopclosure.detector",
     "LoopClosureError": "loopclosure.errors",
     "LoopClosureInputError": "loopclosure.errors",
-    "list_images": "loopclosure.images",
-    "read_image": "loopclosure.images",
+    "list_images": "loopclosure.backbone_input",
+    "read_image": "loopclosure.backbone_input",
     "PlaceRecognizer": "loopclosure.place_recognizer",
-    "Recognition": "loopclosure.recognizer",
+    "Recognition": "loopclosure.two_stage",
 }
 __all__ = [
     "DetectorConfig",

@@ -220,7 +220,7 @@ class Backbone:
 
     def _calibration_from_config(self) -> np.ndarray:
         """`int8_calibration_images` images spread evenly over the `int8_calibration` folder."""
-        from loopclosure.images import as_rgb, list_images, read_image, resize_square
+        from loopclosure.backbone_input import as_rgb, list_images, read_image, resize_square
         from loopclosure.sampling import evenly_spaced
 
         folder = self.config.int8_calibration

@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 
 from loopclosure.errors import LoopClosureInputError
-from ssmvpr_common.images import IMAGE_SUFFIXES, image_files
+from ssmvpr_common.image_folders import IMAGE_SUFFIXES, image_files
 
 # Below this many pixels on a side the backbone sees an upsampled blur (the input is 224 or
 # more), so the codes say nothing about the place: a stream warns, a benchmark refuses.

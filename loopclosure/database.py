@@ -287,7 +287,7 @@ class PlaceDatabase:
         self._codes: dict[str, _Codes] = {}
         self.places: list[PlaceInfo] = []
         self.extra: dict[str, Any] = {}  # the manifest's free-form record (e.g. encoder settings)
-        self.filtering = FilteringConfig()  # how stage I searches (Recognizer sets the configured one)
+        self.filtering = FilteringConfig()  # how stage I searches (TwoStageRanker sets the configured one)
         self._index = None  # loopclosure.ann_index.StageOneIndex, built on the first query
         self._max_norm: float | None = None  # numpy mode: bound on stage-I norms, for exact votes
         self._folder: Path | None = None  # the folder appends go to (open())

@@ -32,11 +32,11 @@ from loopclosure.encoder import Encoder, PlaceCodes, RawCubes, per_image_cells
 from loopclosure.errors import LoopClosureInputError
 from loopclosure.filtering import Candidates
 from loopclosure.pca import Codebooks
-from loopclosure.recognizer import Recognition, Recognizer
 from loopclosure.saved_state import saved_finite, saved_ints
 from loopclosure.sequence_gate import SequenceGate
 from loopclosure.sequence_matcher import SequenceMatch, SequenceMatcher
 from loopclosure.spatial_torch import stage2_scores
+from loopclosure.two_stage import Recognition, TwoStageRanker
 
 log = logging.getLogger(__name__)
 
@@ -105,7 +105,7 @@ class LoopDetector:
         # the rear image's codes of each keyframe (`rear.keep_codes`), by keyframe id as PlaceInfo.frame_id
         self.rear_database: PlaceDatabase | None = None
         self.prior_places = len(database) if database is not None else 0
-        self._recognizer = Recognizer(vpr, database) if database is not None else None
+        self._recognizer = TwoStageRanker(vpr, database) if database is not None else None
         self.gate = SequenceGate(config.gate)
         # places [start_i, start_i+1) lie on one stretch of path: a sequence never runs across a seam
         # (a prior map's last place and the session's first; two traverses streamed one after the other)
@@ -393,7 +393,7 @@ class LoopDetector:
         self.database = database
         self.encoder.codebooks = database.codebooks
         self.prior_places = prior
-        self._recognizer = Recognizer(self.vpr, database)
+        self._recognizer = TwoStageRanker(self.vpr, database)
         self._session_travelled = travelled
         self._place_of_keyframe = {database.places[i].frame_id: i for i in range(prior, len(database))}
         self._travelled = float(arrays["travelled"])
@@ -452,7 +452,7 @@ class LoopDetector:
         if self.encoder.codebooks is None:
             self.encoder.codebooks = self.encoder.fit_codebooks_from_raw([r for r, _, _, _ in self._warmup])
         self.database = PlaceDatabase(self.encoder.codebooks, self.vpr.database)
-        self._recognizer = Recognizer(self.vpr, self.database)
+        self._recognizer = TwoStageRanker(self.vpr, self.database)
         pending = self._break_pending
         for raw_i, info_i, travelled, starts in self._warmup:
             self._break_pending = starts

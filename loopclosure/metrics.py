@@ -20,8 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from loopclosure.benchmark_truth import GroundTruth, correct_mask
 from loopclosure.errors import LoopClosureInputError
-from loopclosure.ground_truth import GroundTruth, correct_mask
 
 __all__ = [
     "PRCurve",

@@ -10,12 +10,12 @@ from pathlib import Path
 import numpy as np
 
 from loopclosure.backbone import load_backbone
+from loopclosure.backbone_input import read_image
 from loopclosure.config import VPRConfig
 from loopclosure.database import PlaceDatabase, PlaceInfo
 from loopclosure.encoder import Encoder, PlaceCodes
 from loopclosure.errors import LoopClosureInputError
-from loopclosure.images import read_image
-from loopclosure.recognizer import Recognition, Recognizer
+from loopclosure.two_stage import Recognition, TwoStageRanker
 
 Image = np.ndarray | str | Path  # an RGB uint8 array, or an image file
 
@@ -38,7 +38,7 @@ class PlaceRecognizer:
         self.config = config
         self.encoder = encoder
         self.database: PlaceDatabase | None = None
-        self._recognizer: Recognizer | None = None
+        self._recognizer: TwoStageRanker | None = None
 
     @classmethod
     def from_config(
@@ -71,7 +71,7 @@ class PlaceRecognizer:
             codes = PlaceCodes.concatenate(list(self.encoder.encode_stream(prepared)))
         if self.database is None:
             self.database = PlaceDatabase(self.encoder.codebooks, self.config.database)
-            self._recognizer = Recognizer(self.config, self.database)
+            self._recognizer = TwoStageRanker(self.config, self.database)
         first = len(self.database)
         return self.database.add(codes, [PlaceInfo(frame_id=first + i) for i in range(len(codes))])
 

@@ -42,7 +42,7 @@ class Recognition:
         return bool(len(self.spatial_scores)) and bool(self.spatial_scores[0] >= self.spatial_scores.max())
 
 
-class Recognizer:
+class TwoStageRanker:
     def __init__(self, config: VPRConfig, database: PlaceDatabase) -> None:
         self.config = config
         self.database = database

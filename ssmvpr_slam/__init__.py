@@ -13,11 +13,11 @@ from typing import TYPE_CHECKING
 from ssmvpr_common.lazy_exports import lazy_exports
 
 if TYPE_CHECKING:
+    from ssmvpr_slam.app.runner import run_log
     from ssmvpr_slam.config.slam import SlamConfig, load_config
     from ssmvpr_slam.errors import SlamError
     from ssmvpr_slam.multi_session.runner import map_logs
     from ssmvpr_slam.run_result import RunResult
-    from ssmvpr_slam.app.runner import run_log
     from ssmvpr_slam.system import SlamSystem
 
 __version__ = "0.1.0"

@@ -18,7 +18,6 @@ from loopclosure.detector import LoopProposal
 from ssmvpr_slam.backend.kept_scan import KeptScan
 from ssmvpr_slam.backend.loop_registration import LoopRegistration
 from ssmvpr_slam.backend.two_view import ReducedImage
-from ssmvpr_slam.app.realtime import RealtimeStats
 
 if TYPE_CHECKING:  # only for annotations: the result module stays light to import
     from loopclosure.database import PlaceDatabase
@@ -173,3 +172,28 @@ def keyframe_poses(keyframes: Sequence[Keyframe]) -> tuple[np.ndarray, np.ndarra
 def has_ground_truth(keyframes: Sequence[Keyframe]) -> np.ndarray:
     """Which keyframes carry a usable ground-truth pose (not None, all finite)."""
     return np.array([k.gt_pose is not None and bool(np.isfinite(k.gt_pose).all()) for k in keyframes], bool)
+
+
+@dataclass(frozen=True)
+class RealtimeStats:
+    """How a run kept pace: what `metrics.json`'s `realtime` holds."""
+
+    rate: float  # the log played at this many times its recorded rate
+    max_lag_s: float  # lag beyond which a keyframe skips recognition
+    keyframes: int  # keyframes that reached the back end
+    keyframes_skipped: int  # of them, handled by odometry alone
+    lag_median_s: float | None
+    lag_p99_s: float | None
+    lag_max_s: float | None
+
+    @property
+    def kept_up(self) -> bool:
+        """No keyframe skipped recognition."""
+        return self.keyframes_skipped == 0
+
+    def to_dict(self) -> dict[str, float | int | bool | None]:
+        return {
+            "rate": self.rate, "max_lag_s": self.max_lag_s, "keyframes": self.keyframes,
+            "keyframes_skipped": self.keyframes_skipped, "lag_median_s": self.lag_median_s,
+            "lag_p99_s": self.lag_p99_s, "lag_max_s": self.lag_max_s, "kept_up": self.kept_up,
+        }  # fmt: skip

@@ -38,7 +38,7 @@ from ssmvpr_slam.kept_keyframe import keep_keyframe
 from ssmvpr_slam.loop_policy import LoopPolicy
 from ssmvpr_slam.loop_registrations import AppliedRegistration, LoopRegistrations
 from ssmvpr_slam.prior_map import PriorMap
-from ssmvpr_slam.results.assembly import assemble_result, odometry_stats_of
+from ssmvpr_slam.result_assembly import assemble_result, odometry_stats_of
 from ssmvpr_slam.run_result import (
     Keyframe,
     LoopRecord,

@@ -8,9 +8,9 @@ from pathlib import Path
 from rich.console import Console
 
 from frontend.simulation.sessions import city_sessions
-from ssmvpr_slam.config import SlamConfig, load_config
-from ssmvpr_slam.runner import simulate_to_mcap
-from ssmvpr_slam.simulated_logs import simulated_log_path
+from ssmvpr_slam.app.runner import simulate_to_mcap
+from ssmvpr_slam.app.simulated_logs import simulated_log_path
+from ssmvpr_slam.config.slam import SlamConfig, load_config
 
 
 def map_config(weights: Path, out: Path, frames: int | None, workers: int = 2) -> SlamConfig:

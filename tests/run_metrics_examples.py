@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from ssmvpr_slam.run_metrics import RunInputs, RunMetrics
+from ssmvpr_slam.results.metrics import RunInputs, RunMetrics
 
 
 def example_inputs(**changes: Any) -> RunInputs:

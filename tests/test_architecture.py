@@ -107,7 +107,7 @@ def test_the_slam_core_imports_no_reader_writer_or_simulator() -> None:
     import sys
 
     probe = ("import sys, ssmvpr_slam.system; print('\\n'.join(m for m in sys.modules if m.startswith("
-             "('frontend.sources', 'frontend.simulation', 'rosbags', 'mcap', 'ssmvpr_slam.mcap_output'))))")  # fmt: skip
+             "('frontend.sources', 'frontend.simulation', 'rosbags', 'mcap', 'ssmvpr_slam.results.mcap_output'))))")  # fmt: skip
     done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True, cwd=ROOT)
     loaded = set(done.stdout.split())
     assert loaded <= {"frontend.simulation", "frontend.simulation.config"}, sorted(loaded)

@@ -9,10 +9,10 @@ from frontend.errors import FrontendError, FrontendInputError
 from loopclosure.errors import LoopClosureError, LoopClosureInputError, WeightsNotFoundError
 from ssmvpr_common.disk_full import DiskFullError
 from ssmvpr_common.errors import SsmvprError
-from ssmvpr_slam.checkpoint import CheckpointError
-from ssmvpr_slam.config import ConfigError
+from ssmvpr_slam.checkpoint.saving import CheckpointError
+from ssmvpr_slam.config.slam import ConfigError
 from ssmvpr_slam.errors import OptionError, SlamError
-from ssmvpr_slam.run_folder import OutputError
+from ssmvpr_slam.results.run_folder import OutputError
 
 
 @pytest.mark.parametrize(

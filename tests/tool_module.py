@@ -13,6 +13,8 @@ TOOLS = Path(__file__).resolve().parents[1] / "tools"
 
 def load_tool(name: str) -> ModuleType:
     """tools/<name>.py, registered under `name` (its dataclasses look their module up there)."""
+    if str(TOOLS) not in sys.path:  # a tool imports the folder's private helpers (`_mcap_conversion`)
+        sys.path.append(str(TOOLS))
     spec = importlib.util.spec_from_file_location(name, TOOLS / f"{name}.py")
     assert spec is not None and spec.loader is not None
     module = importlib.util.module_from_spec(spec)

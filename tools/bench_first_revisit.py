@@ -134,8 +134,8 @@ def cut_folders(shared: Path, spec: tuple[str, str, str, int, int | None], work:
 def simulated_log(name: str, sim_dir: Path) -> Path:
     from rich.console import Console
 
-    from ssmvpr_slam.config import load_config
-    from ssmvpr_slam.runner import simulate_to_mcap
+    from ssmvpr_slam.app.runner import simulate_to_mcap
+    from ssmvpr_slam.config.slam import load_config
 
     path = sim_dir / f"{name}.mcap"
     if not path.exists():
@@ -173,7 +173,7 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
 
     from loopclosure.backbone import load_backbone
-    from ssmvpr_slam.config import load_config
+    from ssmvpr_slam.config.slam import load_config
     from ssmvpr_slam.loop_eval.runner import LoopEvalInputs, compute_metrics, prepare
     from ssmvpr_slam.loop_eval.stream import stream
 

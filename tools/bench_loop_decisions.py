@@ -86,9 +86,9 @@ def main(argv: list[str] | None = None) -> int:
     args = ap.parse_args(argv)
 
     from loopclosure.backbone import load_backbone
+    from loopclosure.backbone_input import list_images, read_image
     from loopclosure.encoder import Encoder
-    from loopclosure.images import list_images, read_image
-    from ssmvpr_slam.config import load_config
+    from ssmvpr_slam.config.slam import load_config
     from ssmvpr_slam.loop_eval.runner import LoopEvalInputs, compute_metrics, prepare
     from ssmvpr_slam.loop_eval.stream import stream
 

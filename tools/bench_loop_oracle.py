@@ -38,7 +38,7 @@ from frontend.odometry import make_odometry  # noqa: E402
 from frontend.simulation import SimulationConfig, TraverseSimulator, ground_truth_revisits  # noqa: E402
 from ssmvpr_slam.backend import PoseGraph  # noqa: E402
 from ssmvpr_slam.backend.noise import sigmas6  # noqa: E402
-from ssmvpr_slam.config import SlamConfig, load_config  # noqa: E402
+from ssmvpr_slam.config.slam import SlamConfig, load_config  # noqa: E402
 from ssmvpr_slam.evaluation.metrics import ate, kitti_relative_error  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))

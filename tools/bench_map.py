@@ -30,12 +30,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from rich.console import Console  # noqa: E402
 
 from frontend.simulation.sessions import city_sessions  # noqa: E402
-from ssmvpr_slam.config import SlamConfig, load_config  # noqa: E402
+from ssmvpr_slam.app.runner import run_log, simulate_to_mcap  # noqa: E402
+from ssmvpr_slam.app.simulated_logs import simulated_log_path  # noqa: E402
+from ssmvpr_slam.config.slam import SlamConfig, load_config  # noqa: E402
 from ssmvpr_slam.multi_session.evaluation import oracle_ate  # noqa: E402
 from ssmvpr_slam.multi_session.runner import map_logs  # noqa: E402
 from ssmvpr_slam.multi_session.session_map import SessionMap  # noqa: E402
-from ssmvpr_slam.runner import run_log, simulate_to_mcap  # noqa: E402
-from ssmvpr_slam.simulated_logs import simulated_log_path  # noqa: E402
 
 
 def localise_and_add(log: Path, folder: Path, config: SlamConfig, console: Console) -> dict[str, object]:

@@ -79,7 +79,7 @@ def main(argv: list[str] | None = None) -> int:
     from loopclosure.backbone import load_backbone
     from loopclosure.detector import LoopDetector
     from loopclosure.encoder import Encoder
-    from ssmvpr_slam.config import load_config
+    from ssmvpr_slam.config.slam import load_config
 
     config = load_config(args.config)
     if args.weights:

@@ -29,7 +29,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from frontend.odometry import KissIcpOdometry  # noqa: E402
 from frontend.simulation import TraverseSimulator  # noqa: E402
-from ssmvpr_slam.config import ConfigError, load_config  # noqa: E402
+from ssmvpr_slam.config.slam import ConfigError, load_config  # noqa: E402
 from ssmvpr_slam.evaluation.metrics import ate, drift_per_100m, kitti_relative_error, path_lengths  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))

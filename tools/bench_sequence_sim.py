@@ -63,8 +63,8 @@ def run_traverse(weights: str | None, simulation: SimulationConfig) -> dict[str,
     from frontend.odometry import make_odometry
     from frontend.simulation.simulator import TraverseSimulator
     from loopclosure.backbone import load_backbone
-    from ssmvpr_slam.config import load_config
-    from ssmvpr_slam.pipeline import SlamPipeline
+    from ssmvpr_slam.app.pipeline import SlamPipeline
+    from ssmvpr_slam.config.slam import load_config
 
     cfg = load_config()
     if weights:
@@ -147,7 +147,7 @@ def main(argv: list[str] | None = None) -> dict:
 
     from loopclosure.metrics import pr_auc, precision_recall_curve
     from loopclosure.sequence_matcher import match_sequences
-    from ssmvpr_slam.config import load_config
+    from ssmvpr_slam.config.slam import load_config
 
     cfg = load_config()
     det, loops = cfg.detector, cfg.evaluation.loops

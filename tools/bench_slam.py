@@ -87,7 +87,7 @@ def main(argv: list[str] | None = None) -> int:
         args.frames = 200
 
     from loopclosure.backbone import load_backbone
-    from ssmvpr_slam.config import load_config
+    from ssmvpr_slam.config.slam import load_config
 
     config = load_config(args.config)
     if args.weights:
@@ -158,11 +158,11 @@ def _run(config: Any, frames: Any, backbone: Any, args: argparse.Namespace) -> t
     import numpy as np
     import torch
 
+    from ssmvpr_slam.app.pipeline import SlamPipeline
+    from ssmvpr_slam.app.runner import build_odometry
     from ssmvpr_slam.evaluation.metrics import ate
-    from ssmvpr_slam.pipeline import SlamPipeline
     from ssmvpr_slam.run_result import latency_summary
     from ssmvpr_slam.run_state import RunState
-    from ssmvpr_slam.runner import build_odometry
 
     pipeline = SlamPipeline.build(config, build_odometry(config), backbone)
     samples: list[dict[str, float]] = []

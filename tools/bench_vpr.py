@@ -23,7 +23,7 @@ What is measured (all through the library's own code paths):
                        without an exclusion window of the most recent places.
   spatial_matching_ms  `loopclosure.spatial.spatial_scores` on N candidates gathered from a
                        stage-II store in DatabaseConfig.stage2_dtype (float16 by default, the
-                       conversion to float32 happens inside), as `Recognizer.query` does.
+                       conversion to float32 happens inside), as `TwoStageRanker.query` does.
   bytes_per_place      `PlaceDatabase.bytes_per_place` (in memory) and the .npy bytes on disk, for
                        the default, float32, int8 (scale per vector) and stage-II-only int8 storage;
                        --mapped-places P: a saved map of P places opened memory-mapped vs read into
@@ -282,7 +282,7 @@ def pick_weights(requested: str | None, allow_download: bool) -> tuple[dict | No
 # ---- images ----------------------------------------------------------------------------------
 def load_images(folder: Path, limit: int, size: int) -> tuple[list[np.ndarray], dict]:
     """Prepared (square RGB uint8) images and the per-image read+resize cost."""
-    from loopclosure.images import list_images, read_image, resize_square
+    from loopclosure.backbone_input import list_images, read_image, resize_square
 
     try:
         files = list_images(folder)[:limit]
@@ -704,7 +704,7 @@ def bench_spatial(args, config: VPRConfig, counts: list[int], repeats: int) -> d
         places_list = [np.sort(rng.choice(n_store, n, replace=False)) for _ in range(repeats + 2)]
         queries = [rng.standard_normal((gh, gw, d), dtype=np.float32) for _ in range(repeats + 2)]
         log(f"spatial N={n}: {repeats} repeats")
-        # As Recognizer.query: gather the candidates' grids, then score (conversion inside).
+        # As TwoStageRanker.query: gather the candidates' grids, then score (conversion inside).
         total = time_ms(lambda i: spatial_scores(queries[i], store[places_list[i]], chunk), repeats)
         gather = time_ms(lambda i: store[places_list[i]], repeats)
         cands = [store[p] for p in places_list]
@@ -1075,7 +1075,7 @@ def main(argv: list[str] | None = None) -> dict:
     measured = {
         # The worse of with/without exclusion at 10k (SLAM queries always carry a window).
         "filtering_10k_ms": max(f10k["no_exclusion"]["median"], f10k["with_exclusion"]["median"]) if f10k else None,
-        # As Recognizer.query pays it: gather the float16 grids, convert, score.
+        # As TwoStageRanker.query pays it: gather the float16 grids, convert, score.
         "spatial_50_ms": s50["gather_and_score"]["median"] if s50 else None,
         # L = 5, N = 50 as configured by default (the best K candidates get sequence terms), the
         # worse of one direction and both

@@ -17,7 +17,7 @@ from pathlib import Path
 def main(argv: list[str]) -> int:
     checkout = Path(argv[1]).resolve()
     import ssmvpr_slam
-    from ssmvpr_slam.config import PRESETS_DIR, available_presets, load_config
+    from ssmvpr_slam.config.slam import PRESETS_DIR, available_presets, load_config
 
     installed = Path(ssmvpr_slam.__file__).resolve().parent
     expected = sorted(p.stem for p in (checkout / "configs").glob("*.yaml"))

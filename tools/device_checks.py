@@ -126,7 +126,7 @@ def _weights(source: Path) -> None:
 
 
 def _images(source: Path, count: int = 16) -> None:
-    from loopclosure.images import list_images
+    from loopclosure.backbone_input import list_images
 
     def fill(folder: Path) -> None:
         for path in list_images(source)[:count]:

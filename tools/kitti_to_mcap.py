@@ -12,9 +12,10 @@ from __future__ import annotations
 import argparse
 import sys
 
+from _mcap_conversion import convert_to_mcap
+
 from frontend.config import KittiSourceConfig
 from frontend.sources import KittiSource
-from frontend.sources.convert import convert_to_mcap
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:

@@ -14,9 +14,10 @@ from __future__ import annotations
 import argparse
 import sys
 
+from _mcap_conversion import convert_to_mcap
+
 from frontend.config import McapSourceConfig
 from frontend.sources import RosbagSource
-from frontend.sources.convert import convert_to_mcap
 
 TOPICS = ("camera_topic", "rear_camera_topic", "lidar_topic", "odom_topic", "gt_topic")
 

@@ -27,7 +27,7 @@ PACKAGES = ("ssmvpr_slam.", "loopclosure.", "frontend.", "ssmvpr_common.")
 
 def _frames(args: argparse.Namespace, config: Any) -> Iterator[Any]:
     """The log's frames, its odometry resolved into `config` as `run` resolves it."""
-    from ssmvpr_slam.runner import open_camera_source
+    from ssmvpr_slam.app.runner import open_camera_source
 
     source, odometry = open_camera_source(Path(args.log), config)
     config.frontend.odometry = odometry
@@ -40,7 +40,7 @@ class _Run:
     def __init__(self, args: argparse.Namespace, config: Any, backbone: Any) -> None:
         self.frames = _frames(args, config)
         first = next(self.frames)
-        from ssmvpr_slam.runner import build_odometry
+        from ssmvpr_slam.app.runner import build_odometry
         from ssmvpr_slam.system import SlamSystem
 
         self.system = SlamSystem(config, build_odometry(config), backbone)
@@ -121,7 +121,7 @@ def main() -> None:
     args = parser.parse_args()
 
     from loopclosure.backbone import load_backbone
-    from ssmvpr_slam.config import load_config
+    from ssmvpr_slam.config.slam import load_config
 
     overrides = {"vpr": {"backbone": {"weights": args.weights}},
                  "pipeline": {"overlap": False, "registration_worker": False}}  # fmt: skip

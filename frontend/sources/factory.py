@@ -11,7 +11,7 @@ from frontend.sources.folder_source import IMAGE_DIR_NAMES, FolderSource
 from frontend.sources.kitti_source import CAMERA_FOLDERS, KittiSource
 from frontend.sources.mcap_source import McapSource
 from frontend.sources.rosbag_source import RosbagSource, is_rosbag
-from ssmvpr_common.images import image_files
+from ssmvpr_common.image_folders import image_files
 
 MCAP_SUFFIX = ".mcap"
 

@@ -23,8 +23,8 @@ from frontend.frame import Frame
 from frontend.poses_io import PoseFile, read_poses
 from frontend.sources.base import Source
 from frontend.sources.clock import StreamClock, read_times
-from frontend.sources.images import read_rgb
-from ssmvpr_common.images import frame_number, image_files, pair_by_number
+from frontend.sources.image_file import read_rgb
+from ssmvpr_common.image_folders import frame_number, image_files, pair_by_number
 
 IMAGE_DIR_NAMES = ("images", "image", "rgb", "image_2", "image_0")
 POSES_NAMES = ("poses.txt", "groundtruth.txt", "poses_tum.txt", "poses_kitti.txt", "gt.txt")

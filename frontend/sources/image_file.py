@@ -1,5 +1,5 @@
 """Image files in, RGB uint8 out (the one colour convention of Frame); which files are images
-is :func:`ssmvpr_common.images.image_files`."""
+is :func:`ssmvpr_common.image_folders.image_files`."""
 
 from __future__ import annotations
 

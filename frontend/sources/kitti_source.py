@@ -26,8 +26,8 @@ from frontend.errors import FrontendInputError
 from frontend.frame import Frame
 from frontend.sources.base import Source
 from frontend.sources.clock import StreamClock, read_times
-from frontend.sources.images import read_rgb
-from ssmvpr_common.images import image_files, pair_by_number
+from frontend.sources.image_file import read_rgb
+from ssmvpr_common.image_folders import image_files, pair_by_number
 from ssmvpr_common.poses import KITTI_COLUMNS, pose_from_kitti_row, pose_problem
 from ssmvpr_common.text_files import read_text
 from ssmvpr_common.trajectory_io import read_kitti

@@ -21,8 +21,8 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from frontend.errors import FrontendInputError
 from frontend.frame import Frame
 from loopclosure.errors import LoopClosureInputError
-from ssmvpr_slam.checkpoint.saving import Checkpoint, CheckpointError
 from ssmvpr_slam.app.pipeline import SlamPipeline
+from ssmvpr_slam.checkpoint.saving import Checkpoint, CheckpointError
 from ssmvpr_slam.run_result import LoopRecord, RunResult, StageTimes, StreamEnd
 from ssmvpr_slam.run_state import FrontCounts, RunState
 from ssmvpr_slam.system import SlamSystem

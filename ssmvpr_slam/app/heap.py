@@ -1,9 +1,8 @@
 """Giving freed heap pages back to the operating system during a long run.
 
-Measured on the demo city (kiss-icp, 14 laps): the process grew by about 1.2 MB per keyframe
-although what a run keeps grows by about 0.2 MB. tracemalloc and each part run alone (the
-simulator, kiss-icp, the detector, loop ICP, iSAM2) showed no leak: the rest was free memory
-that glibc's allocator held on to. A frame's transient arrays (a raw scan, images, feature
+A long run's process grew several times faster than what the run keeps, with no leak in any
+part (docs/benchmarks.md, "Memory per keyframe in a long run"): the rest was free memory that
+glibc's allocator held on to. A frame's transient arrays (a raw scan, images, feature
 maps) are allocated from the heap once glibc's dynamic mmap threshold has risen, and the small
 objects a keyframe keeps for the whole run land between them, so the freed space cannot shrink
 the heap. `malloc_trim(0)` hands every free page back (madvise), wherever it lies; calling it

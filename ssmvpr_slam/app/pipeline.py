@@ -33,14 +33,14 @@ from frontend.frame import Frame
 from frontend.odometry.base import Odometry
 from loopclosure.backbone import Backbone
 from ssmvpr_common.errors import SsmvprError
+from ssmvpr_slam.app.heap import HeapTrimmer
+from ssmvpr_slam.app.realtime import SensorClock
 from ssmvpr_slam.backend.pose_graph import PoseGraph
 from ssmvpr_slam.config.slam import SlamConfig
-from ssmvpr_slam.app.heap import HeapTrimmer
 from ssmvpr_slam.prior_map import PriorMap
-from ssmvpr_slam.app.realtime import SensorClock
 from ssmvpr_slam.run_result import RunResult, StreamEnd
 from ssmvpr_slam.run_state import KeyframeInput, RunState
-from ssmvpr_slam.app.stop_signals import stop_signals_handled
+from ssmvpr_slam.stop_signals import stop_signals_handled
 from ssmvpr_slam.system import SlamSystem
 
 log = logging.getLogger(__name__)

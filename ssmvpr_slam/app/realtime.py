@@ -15,36 +15,11 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Iterable, Iterator
-from dataclasses import dataclass
 
 import numpy as np
 
 from frontend.frame import Frame
-
-
-@dataclass(frozen=True)
-class RealtimeStats:
-    """How a run kept pace: what `metrics.json`'s `realtime` holds."""
-
-    rate: float  # the log played at this many times its recorded rate
-    max_lag_s: float  # lag beyond which a keyframe skips recognition
-    keyframes: int  # keyframes that reached the back end
-    keyframes_skipped: int  # of them, handled by odometry alone
-    lag_median_s: float | None
-    lag_p99_s: float | None
-    lag_max_s: float | None
-
-    @property
-    def kept_up(self) -> bool:
-        """No keyframe skipped recognition."""
-        return self.keyframes_skipped == 0
-
-    def to_dict(self) -> dict[str, float | int | bool | None]:
-        return {
-            "rate": self.rate, "max_lag_s": self.max_lag_s, "keyframes": self.keyframes,
-            "keyframes_skipped": self.keyframes_skipped, "lag_median_s": self.lag_median_s,
-            "lag_p99_s": self.lag_p99_s, "lag_max_s": self.lag_max_s, "kept_up": self.kept_up,
-        }  # fmt: skip
+from ssmvpr_slam.run_result import RealtimeStats
 
 
 class SensorClock:

@@ -24,6 +24,9 @@ from frontend.odometry import Odometry, choose_odometry, make_odometry
 from frontend.sources import Source, open_source
 from loopclosure.backbone import Backbone, load_backbone
 from ssmvpr_common.disk_full import DiskFullError, is_disk_full
+from ssmvpr_slam.app.checkpoint_replay import restore_from_checkpoint
+from ssmvpr_slam.app.pipeline import SlamPipeline
+from ssmvpr_slam.app.realtime import SensorClock
 from ssmvpr_slam.checkpoint.saving import (
     Checkpoint,
     Checkpointer,
@@ -34,19 +37,16 @@ from ssmvpr_slam.checkpoint.saving import (
     find_checkpoint,
     log_fingerprint,
 )
-from ssmvpr_slam.checkpoint.replay import restore_from_checkpoint
 from ssmvpr_slam.config.slam import SlamConfig
 from ssmvpr_slam.evaluation.run_report import RunReport, evaluate
-from ssmvpr_slam.app.pipeline import SlamPipeline
 from ssmvpr_slam.prior_map import PriorMap
-from ssmvpr_slam.app.realtime import RealtimeStats, SensorClock
-from ssmvpr_slam.results.run_folder import RunFolder, staged_results_dir
 from ssmvpr_slam.results.metrics import ResumedFrom, RunInputs, RunMetrics
-from ssmvpr_slam.run_result import RunResult
-from ssmvpr_slam.run_state import RunState
+from ssmvpr_slam.results.run_folder import RunFolder, staged_results_dir
 from ssmvpr_slam.results.summary import summary_table
-from ssmvpr_slam.system import SlamSystem
 from ssmvpr_slam.results.writers import write_results
+from ssmvpr_slam.run_result import RealtimeStats, RunResult
+from ssmvpr_slam.run_state import RunState
+from ssmvpr_slam.system import SlamSystem
 
 if TYPE_CHECKING:
     from ssmvpr_slam.app.live_view import LiveView

@@ -17,9 +17,9 @@ from rich.markup import escape
 import frontend.simulation
 import frontend.sources.mcap_writer
 from loopclosure.weights import default_cache_dir
+from ssmvpr_slam.app.runner import simulate_to_mcap
 from ssmvpr_slam.config.slam import SlamConfig
 from ssmvpr_slam.results.run_folder import output_file
-from ssmvpr_slam.app.runner import simulate_to_mcap
 
 FOLDER = "simulated"
 

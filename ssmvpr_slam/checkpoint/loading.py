@@ -31,8 +31,8 @@ from ssmvpr_slam.backend.loop_registration import LoopRegistration
 from ssmvpr_slam.backend.noise import check_sigmas
 from ssmvpr_slam.backend.se3 import DEFAULT_ROTATION_TOLERANCE, as_pose
 from ssmvpr_slam.backend.two_view import ReducedImage
-from ssmvpr_slam.checkpoint.saving import META, Checkpoint, CheckpointMeta, find_checkpoint
 from ssmvpr_slam.checkpoint.record import FORMAT, FORMAT_VERSION, CheckpointError, CheckpointRecord, read_record
+from ssmvpr_slam.checkpoint.saving import META, Checkpoint, CheckpointMeta, find_checkpoint
 from ssmvpr_slam.run_result import Keyframe, LoopRecord, RunResult, StreamEnd, frozen_array
 
 

@@ -12,9 +12,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
-from ssmvpr_slam.checkpoint.saving import Checkpoint
 from ssmvpr_slam.checkpoint.loading import load_checkpoint
 from ssmvpr_slam.checkpoint.record import CheckpointError
+from ssmvpr_slam.checkpoint.saving import Checkpoint
 from ssmvpr_slam.config.slam import SlamConfig, load_config, settings_variables
 from ssmvpr_slam.results.run_folder import check_writable
 

@@ -49,8 +49,8 @@ from ssmvpr_slam.backend.two_view import ReducedImage
 from ssmvpr_slam.checkpoint.record import CheckpointError, CheckpointRecord
 from ssmvpr_slam.config.slam import ResultsConfig, SlamConfig
 from ssmvpr_slam.results.run_folder import RunFolder, switch_link
-from ssmvpr_slam.run_result import Keyframe, LoopRecord, RunResult, StreamEnd
 from ssmvpr_slam.results.writers import prior_gt, write_config, write_database, write_loop_csv, write_trajectories
+from ssmvpr_slam.run_result import Keyframe, LoopRecord, RunResult, StreamEnd
 
 log = logging.getLogger(__name__)
 

@@ -48,9 +48,9 @@ def option_of_field() -> dict[tuple[type[Any], str], str]:
     from frontend.config import FolderSourceConfig, OdometryConfig
     from frontend.simulation.config import SimulationConfig
     from loopclosure.config import BackboneConfig, FilteringConfig, SequenceMatchConfig
-    from ssmvpr_slam.config.slam import VPREvalConfig
     from ssmvpr_slam.config.map import MapConfig
     from ssmvpr_slam.config.pipeline import PipelineConfig
+    from ssmvpr_slam.config.slam import VPREvalConfig
 
     return {
         (OdometryConfig, "kind"): "--odometry (frontend.odometry.kind)",

@@ -100,8 +100,8 @@ def run(
     out: OutOpt = None,
 ) -> None:
     """Process a logged traverse end to end: odometry, SSM-VPR loops, iSAM2, evaluation."""
-    from ssmvpr_slam.results.run_folder import output_dir
     from ssmvpr_slam.app.runner import run_log
+    from ssmvpr_slam.results.run_folder import output_dir
 
     if resume is not None:
         from ssmvpr_slam.checkpoint.resume import prepare_resume
@@ -173,10 +173,10 @@ def demo(
 ) -> None:
     """Simulate the default loopy traverse, run it, evaluate, and print before/after (`-c quick`: a
     short one, a few minutes). The log is kept in the user cache and reused."""
-    from ssmvpr_slam.config.slam import resolve_weights_first
-    from ssmvpr_slam.results.run_folder import output_dir
     from ssmvpr_slam.app.runner import run_log
     from ssmvpr_slam.app.simulated_logs import demo_log, with_demo_odometry
+    from ssmvpr_slam.config.slam import resolve_weights_first
+    from ssmvpr_slam.results.run_folder import output_dir
 
     cfg = make_config(config, weights, device, out)
     if frames is not None:
@@ -215,8 +215,8 @@ def simulate(
 ) -> None:
     """Render a loopy city traverse (camera, LiDAR, ground truth, drifting odometry) to MCAP."""
     from frontend.simulation.config import SimulationConfig
-    from ssmvpr_slam.results.run_folder import output_dir, output_file
     from ssmvpr_slam.app.runner import simulate_sessions, simulate_to_mcap
+    from ssmvpr_slam.results.run_folder import output_dir, output_file
 
     cfg = make_config(config)
     if sim_config is not None:

@@ -91,9 +91,9 @@ def show_config(
     """Print the effective configuration (preset + file + environment) as YAML."""
     import yaml
 
+    from ssmvpr_slam.config.in_front import explain_in_front
     from ssmvpr_slam.config.slam import config_diff, dump_config, explain_config, preset_config
     from ssmvpr_slam.errors import OptionError
-    from ssmvpr_slam.config.in_front import explain_in_front
 
     cfg = make_config(config)
     if every and not explain:

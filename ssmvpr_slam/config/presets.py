@@ -11,7 +11,7 @@ def _presets_dir() -> Path:
     checkout's top-level `configs/` (an editable install), which pyproject maps to the same place."""
     here = Path(__file__).resolve().parent
     packaged = here / "presets"
-    return packaged if packaged.is_dir() else here.parent / "configs"
+    return packaged if packaged.is_dir() else here.parents[1] / "configs"
 
 
 PRESETS_DIR = _presets_dir()

@@ -23,12 +23,12 @@ from loopclosure.config import DetectorConfig, SequenceMatchConfig, VPRConfig
 from ssmvpr_common.settings_model import SettingsModel
 from ssmvpr_common.text_files import read_text
 from ssmvpr_slam.backend.config import BackendConfig
-from ssmvpr_slam.errors import SlamError
-from ssmvpr_slam.evaluation.config import EvaluationConfig
 from ssmvpr_slam.config.map import MapConfig
 from ssmvpr_slam.config.pipeline import PipelineConfig
 from ssmvpr_slam.config.presets import PRESETS_DIR, available_presets
 from ssmvpr_slam.config.retired import retired_key
+from ssmvpr_slam.errors import SlamError
+from ssmvpr_slam.evaluation.config import EvaluationConfig
 
 
 class ConfigError(SlamError, ValueError):

@@ -17,8 +17,8 @@ from frontend.keyframes import KeyframeSelector
 from frontend.sources import open_source
 from frontend.sources.base import Source
 from ssmvpr_slam.config.slam import SlamConfig
-from ssmvpr_slam.loop_eval.stream import ImagePair
 from ssmvpr_slam.loop_eval.revisit_truth import LoopTruthError
+from ssmvpr_slam.loop_eval.stream import ImagePair
 
 
 @dataclass(frozen=True)

@@ -23,10 +23,11 @@ from loopclosure.backbone import load_backbone
 from loopclosure.backbone_input import list_images
 from ssmvpr_common.atomic import atomic_write_text
 from ssmvpr_slam.config.slam import SlamConfig, dump_config
-from ssmvpr_slam.loop_eval import score, truth
+from ssmvpr_slam.loop_eval import revisit_truth as truth
+from ssmvpr_slam.loop_eval import score
 from ssmvpr_slam.loop_eval.log_frames import images_of_log, keyframes_of
-from ssmvpr_slam.loop_eval.stream import ImagePair, StreamOutcome, images_of, path_positions, stream, travelled
 from ssmvpr_slam.loop_eval.revisit_truth import LoopTruth, LoopTruthError
+from ssmvpr_slam.loop_eval.stream import ImagePair, StreamOutcome, images_of, path_positions, stream, travelled
 from ssmvpr_slam.results.run_folder import staged_results_dir, write_json
 
 

@@ -10,8 +10,8 @@ from pathlib import Path
 import numpy as np
 
 from loopclosure.backbone import Backbone
-from loopclosure.detector import LoopProposal
 from loopclosure.backbone_input import read_image
+from loopclosure.detector import LoopProposal
 from ssmvpr_slam.config.slam import SlamConfig
 from ssmvpr_slam.system import build_detector
 

@@ -25,7 +25,7 @@ from ssmvpr_slam.checkpoint.saving import log_fingerprint
 from ssmvpr_slam.config.slam import SlamConfig
 from ssmvpr_slam.errors import SlamError
 from ssmvpr_slam.results.run_folder import StagedResults
-from ssmvpr_slam.app.staging_lock import LOCK_NAME, in_use, left_over
+from ssmvpr_slam.results.staging_lock import LOCK_NAME, in_use, left_over
 
 PLAN = "plan.json"
 FINISHED = "finished_sessions.json"

@@ -15,7 +15,7 @@ from contextlib import contextmanager
 from pathlib import Path
 
 from ssmvpr_slam.errors import SlamError
-from ssmvpr_slam.app.stop_signals import stop_signals_handled
+from ssmvpr_slam.stop_signals import stop_signals_handled
 
 log = logging.getLogger(__name__)
 

@@ -27,8 +27,8 @@ from typing import Any
 
 from ssmvpr_common.atomic import atomic_write_text
 from ssmvpr_slam.errors import SlamError
-from ssmvpr_slam.app.staging_lock import StagingLock, remove_left_over
-from ssmvpr_slam.app.stop_signals import stop_signals_handled
+from ssmvpr_slam.results.staging_lock import StagingLock, remove_left_over
+from ssmvpr_slam.stop_signals import stop_signals_handled
 
 log = logging.getLogger(__name__)
 

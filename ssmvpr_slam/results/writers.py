@@ -28,8 +28,8 @@ from ssmvpr_slam.backend.g2o_io import write_g2o
 from ssmvpr_slam.config.slam import SlamConfig, dump_config
 from ssmvpr_slam.evaluation.run_report import RunReport
 from ssmvpr_slam.prior_map import REAR_FOLDER, save_map
-from ssmvpr_slam.results.run_folder import write_json
 from ssmvpr_slam.results.metrics import RunInputs, RunMetrics
+from ssmvpr_slam.results.run_folder import write_json
 from ssmvpr_slam.run_result import Keyframe, LoopRecord, RunResult, has_ground_truth
 
 LOOP_COLUMNS = [

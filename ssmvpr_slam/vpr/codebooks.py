@@ -10,9 +10,9 @@ from rich.console import Console
 from rich.markup import escape
 
 from loopclosure.backbone import load_backbone
+from loopclosure.backbone_input import list_images, read_image
 from loopclosure.config import VPRConfig
 from loopclosure.encoder import Encoder
-from loopclosure.backbone_input import list_images, read_image
 from loopclosure.pca import Codebooks
 from loopclosure.sampling import evenly_spaced
 

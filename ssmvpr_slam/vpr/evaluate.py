@@ -17,20 +17,20 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from loopclosure.backbone import load_backbone
+from loopclosure.backbone_input import list_images, read_image
+from loopclosure.benchmark_truth import GroundTruth, correct_mask, load_ground_truth, truth_windows
 from loopclosure.blas import one_blas_thread
 from loopclosure.config import SequenceMatchConfig
 from loopclosure.database import PlaceDatabase, PlaceInfo
 from loopclosure.device_search import check_search_device
 from loopclosure.encoder import Encoder, PlaceCodes
 from loopclosure.frame_correlation import FrameCorrelationPrior
-from loopclosure.benchmark_truth import GroundTruth, correct_mask, load_ground_truth, truth_windows
-from loopclosure.backbone_input import list_images, read_image
 from loopclosure.metrics import precision_recall_curve, recall_at_n, summarize
 from loopclosure.pca import Codebooks
-from loopclosure.two_stage import Recognizer
 from loopclosure.sampling import evenly_spaced
 from loopclosure.sequence_matcher import SequenceMatcher
 from loopclosure.spatial import spatial_scores
+from loopclosure.two_stage import TwoStageRanker
 from ssmvpr_common.atomic import atomic_write_text
 from ssmvpr_slam.config.slam import SlamConfig, dump_config
 from ssmvpr_slam.prior_map import encoder_signature
@@ -95,7 +95,7 @@ def encode_folder(
 
 
 def recognise_all(
-    recognizer: Recognizer,
+    recognizer: TwoStageRanker,
     queries: PlaceCodes,
     sequential: bool,
     progress: Progress,
@@ -342,7 +342,7 @@ def run_vpr_eval(
         database.add(ref_codes, [PlaceInfo(frame_id=i, name=p.name) for i, p in enumerate(ref_files)])
         # one BLAS thread for the many small stage-II products (two contend on a shared 2-core CPU)
         with one_blas_thread():
-            outcome = recognise_all(Recognizer(config.vpr, database), query_codes, sequential, progress,
+            outcome = recognise_all(TwoStageRanker(config.vpr, database), query_codes, sequential, progress,
                                     config.vpr_eval.sequence_lengths, config.vpr_eval.sequence)  # fmt: skip
 
     metrics = compute_metrics(outcome, gt, config)

@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from ssmvpr_common.atomic import atomic_write, atomic_write_bytes, atomic_write_text, default_file_mode
-from ssmvpr_common.images import IMAGE_SUFFIXES, image_files
+from ssmvpr_common.image_folders import IMAGE_SUFFIXES, image_files
 from ssmvpr_common.poses import (
     data_lines,
     kitti_lines,

@@ -16,7 +16,8 @@ from frontend.errors import FrontendInputError
 from frontend.simulation.config import SimulationConfig
 from frontend.simulation.simulator import TraverseSimulator
 from frontend.sources import RosbagSource, detect_kind, open_source, write_frames
-from frontend.sources.rosbag_convert import mcap_to_rosbag
+
+mcap_to_rosbag = load_tool("mcap_to_rosbag").mcap_to_rosbag
 
 FORMATS = {"ros1": "drive.bag", "ros2-sqlite3": "drive_db3", "ros2-mcap": "drive_mcap"}
 FIELDS = ("image", "rear_image", "points", "point_times", "logged_pose", "gt_pose")

@@ -201,9 +201,9 @@ def corridor_codes(
     corridor_dir: Path, weights_path: Path, shared_backbone_passes: object
 ) -> tuple[PlaceCodes, PlaceCodes]:
     from loopclosure.backbone import load_backbone
+    from loopclosure.backbone_input import list_images, read_image
     from loopclosure.config import VPRConfig
     from loopclosure.encoder import Encoder
-    from loopclosure.images import list_images, read_image
 
     cfg = VPRConfig()
     cfg.backbone.weights = str(weights_path)

@@ -15,9 +15,9 @@ import torch
 import torch.nn.functional as F
 
 from loopclosure.backbone import Backbone, VGG16Features, load_backbone
+from loopclosure.backbone_input import read_image, resize_square
 from loopclosure.config import BackboneConfig
 from loopclosure.errors import LoopClosureInputError, WeightsNotFoundError
-from loopclosure.images import read_image, resize_square
 
 # Standard VGG16 configuration 'D' (Simonyan & Zisserman); torchvision numbers the modules of
 # `features` in order, each conv followed by its ReLU, each 'M' one max-pool.

@@ -20,9 +20,9 @@ import torch
 from loopclosure import backbone as backbone_module
 from loopclosure import int8_runtime
 from loopclosure.backbone import Backbone, resolve_precision
+from loopclosure.backbone_input import list_images, read_image, resize_square
 from loopclosure.config import BackboneConfig
 from loopclosure.errors import LoopClosureInputError
-from loopclosure.images import list_images, read_image, resize_square
 from loopclosure.int8_runtime import int8_available
 
 SIZE = 96  # fully convolutional: agreement at 96 px means the same as at 224, in a third of the time
@@ -116,7 +116,7 @@ def test_the_default_is_the_fp32_reference():
 
 
 def test_precision_from_the_environment(monkeypatch):
-    from ssmvpr_slam.config import load_config
+    from ssmvpr_slam.config.slam import load_config
 
     monkeypatch.setenv("SSMVPR_VPR__BACKBONE__PRECISION", "bf16")
     assert load_config().vpr.backbone.precision == "bf16"

@@ -7,8 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from loopclosure.errors import LoopClosureInputError
-from loopclosure.ground_truth import (
+from loopclosure.benchmark_truth import (
     GroundTruth,
     correct_mask,
     frame_aligned,
@@ -17,6 +16,7 @@ from loopclosure.ground_truth import (
     is_correct,
     load_ground_truth,
 )
+from loopclosure.errors import LoopClosureInputError
 
 REF = [f"ref/{i:07d}.jpg" for i in range(6)]
 QUERY = [f"query/{i:07d}.jpg" for i in range(4)]

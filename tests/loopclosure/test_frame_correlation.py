@@ -116,7 +116,7 @@ def _stream(recover: bool) -> list[int]:
     from loopclosure.database import PlaceDatabase
     from loopclosure.encoder import PlaceCodes
     from loopclosure.pca import Codebooks, PCAProjection
-    from loopclosure.recognizer import Recognizer
+    from loopclosure.two_stage import TwoStageRanker
 
     rng = np.random.default_rng(0)
     n, d = 60, 16
@@ -131,7 +131,7 @@ def _stream(recover: bool) -> list[int]:
     places = list(range(10, 18)) + list(range(40, 52))
     queries = [PlaceCodes(stage1[p][None], (stage2[p] if i < 8 else _partial_copy(stage2[p], 5, rng))[None])
                for i, p in enumerate(places)]  # fmt: skip
-    recognizer, prior, matches = Recognizer(config, db), FrameCorrelationPrior(config.frame_correlation), []
+    recognizer, prior, matches = TwoStageRanker(config, db), FrameCorrelationPrior(config.frame_correlation), []
     for q in queries:
         rec = recognizer.query(q, boosted=prior.boosted())
         prior.update(rec.best_place, rec.won_without_boost)

@@ -1,4 +1,4 @@
-"""loopclosure.images: folder listing, decoding and conversion to the backbone's input."""
+"""loopclosure.backbone_input: folder listing, decoding and conversion to the backbone's input."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import cv2
 import numpy as np
 import pytest
 
+from loopclosure.backbone_input import as_rgb, list_images, read_image, resize_square
 from loopclosure.errors import LoopClosureInputError
-from loopclosure.images import as_rgb, list_images, read_image, resize_square
 
 
 def _write(path, image_bgr) -> None:

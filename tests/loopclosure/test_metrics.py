@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from sklearn import metrics as skm
 
+from loopclosure.benchmark_truth import GroundTruth
 from loopclosure.errors import LoopClosureInputError
-from loopclosure.ground_truth import GroundTruth
 from loopclosure.metrics import (
     pr_auc,
     precision_at_full_recall,

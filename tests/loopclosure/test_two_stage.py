@@ -1,4 +1,4 @@
-"""loopclosure.recognizer on real data: Gardens Point mini, night references vs day queries,
+"""loopclosure.two_stage on real data: Gardens Point mini, night references vs day queries,
 with the real ImageNet VGG16 weights; plus the prior/exclusion plumbing on the same codes.
 
 Measured here (2024 CPU, default ECMR preset, PCA fitted on the 10 references): the spatial
@@ -15,14 +15,14 @@ import numpy as np
 import pytest
 
 from loopclosure.backbone import load_backbone
+from loopclosure.backbone_input import list_images, read_image
 from loopclosure.config import BackboneConfig, FilteringConfig, FrameCorrelationConfig, VPRConfig
 from loopclosure.database import PlaceDatabase
 from loopclosure.encoder import Encoder, PlaceCodes
 from loopclosure.errors import LoopClosureInputError
 from loopclosure.frame_correlation import FrameCorrelationPrior
-from loopclosure.images import list_images, read_image
-from loopclosure.recognizer import Recognizer
 from loopclosure.spatial import spatial_scores
+from loopclosure.two_stage import TwoStageRanker
 
 N = 10
 
@@ -73,7 +73,7 @@ def test_codes_have_the_paper_layout(real):
 
 
 def _recognise_all(config, db, query_codes, **kw):
-    recognizer = Recognizer(config, db)
+    recognizer = TwoStageRanker(config, db)
     return [recognizer.query(query_codes[i], **kw) for i in range(N)]
 
 
@@ -106,7 +106,7 @@ def test_true_reference_scores_above_the_typical_other(real):
 
 def test_excluding_the_true_place_changes_the_answer(real):
     config, db, _, query_codes, *_ = real
-    recognizer = Recognizer(config, db)
+    recognizer = TwoStageRanker(config, db)
     changed = 0
     for i in range(N):
         plain = recognizer.query(query_codes[i])
@@ -132,7 +132,7 @@ def test_boosted_places_join_the_candidates(real):
             "frame_correlation": FrameCorrelationConfig(enabled=True, history=1, radius=1, boost=0.5),
         }
     )
-    recognizer = Recognizer(narrow, db)
+    recognizer = TwoStageRanker(narrow, db)
     prior = FrameCorrelationPrior(narrow.frame_correlation)
     prior.update(4)  # previous query matched 4 -> boost 4, 5, 6
     boosted = prior.boosted()
@@ -161,7 +161,7 @@ def test_zero_boost_adds_candidates_without_changing_scores(real):
             "frame_correlation": FrameCorrelationConfig(enabled=True, boost=0.0),
         }
     )
-    r = Recognizer(zero, db).query(query_codes[3], boosted=np.array([0, 1, 8]))
+    r = TwoStageRanker(zero, db).query(query_codes[3], boosted=np.array([0, 1, 8]))
     assert {0, 1, 8} <= set(r.ranked_places.tolist())
     np.testing.assert_array_equal(r.ranked_scores, r.spatial_scores)
     direct = spatial_scores(query_codes.stage2[3], db.stage2[r.ranked_places]).scores
@@ -171,19 +171,19 @@ def test_zero_boost_adds_candidates_without_changing_scores(real):
 def test_query_one_place_at_a_time(real):
     config, db, _, query_codes, *_ = real
     with pytest.raises(LoopClosureInputError, match="one place at a time, got 2"):
-        Recognizer(config, db).query(query_codes[0:2])
+        TwoStageRanker(config, db).query(query_codes[0:2])
     stage1 = query_codes.stage1[0:1].copy()
     stage1[0, 3, 0] = np.nan  # reached stage I's neighbour ranking as an IndexError
     with pytest.raises(LoopClosureInputError, match="query codes contain NaN or inf"):
-        Recognizer(config, db).query(PlaceCodes(stage1, query_codes.stage2[0:1]))
+        TwoStageRanker(config, db).query(PlaceCodes(stage1, query_codes.stage2[0:1]))
 
 
 def test_empty_database_and_everything_excluded(real):
     config, db, _, query_codes, *_ = real
     empty = PlaceDatabase(db.codebooks)
-    r = Recognizer(config, empty).query(query_codes[0])
+    r = TwoStageRanker(config, empty).query(query_codes[0])
     assert r.best_place is None and r.best_score == 0.0 and len(r.ranked_places) == 0
-    r = Recognizer(config, db).query(query_codes[0], excluded=np.arange(N), boosted=np.array([1, 2]))
+    r = TwoStageRanker(config, db).query(query_codes[0], excluded=np.arange(N), boosted=np.array([1, 2]))
     assert r.best_place is None and len(r.ranked_places) == 0
 
 
@@ -230,7 +230,7 @@ def test_sequences_rank_gardens_point_at_least_as_well_as_single_frames(real, le
     from loopclosure.sequence_matcher import SequenceMatcher
 
     config, db, _, query_codes, *_ = real
-    recognizer = Recognizer(config, db)
+    recognizer = TwoStageRanker(config, db)
     matcher = SequenceMatcher(SequenceMatchConfig(length=length), lambda g, p: spatial_scores(g, db.stage2[p]).scores)
     single, sequence = [], []
     for i in range(N):

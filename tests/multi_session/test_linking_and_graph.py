@@ -13,8 +13,8 @@ from ssmvpr_slam.backend.g2o_io import GraphEdge, PoseGraphData
 from ssmvpr_slam.backend.loop_registration import LoopRegistration
 from ssmvpr_slam.backend.noise import sigmas6
 from ssmvpr_slam.backend.se3 import invert, make_pose, rot_z
+from ssmvpr_slam.config.map import MapConfig
 from ssmvpr_slam.evaluation.metrics import ate
-from ssmvpr_slam.map_config import MapConfig
 from ssmvpr_slam.multi_session.cross_loops import CrossLoop
 from ssmvpr_slam.multi_session.linking import graph_loops, link_sessions
 from ssmvpr_slam.multi_session.merged_graph import CrossEdge, build_map_graph, cross_edge_inliers, solve_map_graph

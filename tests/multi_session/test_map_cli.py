@@ -10,7 +10,7 @@ import numpy as np
 from cli_helpers import assert_user_error, clean_ssmvpr_environment, invoke  # noqa: F401
 
 from frontend.sources import open_source
-from ssmvpr_slam.config import load_config
+from ssmvpr_slam.config.slam import load_config
 
 
 def test_a_folder_that_is_not_a_map_is_refused_by_name(tmp_path: Path) -> None:

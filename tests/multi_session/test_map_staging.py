@@ -19,11 +19,11 @@ import pytest
 from cli_helpers import assert_user_error, clean_ssmvpr_environment, invoke  # noqa: F401
 from rich.console import Console
 
-from ssmvpr_slam.config import load_config
+from ssmvpr_slam.config.slam import load_config
 from ssmvpr_slam.multi_session.runner import MapError, check_distinct
 from ssmvpr_slam.multi_session.staging import FINISHED, PLAN, MapResumeError, MapStaging, map_plan
-from ssmvpr_slam.run_folder import staged_results_dir
-from ssmvpr_slam.staging_lock import LOCK_NAME, StagingLock, in_use, left_over
+from ssmvpr_slam.results.run_folder import staged_results_dir
+from ssmvpr_slam.results.staging_lock import LOCK_NAME, StagingLock, in_use, left_over
 
 _HOLD = """
 import fcntl, os, sys, time

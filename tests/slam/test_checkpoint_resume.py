@@ -55,8 +55,8 @@ from frontend.config import McapWriterConfig
 from frontend.simulation import SimulationConfig, TraverseSimulator
 from frontend.sources import write_frames
 from ssmvpr_common.trajectory_io import read_tum
-from ssmvpr_slam.checkpoint_loading import load_checkpoint
-from ssmvpr_slam.config import load_config
+from ssmvpr_slam.checkpoint.loading import load_checkpoint
+from ssmvpr_slam.config.slam import load_config
 from ssmvpr_slam.prior_map import PriorMap
 
 pytestmark = pytest.mark.slow

@@ -17,9 +17,9 @@ from loopclosure.config import BackboneConfig, SequenceMatchConfig
 from loopclosure.weights import FetchSource
 from ssmvpr_slam.backend.graph_optimizer import KERNEL_NAMES
 from ssmvpr_slam.cli import app
-from ssmvpr_slam.config import load_config
-from ssmvpr_slam.presets import available_presets
-from ssmvpr_slam.settings_in_front import IN_FRONT, setting
+from ssmvpr_slam.config.in_front import IN_FRONT, setting
+from ssmvpr_slam.config.presets import available_presets
+from ssmvpr_slam.config.slam import load_config
 
 COMMANDS = [["run"], ["demo"], ["simulate"], ["vpr-eval"], ["loop-eval"], ["optimize"], ["fit-pca"], ["config"],
             ["weights", "fetch"], ["weights", "path"]]  # fmt: skip
@@ -152,7 +152,7 @@ def test_two_optimize_calls_keep_both_results(tmp_path: Path) -> None:
 
 @pytest.mark.parametrize("command", ["run", "vpr_eval", "loop_eval", "optimize"])
 def test_each_command_has_its_own_latest_link(tmp_path: Path, command: str) -> None:
-    from ssmvpr_slam.run_folder import staged_results_dir
+    from ssmvpr_slam.results.run_folder import staged_results_dir
 
     with staged_results_dir(tmp_path, "run") as first:
         (first.path / "x").write_text("run")

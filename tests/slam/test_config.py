@@ -1,4 +1,4 @@
-"""ssmvpr_slam.config.load_config: presets from configs/, YAML files over a `preset:` base,
+"""ssmvpr_slam.config.slam.load_config: presets from configs/, YAML files over a `preset:` base,
 SSMVPR_<SECTION>__<FIELD> environment overrides, and errors that name their source."""
 
 from __future__ import annotations
@@ -8,10 +8,10 @@ from pathlib import Path
 import pytest
 from pydantic import ValidationError
 
-import ssmvpr_slam.config as config_module
+import ssmvpr_slam.config.slam as config_module
 from loopclosure.config import DetectorConfig
 from ssmvpr_slam.backend.config import LidarRegistrationConfig
-from ssmvpr_slam.config import ConfigError, SlamConfig, available_presets, dump_config, load_config
+from ssmvpr_slam.config.slam import ConfigError, SlamConfig, available_presets, dump_config, load_config
 
 
 @pytest.fixture(autouse=True)
@@ -225,9 +225,9 @@ def test_pyproject_ships_every_package_and_the_presets() -> None:
     root = Path(__file__).resolve().parents[2]
     tool = tomllib.loads((root / "pyproject.toml").read_text())["tool"]["setuptools"]
     found = find_packages(str(root), include=["ssmvpr_slam*", "ssmvpr_common*", "frontend*", "loopclosure*"])
-    assert set(tool["packages"]) == set(found) | {"ssmvpr_slam.presets"}
-    assert tool["package-dir"] == {"ssmvpr_slam.presets": "configs"}
-    assert tool["package-data"]["ssmvpr_slam.presets"] == ["*.yaml"]
+    assert set(tool["packages"]) == set(found) | {"ssmvpr_slam.config.presets"}
+    assert tool["package-dir"] == {"ssmvpr_slam.config.presets": "configs"}
+    assert tool["package-data"]["ssmvpr_slam.config.presets"] == ["*.yaml"]
     assert (root / "configs" / "default.yaml").is_file()
 
 

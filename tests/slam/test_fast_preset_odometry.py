@@ -16,7 +16,7 @@ from frontend.frame import Frame
 from frontend.odometry import KissIcpOdometry
 from frontend.simulation import TraverseSimulator, default_demo_config
 from frontend.sources.kitti_source import read_velodyne
-from ssmvpr_slam.config import load_config
+from ssmvpr_slam.config.slam import load_config
 
 # KITTI 00 ground truth of the two pairs (PROVENANCE.txt), camera frame (x right, y down, z
 # forward) turned into the Velodyne's axes (x forward, y left, z up).

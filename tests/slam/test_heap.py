@@ -1,4 +1,4 @@
-"""Freed heap pages go back to the OS every few keyframes (see ssmvpr_slam/heap.py for why)."""
+"""Freed heap pages go back to the OS every few keyframes (see ssmvpr_slam/app/heap.py for why)."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import platform
 
 import pytest
 
-from ssmvpr_slam import heap
+from ssmvpr_slam.app import heap
 
 
 @pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="malloc_trim is glibc's")

@@ -82,7 +82,7 @@ def read_published(port: int, seconds: float = 3.0) -> list[dict[str, Any]]:
 
 
 def test_the_server_publishes_the_trajectories_the_loops_and_the_keyframes() -> None:
-    from ssmvpr_slam.live_view import LiveView
+    from ssmvpr_slam.app.live_view import LiveView
 
     state, graph = loop_of_two_laps()
     view = LiveView(port=free_port(), min_interval_s=0.0)
@@ -110,7 +110,7 @@ def test_the_server_publishes_the_trajectories_the_loops_and_the_keyframes() -> 
 
 
 def test_a_port_taken_is_one_error_naming_it() -> None:
-    from ssmvpr_slam.live_view import LiveView, LiveViewError
+    from ssmvpr_slam.app.live_view import LiveView, LiveViewError
 
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))

@@ -11,7 +11,8 @@ from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
 from loopclosure.detector import LoopProposal
-from ssmvpr_slam import mcap_output, thumbnail
+from ssmvpr_slam import thumbnail
+from ssmvpr_slam.results import mcap_output
 from ssmvpr_slam.run_result import Keyframe, LoopRecord, RunResult
 
 N = 12

@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 from cli_helpers import clean_ssmvpr_environment, invoke  # noqa: F401
 
+from ssmvpr_slam.app.simulated_logs import simulated_log_path
 from ssmvpr_slam.backend.se3 import make_pose, rot_z
-from ssmvpr_slam.config import load_config
+from ssmvpr_slam.config.slam import load_config
 from ssmvpr_slam.evaluation import plots
 from ssmvpr_slam.evaluation.config import LoopMetricsConfig
 from ssmvpr_slam.evaluation.loop_metrics import evaluate_loops
-from ssmvpr_slam.simulated_logs import simulated_log_path
 
 
 def _straight(n: int = 40) -> np.ndarray:

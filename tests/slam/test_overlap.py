@@ -23,9 +23,9 @@ from frontend.frame import Frame
 from frontend.odometry import make_odometry
 from frontend.simulation import SimulationConfig, TraverseSimulator
 from loopclosure.backbone import load_backbone
+from ssmvpr_slam.app.pipeline import SlamPipeline
 from ssmvpr_slam.backend.two_view import ReducedImage
-from ssmvpr_slam.config import SlamConfig, load_config
-from ssmvpr_slam.pipeline import SlamPipeline
+from ssmvpr_slam.config.slam import SlamConfig, load_config
 from ssmvpr_slam.run_result import RunResult
 
 pytestmark = pytest.mark.slow

@@ -47,15 +47,15 @@ from frontend.simulation import SimulationConfig, TraverseSimulator
 from loopclosure.backbone import load_backbone
 from loopclosure.errors import LoopClosureInputError
 from ssmvpr_common.trajectory_io import read_kitti, read_tum
+from ssmvpr_slam.app.pipeline import SlamPipeline
 from ssmvpr_slam.backend.noise import sigmas6
-from ssmvpr_slam.config import SlamConfig, load_config
+from ssmvpr_slam.config.slam import SlamConfig, load_config
 from ssmvpr_slam.evaluation.metrics import ate
 from ssmvpr_slam.evaluation.run_report import evaluate
-from ssmvpr_slam.pipeline import SlamPipeline
 from ssmvpr_slam.prior_map import PriorMap
-from ssmvpr_slam.run_metrics import RunMetrics
+from ssmvpr_slam.results.metrics import RunMetrics
+from ssmvpr_slam.results.writers import LOOP_COLUMNS, write_results
 from ssmvpr_slam.run_result import RunResult
-from ssmvpr_slam.writers import LOOP_COLUMNS, write_results
 
 pytestmark = pytest.mark.slow
 

@@ -15,8 +15,8 @@ from cli_helpers import assert_user_error, clean_ssmvpr_environment, invoke  # n
 from small_logs import EVERY_FRAME, small_camera_log
 
 from frontend.frame import Frame
-from ssmvpr_slam.pipeline import SlamPipeline
-from ssmvpr_slam.realtime import SensorClock
+from ssmvpr_slam.app.pipeline import SlamPipeline
+from ssmvpr_slam.app.realtime import SensorClock
 from ssmvpr_slam.run_state import KeyframeInput, RunState
 
 

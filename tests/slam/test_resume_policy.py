@@ -1,4 +1,4 @@
-"""What `run --resume` keeps and what it may change (`ssmvpr_slam.resume`): the options and
+"""What `run --resume` keeps and what it may change (`ssmvpr_slam.checkpoint.resume`): the options and
 SSMVPR_ settings that would change the checkpoint's settings are refused before anything is
 read; the resumed run takes the checkpoint's config.yaml, only the weights and the device as
 given, and writes beside its run's folder. The command line end to end: test_checkpoint_resume.py
@@ -12,10 +12,10 @@ import pytest
 from cli_helpers import clean_ssmvpr_environment  # noqa: F401
 from pydantic import ValidationError
 
-from ssmvpr_slam.checkpoint_record import CheckpointError
-from ssmvpr_slam.config import load_config
-from ssmvpr_slam.resume import check_resume_options, prepare_resume, resumed_config
-from ssmvpr_slam.writers import write_config
+from ssmvpr_slam.checkpoint.record import CheckpointError
+from ssmvpr_slam.checkpoint.resume import check_resume_options, prepare_resume, resumed_config
+from ssmvpr_slam.config.slam import load_config
+from ssmvpr_slam.results.writers import write_config
 
 NOTHING_GIVEN = {"--config": None, "--no-lidar-loops": False, "--frames": None, "--realtime": False}
 

@@ -9,11 +9,13 @@ from pathlib import Path
 
 import pytest
 from cli_helpers import assert_user_error, clean_ssmvpr_environment, invoke  # noqa: F401
+from tool_module import load_tool
 
 from frontend.simulation.config import SimulationConfig
 from frontend.simulation.simulator import TraverseSimulator
 from frontend.sources import write_frames
-from frontend.sources.rosbag_convert import mcap_to_rosbag
+
+mcap_to_rosbag = load_tool("mcap_to_rosbag").mcap_to_rosbag
 
 
 @pytest.fixture(scope="module")

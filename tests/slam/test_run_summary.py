@@ -9,7 +9,7 @@ from pydantic import ValidationError
 from rich.console import Console
 from run_metrics_examples import example_ate, example_loops, example_metrics
 
-from ssmvpr_slam.run_summary import summary_table
+from ssmvpr_slam.results.summary import summary_table
 
 
 def _text(metrics) -> str:  # noqa: ANN001

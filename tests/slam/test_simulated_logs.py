@@ -1,4 +1,4 @@
-"""The demo's simulated log and settings (`ssmvpr_slam.simulated_logs`): the log is simulated into
+"""The demo's simulated log and settings (`ssmvpr_slam.app.simulated_logs`): the log is simulated into
 the cache once and streamed from there next time; the log's own odometry makes the demo camera
 only. The `demo` command end to end: test_no_loop_runs.py."""
 
@@ -12,9 +12,9 @@ from cli_helpers import clean_ssmvpr_environment  # noqa: F401
 from pydantic import ValidationError
 from rich.console import Console
 
-from ssmvpr_slam.config import SlamConfig, load_config
-from ssmvpr_slam.run_folder import OutputError
-from ssmvpr_slam.simulated_logs import demo_log, simulated_log_path, with_demo_odometry
+from ssmvpr_slam.app.simulated_logs import demo_log, simulated_log_path, with_demo_odometry
+from ssmvpr_slam.config.slam import SlamConfig, load_config
+from ssmvpr_slam.results.run_folder import OutputError
 
 
 def _console() -> tuple[Console, io.StringIO]:

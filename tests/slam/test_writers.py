@@ -15,11 +15,11 @@ from loopclosure.database import PlaceDatabase, PlaceInfo
 from loopclosure.detector import LoopProposal
 from loopclosure.encoder import PlaceCodes
 from loopclosure.pca import Codebooks, PCAProjection
-from ssmvpr_slam.config import load_config
+from ssmvpr_slam.config.slam import load_config
 from ssmvpr_slam.evaluation.run_report import evaluate
 from ssmvpr_slam.prior_map import PriorMap, save_map
+from ssmvpr_slam.results.writers import write_results
 from ssmvpr_slam.run_result import Keyframe, LoopRecord, RunResult
-from ssmvpr_slam.writers import write_results
 
 
 def _projection(dim_in: int, dim: int, seed: int) -> PCAProjection:
@@ -85,7 +85,7 @@ def test_json_is_strict_a_non_finite_number_is_null(tmp_path: Path) -> None:
 
     import numpy as np
 
-    from ssmvpr_slam.run_folder import write_json
+    from ssmvpr_slam.results.run_folder import write_json
 
     path = tmp_path / "m.json"
     write_json(path, {"ate": float("inf"), "ratio": np.float64("nan"), "rows": [1.5, np.array([np.inf, 2.0])]})

@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 from kiss_icp.voxelization import voxel_down_sample
 
-from ssmvpr_slam import checkpoint, checkpoint_loading
 from ssmvpr_slam.backend.kept_scan import MAX_RANGE_M, KeptScan, keep_scan
+from ssmvpr_slam.checkpoint import loading as checkpoint_loading
+from ssmvpr_slam.checkpoint import saving as checkpoint
 from ssmvpr_slam.run_result import Keyframe, RunResult
 
 

@@ -30,10 +30,10 @@ from loopclosure.detector import LoopProposal
 from loopclosure.encoder import Encoder, PlaceCodes
 from loopclosure.pca import Codebooks, PCAProjection
 from ssmvpr_common.trajectory_io import write_kitti
-from ssmvpr_slam.config import load_config
+from ssmvpr_slam.config.slam import load_config
 from ssmvpr_slam.evaluation.run_report import evaluate
 from ssmvpr_slam.prior_map import PriorMap, save_map
-from ssmvpr_slam.run_folder import staged_results_dir
+from ssmvpr_slam.results.run_folder import staged_results_dir
 from ssmvpr_slam.run_result import Keyframe, LoopRecord, RunResult
 
 
@@ -260,7 +260,7 @@ def test_run_failing_while_writing_keeps_the_earlier_run(partial_gt_run: SimpleN
     out = tmp_path / "out"
     shutil.copytree(partial_gt_run.out, out, symlinks=True)
     first = (out / "latest").resolve()
-    monkeypatch.setattr("ssmvpr_slam.writers.write_json", lambda *_: _crash(Path()))
+    monkeypatch.setattr("ssmvpr_slam.results.writers.write_json", lambda *_: _crash(Path()))
     result = invoke("run", partial_gt_run.log, "--odometry", "logged", "--weights", weights_path,
                     "--device", "cpu", "--out", out)  # fmt: skip
     assert_user_error(result, "No space left on device")  # one line, exit 2: the disk, not a bug

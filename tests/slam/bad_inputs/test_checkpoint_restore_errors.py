@@ -11,9 +11,9 @@ import pytest
 from rich.console import Console
 
 from loopclosure.errors import LoopClosureInputError
-from ssmvpr_slam import checkpoint_replay
-from ssmvpr_slam.checkpoint import CheckpointError
-from ssmvpr_slam.checkpoint_replay import restore_from_checkpoint
+from ssmvpr_slam.app import checkpoint_replay
+from ssmvpr_slam.app.checkpoint_replay import restore_from_checkpoint
+from ssmvpr_slam.checkpoint.saving import CheckpointError
 
 
 @pytest.mark.parametrize(

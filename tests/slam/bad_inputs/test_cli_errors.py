@@ -176,8 +176,8 @@ def test_run_picks_logged_odometry_for_a_log_without_scans(
 
 
 def test_opening_a_log_resolves_auto_odometry_without_touching_the_callers_config(camera_only_log: Path) -> None:
-    from ssmvpr_slam.config import load_config
-    from ssmvpr_slam.runner import open_camera_source
+    from ssmvpr_slam.app.runner import open_camera_source
+    from ssmvpr_slam.config.slam import load_config
 
     config = load_config(None)
     assert config.frontend.odometry.kind == "auto"
@@ -360,7 +360,7 @@ def test_a_full_disk_is_one_line_naming_the_file(tmp_path: Path, monkeypatch: py
     pipe to a child process) is not dressed up as bad input."""
     import errno
 
-    from ssmvpr_slam import runner
+    from ssmvpr_slam.app import runner
 
     out = tmp_path / "sim.mcap"
     raised: list[OSError] = [OSError(errno.ENOSPC, "No space left on device", str(out))]

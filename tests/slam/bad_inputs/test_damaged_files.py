@@ -41,9 +41,9 @@ from loopclosure.pca import Codebooks, PCAProjection
 from ssmvpr_common.trajectory_io import write_kitti
 from ssmvpr_slam.backend.loop_registration import LoopRegistration
 from ssmvpr_slam.backend.two_view import ReducedImage
-from ssmvpr_slam.checkpoint import CheckpointError, CheckpointMeta, write_checkpoint
-from ssmvpr_slam.checkpoint_loading import load_checkpoint
-from ssmvpr_slam.config import load_config
+from ssmvpr_slam.checkpoint.loading import load_checkpoint
+from ssmvpr_slam.checkpoint.saving import CheckpointError, CheckpointMeta, write_checkpoint
+from ssmvpr_slam.config.slam import load_config
 from ssmvpr_slam.prior_map import PriorMap, save_map
 from ssmvpr_slam.run_result import Keyframe, LoopRecord, RunResult, StreamEnd
 
@@ -493,7 +493,7 @@ def test_resume_checks_the_folder_is_writable_before_any_replay(
     import errno
     import tempfile
 
-    import ssmvpr_slam.run_folder as results
+    import ssmvpr_slam.results.run_folder as results
 
     copy = _copy(valid_checkpoint, tmp_path)
     real = tempfile.TemporaryFile
@@ -531,7 +531,7 @@ def test_a_checkpoint_that_fills_the_disk_leaves_no_folder_and_the_last_one_resu
     space is free for the next one), the error names the file, the previous checkpoint stays linked."""
     import errno
 
-    import ssmvpr_slam.checkpoint as checkpoint_module
+    import ssmvpr_slam.checkpoint.saving as checkpoint_module
 
     run = tmp_path / "run"
     first = _write_valid_checkpoint(run)

@@ -22,8 +22,8 @@ import pytest
 from cli_helpers import assert_user_error, clean_ssmvpr_environment, invoke  # noqa: F401
 from small_logs import EVERY_FRAME, small_camera_log
 
-import ssmvpr_slam.runner as runner_module
-from ssmvpr_slam.checkpoint_loading import load_checkpoint
+import ssmvpr_slam.app.runner as runner_module
+from ssmvpr_slam.checkpoint.loading import load_checkpoint
 
 
 @pytest.fixture(scope="module")

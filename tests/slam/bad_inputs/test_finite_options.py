@@ -1,5 +1,5 @@
 """Every float option of every command refuses NaN and infinity in one line naming the option,
-through one check (`ssmvpr_slam.finite_options`, run by `cli.errors.friendly_errors`), before any
+through one check (`ssmvpr_slam.cli.finite_options`, run by `cli.errors.friendly_errors`), before any
 work. Before: `loop-eval --radius nan` passed the `radius <= 0` check (NaN compares false) and
 ran to an all-n/a result with exit status 0.
 
@@ -18,7 +18,7 @@ from cli_helpers import assert_user_error, clean_ssmvpr_environment, invoke  # n
 from typer.models import ArgumentInfo
 
 from ssmvpr_slam.cli import app
-from ssmvpr_slam.finite_options import option_name
+from ssmvpr_slam.cli.finite_options import option_name
 
 
 def _commands(typer_app: typer.Typer, prefix: tuple[str, ...] = ()) -> Iterator[tuple[tuple[str, ...], object]]:

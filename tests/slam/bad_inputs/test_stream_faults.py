@@ -26,7 +26,7 @@ from frontend.simulation import SimulationConfig, TraverseSimulator
 from frontend.sources import McapFrameWriter, ros_convert, ros_msgdefs
 from ssmvpr_slam import thumbnail
 from ssmvpr_slam.backend.pose_graph import PoseGraph
-from ssmvpr_slam.config import load_config
+from ssmvpr_slam.config.slam import load_config
 from ssmvpr_slam.system import SlamSystem
 
 FRAMES = 14

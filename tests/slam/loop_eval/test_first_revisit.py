@@ -96,8 +96,8 @@ def small_block_log(tmp_path_factory: pytest.TempPathFactory) -> Path:
     keyframes, 15 m) allows there."""
     from rich.console import Console
 
-    from ssmvpr_slam.config import load_config
-    from ssmvpr_slam.runner import simulate_to_mcap
+    from ssmvpr_slam.app.runner import simulate_to_mcap
+    from ssmvpr_slam.config.slam import load_config
 
     config = load_config("quick", {"simulation": {"frame_rate_hz": 1.6, "max_frames": 60,
                                                   "city": {"block_size_m": 20.0}, "lidar": {"enabled": False}}})  # fmt: skip

@@ -159,7 +159,9 @@ def test_a_log_is_one_sequence_judged_by_its_own_ground_truth(
     rear camera streamed, revisits within --radius; the bag gives the very same decisions (its
     images, byte for byte the MCAP's, find the MCAP run's backbone passes: an image the bag
     decoded otherwise would be encoded afresh)."""
-    from frontend.sources.rosbag_convert import mcap_to_rosbag
+    from tool_module import load_tool
+
+    mcap_to_rosbag = load_tool("mcap_to_rosbag").mcap_to_rosbag
 
     runs = {}
     bag = mcap_to_rosbag(sim_log, tmp_path / "sim.bag", "ros1")
@@ -175,7 +177,7 @@ def test_a_log_is_one_sequence_judged_by_its_own_ground_truth(
     assert metrics["inputs"]["ground_truth"] == "the log's ground-truth poses" and metrics["inputs"]["radius_m"] == 3
     assert 30 <= metrics["loops"]["frames"] <= 50 and metrics["loops"]["with_truth"] >= 3  # lap 2 begins revisits
     assert rows and all(r["image"].startswith("sim.mcap#") for r in rows)
-    from ssmvpr_slam.config import load_config
+    from ssmvpr_slam.config.slam import load_config
     from ssmvpr_slam.loop_eval.log_frames import images_of_log, keyframes_of
 
     config = load_config(str(small_config(tmp_path)))

@@ -25,9 +25,9 @@ def encode_in_batches(corridor_dir: Path, weights_path: Path) -> None:
     earlier module (the stage-I index, `vpr-eval`) encoded is not encoded again; an image
     `loop-eval` came to prepare otherwise would miss the cache and be encoded by `loop-eval`."""
     from loopclosure.backbone import load_backbone
+    from loopclosure.backbone_input import list_images, read_image
     from loopclosure.encoder import Encoder
-    from loopclosure.images import list_images, read_image
-    from ssmvpr_slam.config import load_config
+    from ssmvpr_slam.config.slam import load_config
 
     vpr = load_config(None).vpr  # what `loop-eval --weights W --device cpu` runs
     vpr.backbone.weights, vpr.backbone.device = str(weights_path), "cpu"

@@ -10,9 +10,10 @@ import numpy as np
 import pytest
 
 from loopclosure.detector import LoopProposal
-from ssmvpr_slam.loop_eval import score, truth
+from ssmvpr_slam.loop_eval import revisit_truth as truth
+from ssmvpr_slam.loop_eval import score
+from ssmvpr_slam.loop_eval.revisit_truth import LoopTruthError
 from ssmvpr_slam.loop_eval.stream import StreamOutcome, path_positions, travelled
-from ssmvpr_slam.loop_eval.truth import LoopTruthError
 
 
 def names(n: int, folder: str) -> list[Path]:

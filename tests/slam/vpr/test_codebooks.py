@@ -17,7 +17,7 @@ from rich.console import Console
 from loopclosure.config import VPRConfig
 from loopclosure.errors import LoopClosureInputError
 from loopclosure.pca import Codebooks
-from ssmvpr_slam.config import load_config
+from ssmvpr_slam.config.slam import load_config
 from ssmvpr_slam.vpr.codebooks import fit_codebooks, fit_images
 
 

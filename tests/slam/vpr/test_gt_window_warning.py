@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 from cli_helpers import clean_ssmvpr_environment, invoke  # noqa: F401
 
-from loopclosure.ground_truth import GroundTruth, frame_aligned, load_ground_truth, truth_windows
-from ssmvpr_slam.config import load_config
+from loopclosure.benchmark_truth import GroundTruth, frame_aligned, load_ground_truth, truth_windows
+from ssmvpr_slam.config.slam import load_config
 from ssmvpr_slam.vpr.evaluate import QueryOutcome, compute_metrics, window_warning, windows_record
 
 N = 10
