@@ -73,3 +73,15 @@ def test_the_docs_pages_the_readme_links_to_exist() -> None:
     assert links
     for link in links:
         assert (ROOT / link).is_file(), link
+
+
+def test_ci_runs_the_readmes_test_command_and_then_the_end_to_end_tier() -> None:
+    """The README's test command is the one `.ci/run` runs (lint, types, the package tier), and
+    `.ci/run` then runs every test the README's command leaves out (the `slow` tier)."""
+    ci = (ROOT / ".ci" / "run").read_text()
+    tests_block = next(b for b in re.findall(r"```bash\n(.*?)```", README, re.S) if "pytest" in b)
+    checks = tests_block.strip().split("&& ruff check", 1)[1]
+    assert "ruff check" + checks in ci
+    package_tier = re.search(r"python -m pytest[^\n&]*", checks)
+    end_to_end = re.search(r"python -m pytest[^\n&]*-m slow[^\n&]*", ci)
+    assert package_tier and end_to_end and ci.index(package_tier.group(0)) < ci.index(end_to_end.group(0))
