@@ -40,15 +40,19 @@ def _finished(out: Path) -> int:
     return 0
 
 
-def _session_running(since: dict[int, float], seconds: float) -> bool:
-    """True once a Ray worker has been running a session for `seconds`."""
+def _session_running(sid: int, since: dict[int, float], seconds: float) -> bool:
+    """True once a Ray worker of the map call whose process session is `sid` has been running a
+    session for `seconds` (another test's Ray, running beside this one, is not this call's)."""
     for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
         try:
             if b"SessionWorker.run_session" in cmdline.read_bytes():
+                fields = (cmdline.parent / "stat").read_text().rsplit(")", 1)[1].split()
+                if int(fields[3]) != sid:  # fields after the name: state, ppid, pgrp, session
+                    continue
                 pid = int(cmdline.parent.name)
                 if time.monotonic() - since.setdefault(pid, time.monotonic()) > seconds:
                     return True
-        except OSError:
+        except (OSError, IndexError, ValueError):
             continue
     return False
 
@@ -124,7 +128,7 @@ def calls(weights_path: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[
     # SIGTERM while the second session runs (the first reused)
     call = MapCall(args, base / "sigterm.log")
     since: dict[int, float] = {}
-    call.until(lambda: _session_running(since, 5.0), "a running session")
+    call.until(lambda: _session_running(call.process.pid, since, 5.0), "a running session")
     call.process.send_signal(signal.SIGTERM)
     stopped = time.monotonic()
     seen["sigterm"] = (call.wait(120), time.monotonic() - stopped, call.output())
@@ -134,7 +138,7 @@ def calls(weights_path: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[
     # SIGKILL of the map process while the second session runs (a scheduler's kill, an OOM)
     call = MapCall(args, base / "sigkill.log")
     since = {}
-    call.until(lambda: _session_running(since, 5.0), "a running session")
+    call.until(lambda: _session_running(call.process.pid, since, 5.0), "a running session")
     call.process.send_signal(signal.SIGKILL)
     seen["sigkill"] = (call.wait(60), call.output())
     seen["after_kill"] = sorted(p.name for p in out.glob(".map_*"))
