@@ -31,9 +31,21 @@ pytestmark = pytest.mark.slow
 FRAMES = {"s0": 45, "s1": 45, "elsewhere": 40}
 
 
+def _descends_from(pid: int, ancestor: int) -> bool:
+    """`pid` is a child, grandchild... of `ancestor` (this test's Ray, not another test's beside it)."""
+    while pid > 1:
+        try:
+            pid = int((Path("/proc") / str(pid) / "stat").read_text().rsplit(")", 1)[1].split()[1])
+        except (OSError, IndexError, ValueError):
+            return False
+        if pid == ancestor:
+            return True
+    return False
+
+
 class _WorkerKiller(threading.Thread):
-    """Kills one Ray worker with SIGKILL a few seconds into its session (once): a worker that
-    dies mid-session, as one killed for memory would."""
+    """Kills one Ray worker of this process's Ray with SIGKILL a few seconds into its session
+    (once): a worker that dies mid-session, as one killed for memory would."""
 
     def __init__(self) -> None:
         super().__init__(daemon=True)
@@ -50,6 +62,8 @@ class _WorkerKiller(threading.Thread):
                 except OSError:
                     continue
                 pid = int(cmdline.parent.name)
+                if not _descends_from(pid, os.getpid()):
+                    continue
                 if time.monotonic() - seen.setdefault(pid, time.monotonic()) > 8.0:
                     os.kill(pid, signal.SIGKILL)
                     self.killed.append(pid)
