@@ -93,14 +93,8 @@ def output_dir(path: str | Path, option: str = "--out") -> Iterator[Path]:
     the block fails, folders this created and left empty are removed again, so a refused run
     leaves nothing behind."""
     folder = Path(path)
-    created = _created_parents(folder)
-    _make_folder(folder, option, folder)
-    try:
-        _check_writable(folder, option, folder)
+    with _made_writable(folder, option, folder):
         yield folder
-    except BaseException:
-        _remove_if_empty(created)
-        raise
 
 
 @contextmanager
@@ -112,12 +106,19 @@ def output_file(path: str | Path, option: str = "--out") -> Iterator[Path]:
     target = Path(path)
     if target.is_dir():
         raise OutputError(f"{option} {target}: is a folder; give a file name")
-    parent = target.parent
-    created = _created_parents(parent)
-    _make_folder(parent, option, target)
-    try:
-        _check_writable(parent, option, target)
+    with _made_writable(target.parent, option, target):
         yield target
+
+
+@contextmanager
+def _made_writable(folder: Path, option: str, named: Path) -> Iterator[None]:
+    """`folder` made (with its missing parents) and checked writable, errors naming `named`; the
+    folders this created are removed again, if still empty, when the block fails."""
+    created = _created_parents(folder)
+    _make_folder(folder, option, named)
+    try:
+        _check_writable(folder, option, named)
+        yield
     except BaseException:
         _remove_if_empty(created)
         raise
