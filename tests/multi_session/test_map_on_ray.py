@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 from cli_helpers import assert_user_error, clean_ssmvpr_environment, invoke  # noqa: F401
 from map_sessions import map_config, session_log
+from processes import descends_from, session_workers
 from rich.console import Console
 from scipy.spatial import cKDTree
 
@@ -31,18 +32,6 @@ pytestmark = pytest.mark.slow
 FRAMES = {"s0": 45, "s1": 45, "elsewhere": 40}
 
 
-def _descends_from(pid: int, ancestor: int) -> bool:
-    """`pid` is a child, grandchild... of `ancestor` (this test's Ray, not another test's beside it)."""
-    while pid > 1:
-        try:
-            pid = int((Path("/proc") / str(pid) / "stat").read_text().rsplit(")", 1)[1].split()[1])
-        except (OSError, IndexError, ValueError):
-            return False
-        if pid == ancestor:
-            return True
-    return False
-
-
 class _WorkerKiller(threading.Thread):
     """Kills one Ray worker of this process's Ray with SIGKILL a few seconds into its session
     (once): a worker that dies mid-session, as one killed for memory would."""
@@ -55,14 +44,8 @@ class _WorkerKiller(threading.Thread):
     def run(self) -> None:
         seen: dict[int, float] = {}
         while not self.stop.wait(0.5) and not self.killed:
-            for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
-                try:
-                    if b"SessionWorker.run_session" not in cmdline.read_bytes():
-                        continue
-                except OSError:
-                    continue
-                pid = int(cmdline.parent.name)
-                if not _descends_from(pid, os.getpid()):
+            for pid in session_workers():
+                if not descends_from(pid, os.getpid()):
                     continue
                 if time.monotonic() - seen.setdefault(pid, time.monotonic()) > 8.0:
                     os.kill(pid, signal.SIGKILL)

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import pytest
 from map_sessions import session_log
+from processes import all_pids, command_line, process_stat, session_workers
 
 pytestmark = pytest.mark.slow
 
@@ -43,30 +44,24 @@ def _finished(out: Path) -> int:
 def _session_running(sid: int, since: dict[int, float], seconds: float) -> bool:
     """True once a Ray worker of the map call whose process session is `sid` has been running a
     session for `seconds` (another test's Ray, running beside this one, is not this call's)."""
-    for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
-        try:
-            if b"SessionWorker.run_session" in cmdline.read_bytes():
-                fields = (cmdline.parent / "stat").read_text().rsplit(")", 1)[1].split()
-                if int(fields[3]) != sid:  # fields after the name: state, ppid, pgrp, session
-                    continue
-                pid = int(cmdline.parent.name)
-                if time.monotonic() - since.setdefault(pid, time.monotonic()) > seconds:
-                    return True
-        except (OSError, IndexError, ValueError):
-            continue
+    for pid in session_workers():
+        stat = process_stat(pid)
+        if (
+            stat is not None
+            and stat.session == sid
+            and time.monotonic() - since.setdefault(pid, time.monotonic()) > seconds
+        ):
+            return True
     return False
 
 
 def _processes_of_session(sid: int) -> list[str]:
     """Processes still alive in the process session `sid` (the map call's, with its Ray)."""
     alive = []
-    for stat in Path("/proc").glob("[0-9]*/stat"):
-        try:
-            fields = stat.read_text().rsplit(")", 1)[1].split()
-        except (OSError, IndexError):
-            continue
-        if int(fields[3]) == sid and fields[0] != "Z":  # fields after the name: state, ppid, pgrp, session
-            alive.append((stat.parent / "cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace")[:80])
+    for pid in all_pids():
+        stat = process_stat(pid)
+        if stat is not None and stat.session == sid and stat.state != "Z":
+            alive.append(command_line(pid)[:80])
     return alive
 
 
