@@ -4,7 +4,6 @@ laid along any route, and a LiDAR whose returns differ between visits."""
 from __future__ import annotations
 
 import math
-import os
 from pathlib import Path
 
 import numpy as np
@@ -15,8 +14,12 @@ from frontend.simulation.city import CAR, FOLIAGE
 from frontend.simulation.route_files import CAMERA_TO_BODY
 from ssmvpr_common.errors import SsmvprError
 
-SHARED = Path(os.environ.get("SSMVPR_SHARED", Path(__file__).resolve().parents[3] / "shared"))
-KITTI06 = SHARED / "data" / "routes" / "kitti06" / "06.txt"
+
+@pytest.fixture(scope="module")
+def kitti06(shared_dir: Path) -> Path:
+    """KITTI odometry 06's ground-truth poses (shared data: skipped, or failed under
+    SSMVPR_REQUIRE_SHARED=1, where it is missing)."""
+    return shared_dir / "data" / "routes" / "kitti06" / "06.txt"
 
 
 def _loop(n: int = 400) -> np.ndarray:
@@ -85,9 +88,9 @@ def test_kitti_camera_file_and_tum_body_file_give_the_same_route(tmp_path):
     assert forced.frame == "body" and not np.allclose(forced.positions, a.positions, atol=1.0)
 
 
-def test_kitti06_route_is_read_as_camera_poses_with_its_length_and_no_frame_in_a_building():
+def test_kitti06_route_is_read_as_camera_poses_with_its_length_and_no_frame_in_a_building(kitti06: Path) -> None:
     sim = TraverseSimulator(
-        SimulationConfig(route={"preset": str(KITTI06)}, camera={"enabled": False}, lidar={"enabled": False})
+        SimulationConfig(route={"preset": str(kitti06)}, camera={"enabled": False}, lidar={"enabled": False})
     )
     assert sim.route_file is not None and sim.route_file.frame == "camera"
     assert sim.route.length_3d == pytest.approx(sim.route_file.length, rel=0.02)
@@ -145,8 +148,8 @@ def test_parked_cars_and_traffic_differ_between_visits():
     assert parts[0] > 0 and parts[1] > 0
 
 
-def test_foliage_is_porous_to_the_lidar():
-    sim = TraverseSimulator(SimulationConfig(route={"preset": str(KITTI06)}, camera={"enabled": False}, max_frames=400))
+def test_foliage_is_porous_to_the_lidar(kitti06: Path) -> None:
+    sim = TraverseSimulator(SimulationConfig(route={"preset": str(kitti06)}, camera={"enabled": False}, max_frames=400))
     # Frames near a tree: the crown returns scatter from one draw of the noise to the next.
     tree_xy = (sim.city.p0[sim.city.kind[sim.city.surface] == FOLIAGE]).reshape(-1, 2)
     d = np.linalg.norm(sim.xy_yaw[:, None, :2] - tree_xy[None], axis=2).min(axis=1)
