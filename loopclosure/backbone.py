@@ -260,6 +260,25 @@ class Backbone:
             maps[i].to(torch.float32).contiguous().cpu().numpy() for i in (self._i1, self._i2)
         )
 
+    @torch.inference_mode()
+    def feature_map(self, image: np.ndarray, layer: str, pre_relu: bool = False) -> np.ndarray:
+        """One conv map (C, h, w) float32 of a uint8 RGB image at its own size (not the square
+        input_size): two-view verification needs the image's geometry, which the anisotropic
+        square resize distorts. Runs the torch network in every precision (int8's session is built
+        for the square input only); `layer` must be one the network computes. Post-ReLU by
+        default: what dense matching was measured with (docs/loop_verification.md)."""
+        if layer not in CONV_INDEX or CONV_INDEX[layer] >= len(self.net.features):
+            raise LoopClosureInputError(f"feature_map: the backbone does not compute layer {layer!r}")
+        if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
+            raise LoopClosureInputError(f"feature_map expects a uint8 (H, W, 3) image, got {image.dtype} {image.shape}")
+        x = torch.from_numpy(np.ascontiguousarray(image)).to(self.device)[None].permute(0, 3, 1, 2).float()
+        if self.config.preprocessing == "caffe":
+            x = x.flip(1)
+        x = (x - self._mean) / self._std  # the network casts it to each layer's precision
+        index = CONV_INDEX[layer]
+        maps = self.net(x.contiguous(memory_format=torch.channels_last), {index: pre_relu})
+        return maps[index][0].to(torch.float32).contiguous().cpu().numpy()
+
     def _calibrate_on(self, images: np.ndarray) -> None:
         """Keep the images until there are enough, then build the int8 session from them."""
         assert self._calibrating is not None

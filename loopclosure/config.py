@@ -259,6 +259,44 @@ def grid_side(map_side: int, cubes: CubeConfig) -> int:
     return (map_side - cubes.cube_size) // cubes.stride + 1
 
 
+class VerifierConfig(SettingsModel):
+    """Two-view verification on the backbone's own features (loopclosure/pair_verifier.py); the
+    thresholds are those measured on the shared real pairs (docs/loop_verification.md)."""
+
+    layer: Literal["conv3_3", "conv4_1", "conv4_2", "conv4_3"] = Field(
+        default="conv4_2", description="VGG16 layer whose cells are matched (mutual nearest neighbours)."
+    )
+    width: int | None = Field(
+        default=480, ge=64, description="Images are resized to this many pixels wide (aspect kept) before the "
+        "backbone; None: as given. conv4_2 then has a cell every 8 px."
+    )  # fmt: skip
+    grey: bool = Field(
+        default=True, description="Match the images' luminance (in all three channels): across day and night "
+        "colour is a difference, not a cue."
+    )  # fmt: skip
+    max_distance_ratio: float = Field(
+        default=1.0, gt=0.0, le=1.0, description="Lowe's test on the descriptor distances of a mutual match; 1: off."
+    )
+    threshold_cells: float = Field(
+        default=0.75, gt=0.0, description="RANSAC inlier threshold in cells of the layer (a match's position is "
+        "its cell's centre)."
+    )  # fmt: skip
+    confidence: float = Field(default=0.999, gt=0.0, lt=1.0, description="MAGSAC confidence.")
+    max_iterations: int = Field(default=10000, ge=100, description="MAGSAC iterations at most.")
+    min_inliers: int = Field(default=140, ge=8, description="Fewer inliers than this: not verified.")
+    min_inlier_ratio: float = Field(
+        default=0.34, ge=0.0, le=1.0, description="Inliers over mutual matches below this: not verified."
+    )
+    homography_share: float = Field(
+        default=0.8, gt=0.0, description="With intrinsics: a homography explaining this share of the essential "
+        "matrix's inliers, and a rotation, means no baseline (the rotation is read from it)."
+    )  # fmt: skip
+    rotation_tolerance: float = Field(
+        default=0.1, gt=0.0, lt=1.0, description="The normalised homography counts as a rotation if its smallest "
+        "singular value is at least 1 - this of its largest."
+    )  # fmt: skip
+
+
 class SequenceMatchConfig(SettingsModel):
     """Sequence matching on stage-II scores (SeqSLAM's idea on SSM-VPR scores).
 

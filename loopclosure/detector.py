@@ -231,6 +231,11 @@ class LoopDetector:
         self._join_places(self.place_of(proposal.query_id), proposal.match_place)
 
     @property
+    def has_encoder(self) -> bool:
+        """False for a detector that only matches stored codes (`match_stored`)."""
+        return self._encoder is not None
+
+    @property
     def encoder(self) -> Encoder:
         if self._encoder is None:
             raise RuntimeError("this LoopDetector has no encoder: it matches stored codes only (match_stored)")
