@@ -31,6 +31,12 @@ class McapWriterConfig(SettingsModel):
     compressed_rear_camera_topic: str = Field(
         "/camera_rear/image_raw/compressed", description="rear camera images when jpeg or png (CompressedImage)"
     )
+    camera_info_topic: str = Field(
+        "/camera/camera_info", description="forward camera calibration (CameraInfo), when the writer is given one"
+    )
+    rear_camera_info_topic: str = Field(
+        "/camera_rear/camera_info", description="rear camera calibration (CameraInfo), when the writer is given one"
+    )
     lidar_topic: str = Field("/lidar/points", description="LiDAR scans (PointCloud2)")
     odom_topic: str = Field("/odom", description="logged poses (Odometry)")
     gt_topic: str = Field("/ground_truth", description="ground-truth poses (PoseStamped)")
@@ -58,6 +64,14 @@ class McapSourceConfig(SettingsModel):
     camera_topic: str | None = Field(None, description="forward camera (Image or CompressedImage)")
     rear_camera_topic: str | None = Field(
         None, description="backward-looking camera; None = the writer's rear topic names only (never by type)"
+    )
+    camera_info_topic: str | None = Field(
+        None,
+        description="forward camera calibration (CameraInfo); None = the one beside the camera topic "
+        "(/camera/image_raw or /camera/image_raw/compressed -> /camera/camera_info)",
+    )
+    rear_camera_info_topic: str | None = Field(
+        None, description="rear camera calibration (CameraInfo); None = the one beside the rear camera topic"
     )
     lidar_topic: str | None = Field(None, description="LiDAR scans (PointCloud2)")
     odom_topic: str | None = Field(None, description="logged poses (found by type: Odometry)")

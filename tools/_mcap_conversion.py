@@ -19,14 +19,14 @@ def convert_to_mcap(
     max_frames: int | None = None,
     image_format: str = "raw",
 ) -> int:
-    """Open the source, print its description, write up to ``max_frames`` frames to
-    ``output`` and print the count. Returns the exit status: 0, or 2 after printing the
-    :class:`FrontendInputError` that stopped it to stderr."""
+    """Open the source, print its description, write up to ``max_frames`` frames (and the
+    source's camera calibration) to ``output`` and print the count. Returns the exit status: 0,
+    or 2 after printing the :class:`FrontendInputError` that stopped it to stderr."""
     try:
         source = open_source()
         print(source.description)
         frames = itertools.islice(source, max_frames)
-        count = write_frames(frames, output, McapWriterConfig(image_format=image_format))
+        count = write_frames(frames, output, McapWriterConfig(image_format=image_format), source.intrinsics)
     except FrontendInputError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2

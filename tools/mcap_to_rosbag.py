@@ -41,13 +41,14 @@ def _messages(log: Path) -> Iterator[tuple[str, str, int, bytes]]:
 
 
 def _as_ros1(message: Any, msgtype: str) -> Any:
-    """The ROS 1 message with the same field values (fields ROS 2 lacks, a Header's seq, are 0)."""
+    """The ROS 1 message with the same field values (fields ROS 2 lacks, a Header's seq, are 0;
+    CameraInfo's ``K`` and the like are ROS 2's lower-case ``k``)."""
     cls: Any = ROS1.types[msgtype]
     values = {}
     for field in dataclasses.fields(cls):
         if field.name == "__msgtype__":
             continue
-        value = getattr(message, field.name, 0)
+        value = getattr(message, field.name, getattr(message, field.name.lower(), 0))
         if hasattr(value, "__msgtype__"):
             value = _as_ros1(value, value.__msgtype__)
         elif isinstance(value, list) and value and hasattr(value[0], "__msgtype__"):

@@ -21,6 +21,7 @@ import numpy as np
 
 from frontend.simulation.city import FACADE, FOLIAGE, City
 from frontend.simulation.config import AppearanceConfig, CameraConfig, LidarConfig
+from frontend.sources.intrinsics import CameraIntrinsics, pinhole
 
 _NEAR = 1e-3  # rays ignore walls closer than this (metres along the ray)
 _GROUND_SUN = 0.8  # share of the sun term a horizontal surface receives
@@ -123,6 +124,15 @@ class CameraRenderer:
         # Pixel noise: a fixed bank of normals read at a per-frame random offset (fast).
         n = W * H * 3
         self._noise_bank = np.random.default_rng([city.seed, 5171]).standard_normal(2 * n, dtype=np.float32)
+
+    @property
+    def intrinsics(self) -> CameraIntrinsics:
+        """K of the rendered images: fx = fy as above, the principal point at the image centre,
+        ((W - 1) / 2, (H - 1) / 2) in K's convention (pixel j's centre at j; the rays above put it
+        at j + 0.5). On a pitched road the rows tilt by the pitch angle: a pinhole pitched alike,
+        to first order."""
+        W, H = self.cfg.width, self.cfg.height
+        return pinhole(self.fx, self.fx, (W - 1) / 2.0, (H - 1) / 2.0, W, H)
 
     def render(
         self,

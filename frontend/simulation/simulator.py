@@ -23,6 +23,7 @@ from frontend.simulation.render import CameraRenderer, LidarRenderer, Scene
 from frontend.simulation.route import Route, build_route
 from frontend.simulation.route_files import RouteFile, read_route_file
 from frontend.simulation.traffic import Traffic
+from frontend.sources.intrinsics import CameraIntrinsics
 
 # Independent random streams derived from the seed.
 _STREAM_IMAGE, _STREAM_LIDAR, _STREAM_ODOM = 11, 12, 13
@@ -91,6 +92,15 @@ class TraverseSimulator:
 
     def __len__(self) -> int:
         return len(self.times)
+
+    @property
+    def intrinsics(self) -> dict[str, CameraIntrinsics]:
+        """Each rendered camera's calibration, by role as a Source gives it (the rear camera is
+        the forward one turned round), for `write_frames(..., intrinsics=...)`."""
+        if self.camera is None:
+            return {}
+        k = self.camera.intrinsics
+        return {"camera": k, "rear_camera": k} if self.config.camera.rear else {"camera": k}
 
     @staticmethod
     def _city_streets(cfg: SimulationConfig) -> np.ndarray:

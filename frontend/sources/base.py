@@ -11,6 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from frontend.frame import Frame
+from frontend.sources.intrinsics import CameraIntrinsics, k_problem
 from frontend.sources.pose_jumps import PoseJumpCheck
 
 log = logging.getLogger("frontend.sources")
@@ -52,20 +53,45 @@ class Source(ABC):
 
     ``len()`` works when the number of frames is known up front (it raises TypeError
     otherwise; use :attr:`length` to ask without raising). ``topics`` maps each role
-    (camera, lidar, logged_pose, gt_pose) to where it comes from.
+    (camera, lidar, logged_pose, gt_pose) to where it comes from; ``intrinsics`` gives each
+    camera's calibration when the log carries one.
     """
 
     def __init__(self) -> None:
         self.stats = SourceStats()
         self._jumps: dict[str, PoseJumpCheck] = {}  # per pose role, afresh for each reading
+        self._calibration_notes: Counter[str] = Counter()  # read once, counted in every reading's stats
 
     @abstractmethod
     def __iter__(self) -> Iterator[Frame]: ...
 
     def reset_stats(self) -> None:
-        """Start counting afresh (each iteration re-reads the traverse from the start)."""
+        """Start counting afresh (each iteration re-reads the traverse from the start); what
+        reading the calibration found stays counted, as it is not read again."""
         self.stats = SourceStats()
         self._jumps = {}
+        self.stats.notes.update(self._calibration_notes)
+        self.stats.warned.update(self._calibration_notes)
+
+    @property
+    def intrinsics(self) -> dict[str, CameraIntrinsics]:
+        """Camera role (``camera``, ``rear_camera``) -> its pinhole calibration for its images at
+        their native resolution; roles without a (valid) calibration in the log are left out."""
+        return {}
+
+    def calibration(self, values: object, width: int | None, height: int | None, where: str) -> CameraIntrinsics | None:
+        """CameraIntrinsics of a K read from the log, or None (a counted warning) when it is
+        unusable: a wrong K would misplace every pixel, a missing one only costs what needs it."""
+        problem = k_problem(values)
+        if problem is not None:
+            self.calibration_warning("invalid_calibration", f"{where}: {problem}; calibration ignored")
+            return None
+        return CameraIntrinsics(np.asarray(values, dtype=np.float64), width or None, height or None)
+
+    def calibration_warning(self, reason: str, detail: str) -> None:
+        """A counted warning about the log's calibration, kept through `reset_stats`."""
+        self._calibration_notes[reason] += 1
+        self.stats.warn(reason, detail)
 
     def plausible_pose(self, role: str, pose: np.ndarray, time: float, where: str) -> np.ndarray | None:
         """The pose, or None (a counted skip) when it jumps further than a vehicle can move

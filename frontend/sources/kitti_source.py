@@ -9,6 +9,8 @@ With ``gt_frame="lidar"`` (the default when scans are read) it is moved to the L
 ``T_lidar = Tr^-1 @ T_cam @ Tr``, where ``Tr`` (from ``calib.txt``) maps LiDAR points into
 camera 0: exactly what kiss-icp's poses are comparable to. Without ``calib.txt``, ``Tr``
 is taken as the identity (the gt is then the camera trajectory, labelled as LiDAR).
+The camera's K is the left 3x3 of its projection matrix in ``calib.txt`` (``P2`` for image_2,
+``P0`` for image_0), for images of the first image's size.
 KITTI logs carry no odometry, so ``logged_pose`` is None; use ``pose_source="gt"`` for
 logged-pose odometry. Scans carry no per-point times (KITTI scans are already deskewed).
 """
@@ -19,6 +21,7 @@ import logging
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from frontend.config import KittiSourceConfig, PoseFileConfig
@@ -27,6 +30,7 @@ from frontend.frame import Frame
 from frontend.sources.base import Source
 from frontend.sources.clock import StreamClock, read_times
 from frontend.sources.image_file import read_rgb
+from frontend.sources.intrinsics import CameraIntrinsics
 from ssmvpr_common.image_folders import image_files, pair_by_number
 from ssmvpr_common.poses import KITTI_COLUMNS, pose_from_kitti_row, pose_problem
 from ssmvpr_common.text_files import read_text
@@ -76,6 +80,17 @@ def read_calib_tr(path: Path) -> np.ndarray | None:
     return None
 
 
+def read_calib_values(path: Path, key: str) -> list[str] | None:
+    """The values after ``key:`` in ``calib.txt``, unparsed (None when the file or line is absent)."""
+    if not path.is_file():
+        return None
+    for line in read_text(path, FrontendInputError).splitlines():
+        name, _, values = line.partition(":")
+        if name.strip() == key:
+            return values.split()
+    return None
+
+
 class KittiSource(Source):
     """Frames of one KITTI odometry sequence, read lazily file by file."""
 
@@ -107,6 +122,7 @@ class KittiSource(Source):
         self.gt_frame = self._gt_frame()
         self.poses_path = self._poses_path()
         self.gt_poses = self._read_gt(pose_config)
+        self._intrinsics: dict[str, CameraIntrinsics] | None = None  # read on first use
 
     def _camera_folder(self) -> str | None:
         choice = self.config.camera
@@ -196,6 +212,33 @@ class KittiSource(Source):
         if self.poses_path is not None:
             topics["gt_pose"] = str(self.poses_path)
         return topics
+
+    @property
+    def intrinsics(self) -> dict[str, CameraIntrinsics]:
+        """The camera's K from ``calib.txt`` (``P2`` for image_2, ``P0`` for image_0), read on
+        first use; none without calib.txt or that line, a counted warning when it is unusable."""
+        if self._intrinsics is None:
+            self._intrinsics = {}
+            found = self._read_intrinsics()
+            if found is not None:
+                self._intrinsics["camera"] = found
+        return dict(self._intrinsics)
+
+    def _read_intrinsics(self) -> CameraIntrinsics | None:
+        if not self.images or self.camera_folder is None:
+            return None
+        calib, key = self.path / "calib.txt", f"P{self.camera_folder[-1]}"
+        values = read_calib_values(calib, key)
+        if values is None:
+            return None
+        try:
+            projection = np.array([float(v) for v in values]).reshape(3, 4)
+        except ValueError:
+            self.calibration_warning("invalid_calibration", f"{calib}: {key} is not 12 numbers; calibration ignored")
+            return None
+        first = cv2.imread(str(self.images[0]), cv2.IMREAD_UNCHANGED)  # the size K is for
+        height, width = first.shape[:2] if first is not None else (None, None)
+        return self.calibration(projection[:, :3], width, height, f"{calib}: {key}")
 
     @property
     def description(self) -> str:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import os
 import tempfile
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from types import TracebackType
 from typing import Any
@@ -24,6 +24,7 @@ from frontend.config import McapWriterConfig
 from frontend.errors import FrontendInputError
 from frontend.frame import Frame
 from frontend.sources import ros_convert, ros_msgdefs
+from frontend.sources.intrinsics import CameraIntrinsics
 from ssmvpr_common.atomic import default_file_mode
 from ssmvpr_common.disk_full import writing
 from ssmvpr_common.poses import pose_problem
@@ -42,11 +43,24 @@ class McapFrameWriter:
     jpeg/png), points -> ``lidar_topic`` (PointCloud2, float32 x y z [t]), logged pose ->
     ``odom_topic`` (Odometry), gt pose -> ``gt_topic`` (PoseStamped). Absent Frame fields
     are not written. Frame timestamps become both header stamps and log times.
+
+    ``intrinsics`` (camera role ``camera`` / ``rear_camera`` -> its calibration, e.g. a Source's
+    :attr:`~frontend.sources.base.Source.intrinsics`) adds a CameraInfo on ``camera_info_topic`` /
+    ``rear_camera_info_topic`` beside each image of that camera, as a ROS driver publishes it.
     """
 
-    def __init__(self, path: str | Path, config: McapWriterConfig | None = None) -> None:
+    def __init__(
+        self,
+        path: str | Path,
+        config: McapWriterConfig | None = None,
+        intrinsics: Mapping[str, CameraIntrinsics] | None = None,
+    ) -> None:
         self.path = Path(path)
         self.config = config or McapWriterConfig()
+        self.intrinsics = dict(intrinsics or {})
+        unknown = set(self.intrinsics) - {"camera", "rear_camera"}
+        if unknown:
+            raise ValueError(f"intrinsics for unknown camera role(s) {sorted(unknown)}; roles: camera, rear_camera")
         self.frames_written = 0
         self._last_time: float | None = None
         self._tmp_path: Path | None = None
@@ -180,6 +194,17 @@ class McapFrameWriter:
         if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
             raise self._fail(frame, f"{name} is {image.dtype} {image.shape}, expected HxWx3 uint8")
         frame_id = cfg.rear_camera_frame_id if rear else cfg.camera_frame_id
+        calibration = self.intrinsics.get("rear_camera" if rear else "camera")
+        if calibration is not None:
+            height, width = image.shape[:2]
+            if (calibration.width or width, calibration.height or height) != (width, height):
+                raise self._fail(
+                    frame,
+                    f"{name} is {width}x{height} but its intrinsics are for "
+                    f"{calibration.width}x{calibration.height} images",
+                )
+            msg = ros_convert.camera_info_message(calibration.k, width, height, t, frame_id)
+            self._put(cfg.rear_camera_info_topic if rear else cfg.camera_info_topic, ros_msgdefs.CAMERA_INFO, msg, ns)
         if cfg.image_format == "raw":
             msg = ros_convert.image_message(image, t, frame_id)
             self._put(cfg.rear_camera_topic if rear else cfg.camera_topic, ros_msgdefs.IMAGE, msg, ns)
@@ -194,9 +219,15 @@ class McapFrameWriter:
         self._put(topic, ros_msgdefs.COMPRESSED_IMAGE, msg, ns)
 
 
-def write_frames(frames: Iterable[Frame], path: str | Path, config: McapWriterConfig | None = None) -> int:
-    """Write every frame of an iterable (e.g. a Source) to one MCAP log; returns the count."""
-    with McapFrameWriter(path, config) as writer:
+def write_frames(
+    frames: Iterable[Frame],
+    path: str | Path,
+    config: McapWriterConfig | None = None,
+    intrinsics: Mapping[str, CameraIntrinsics] | None = None,
+) -> int:
+    """Write every frame of an iterable (e.g. a Source) to one MCAP log, with each camera's
+    calibration when given (`McapFrameWriter`); returns the count."""
+    with McapFrameWriter(path, config, intrinsics) as writer:
         for frame in frames:
             writer.write(frame)
     return writer.frames_written

@@ -92,6 +92,25 @@ def encoded_image_message(data: bytes, seconds: float, frame_id: str, fmt: str) 
     return {"header": header_dict(seconds, frame_id), "format": fmt, "data": data}
 
 
+def camera_info_message(k: np.ndarray, width: int, height: int, seconds: float, frame_id: str) -> dict[str, Any]:
+    """sensor_msgs/CameraInfo of a distortion-free pinhole K (plumb_bob with zero d, P = [K | 0])
+    for images of width x height, unbinned and uncropped."""
+    k = np.asarray(k, dtype=np.float64).reshape(3, 3)
+    return {
+        "header": header_dict(seconds, frame_id),
+        "height": height,
+        "width": width,
+        "distortion_model": "plumb_bob",
+        "d": [0.0] * 5,
+        "k": [float(v) for v in k.ravel()],
+        "r": [float(v) for v in np.eye(3).ravel()],
+        "p": [float(v) for v in np.hstack([k, np.zeros((3, 1))]).ravel()],
+        "binning_x": 0,
+        "binning_y": 0,
+        "roi": {"x_offset": 0, "y_offset": 0, "height": 0, "width": 0, "do_rectify": False},
+    }
+
+
 def point_cloud_message(points: np.ndarray, times: np.ndarray | None, seconds: float, frame_id: str) -> dict[str, Any]:
     """sensor_msgs/PointCloud2 with float32 x, y, z and, when given, float32 ``t``."""
     names = ["x", "y", "z"] + (["t"] if times is not None else [])
@@ -300,6 +319,29 @@ def decode_point_cloud(msg: Any, topic: str) -> tuple[np.ndarray, np.ndarray | N
         if np.issubdtype(raw.dtype, np.integer):
             times /= NANOSECONDS
     return points, times
+
+
+def decode_camera_info(msg: Any, topic: str) -> tuple[Any, int, int]:
+    """(K, width, height) of a sensor_msgs/CameraInfo, ROS 2 (``k``) or ROS 1 (``K``): K as logged
+    (9 row-major values, for the caller to check), a size of 0 where the driver left it unknown.
+    Refused (FrontendInputError): a binned or cropped (ROI) camera, whose K describes the full
+    sensor rather than the images logged."""
+    values = getattr(msg, "k", None)
+    if values is None:
+        values = getattr(msg, "K", None)
+    if values is None:
+        raise FrontendInputError(f"{topic}: CameraInfo has no k (or K) field")
+    width, height = int(getattr(msg, "width", 0)), int(getattr(msg, "height", 0))
+    binning = (int(getattr(msg, "binning_x", 0)), int(getattr(msg, "binning_y", 0)))
+    roi = getattr(msg, "roi", None)
+    window = (0, 0, 0, 0) if roi is None else (int(roi.x_offset), int(roi.y_offset), int(roi.width), int(roi.height))
+    cropped = window[:2] != (0, 0) or window[2:] not in ((0, 0), (width, height))
+    if max(binning) > 1 or cropped:
+        raise FrontendInputError(
+            f"{topic}: CameraInfo with binning {binning} and ROI {window}: K is for the full sensor, "
+            "not for the images logged (not supported)"
+        )
+    return values, width, height
 
 
 def decode_pose(msg: Any, topic: str) -> np.ndarray:

@@ -57,6 +57,10 @@ _COLOR = ("std_msgs/ColorRGBA", "float32 r\nfloat32 g\nfloat32 b\nfloat32 a")
 _DURATION = ("builtin_interfaces/Duration", "int32 sec\nuint32 nanosec")
 _POSE_STAMPED = ("geometry_msgs/PoseStamped", "std_msgs/Header header\ngeometry_msgs/Pose pose")
 _COMPRESSED_IMAGE = ("sensor_msgs/CompressedImage", "std_msgs/Header header\nstring format\nuint8[] data")
+_ROI = (
+    "sensor_msgs/RegionOfInterest",
+    "uint32 x_offset\nuint32 y_offset\nuint32 height\nuint32 width\nbool do_rectify",
+)
 _UV = ("visualization_msgs/UVCoordinate", "float32 u\nfloat32 v")
 _MESH_FILE = ("visualization_msgs/MeshFile", "string filename\nuint8[] data")
 _MARKER = (
@@ -102,6 +106,7 @@ bool mesh_use_embedded_materials
 
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
+CAMERA_INFO = "sensor_msgs/msg/CameraInfo"
 POINT_CLOUD2 = "sensor_msgs/msg/PointCloud2"
 ODOMETRY = "nav_msgs/msg/Odometry"
 POSE_STAMPED = "geometry_msgs/msg/PoseStamped"
@@ -123,6 +128,24 @@ uint8[] data
         _TIME,
     ),
     COMPRESSED_IMAGE: _compose("std_msgs/Header header\nstring format\nuint8[] data", _HEADER, _TIME),
+    CAMERA_INFO: _compose(
+        """
+std_msgs/Header header
+uint32 height
+uint32 width
+string distortion_model
+float64[] d
+float64[9] k
+float64[9] r
+float64[12] p
+uint32 binning_x
+uint32 binning_y
+sensor_msgs/RegionOfInterest roi
+""",
+        _HEADER,
+        _TIME,
+        _ROI,
+    ),
     POINT_CLOUD2: _compose(
         """
 std_msgs/Header header

@@ -2,7 +2,8 @@
 type (or named in the config), the camera stream driving the frames (the LiDAR when there is no
 camera) and the other streams matched by nearest timestamp (:mod:`frontend.sources.association`),
 messages turned into numpy payloads (:mod:`frontend.sources.ros_convert`), one bad message
-skipped and counted, a cut log reported after every frame before it.
+skipped and counted, a cut log reported after every frame before it. Each camera's calibration
+is the first message of its CameraInfo topic (`intrinsics`), read only when asked for.
 
 A subclass finds the log's topics (`present`, message counts) and yields its decoded messages in
 time order (`_decoded`); everything from there to frames is here.
@@ -11,6 +12,7 @@ time order (`_decoded`); everything from there to frames is here.
 from __future__ import annotations
 
 import logging
+import posixpath
 from abc import abstractmethod
 from collections.abc import Generator, Iterator
 from dataclasses import dataclass
@@ -24,7 +26,9 @@ from frontend.sources import ros_convert
 from frontend.sources.association import Associated, StreamAssociator
 from frontend.sources.base import Source, SourceStats
 from frontend.sources.clock import StreamClock, time_problem
+from frontend.sources.intrinsics import CameraIntrinsics
 from frontend.sources.ros_msgdefs import (
+    CAMERA_INFO,
     COMPRESSED_IMAGE,
     IMAGE,
     ODOMETRY,
@@ -69,6 +73,17 @@ ROLE_CONFIG_FIELD = {
 }
 
 
+def camera_info_candidates(image_topic: str, image_type: str) -> list[str]:
+    """Where a camera's CameraInfo is, by ROS convention: beside its image topic
+    (/camera/image_raw -> /camera/camera_info), and for a compressed transport also beside the
+    topic it compresses (/camera/image_raw/compressed -> .../image_raw/camera_info, /camera/camera_info)."""
+    parent = posixpath.dirname(image_topic)
+    candidates = [posixpath.join(parent, "camera_info")]
+    if image_type == COMPRESSED_IMAGE:
+        candidates.append(posixpath.join(posixpath.dirname(parent), "camera_info"))
+    return candidates
+
+
 @dataclass
 class Topic:
     role: str
@@ -89,10 +104,13 @@ class RosStreamSource(Source):
         self._scan_stopped: str | None = None  # why a linear topic scan ended early (cut or corrupt log)
         self._header_clock = self.config.use_header_stamp
         self._clock_warning: str | None = None
+        self._info_topics: dict[str, str] = {}  # camera role -> its CameraInfo topic
+        self._intrinsics: dict[str, CameraIntrinsics] | None = None  # read on first use
 
     def _choose_streams(self, present: dict[str, str], counts: dict[str, int] | None) -> None:
         """Select each role's topic among `present` ({topic: normalised type}) and the driver."""
         self._roles = self._select_topics(present)
+        self._info_topics = self._select_info_topics(present)
         self.driver = self._pick_driver()
         self._length = counts.get(self._roles[self.driver].name) if counts else None
         self._header_clock, self._clock_warning = self._choose_clock([t.name for t in self._roles.values()])
@@ -148,6 +166,40 @@ class RosStreamSource(Source):
             )
         return chosen
 
+    def _select_info_topics(self, present: dict[str, str]) -> dict[str, str]:
+        """Each camera's CameraInfo topic: named in the config (checked like any named topic), or
+        the one beside its image topic (`camera_info_candidates`) unless both cameras' are the same."""
+        named: dict[str, str] = {}
+        automatic: dict[str, str] = {}
+        for role in _CAMERA_ROLES:
+            requested = getattr(self.config, f"{role}_info_topic")
+            if role not in self._roles or requested == "":
+                continue
+            if requested is not None:
+                if present.get(requested) != CAMERA_INFO:
+                    found = f"has type {present[requested]}" if requested in present else "not found"
+                    raise FrontendInputError(
+                        f"{self.path}: {role} info topic '{requested}' {found}; expected a {CAMERA_INFO} topic "
+                        f"(topics present: {', '.join(sorted(present)) or 'none'})"
+                    )
+                named[role] = requested
+                continue
+            image = self._roles[role]
+            beside = [t for t in camera_info_candidates(image.name, image.type) if present.get(t) == CAMERA_INFO]
+            if beside:
+                automatic[role] = beside[0]
+        chosen = dict(named)
+        for role, topic in automatic.items():
+            if topic in [t for r, t in {**named, **automatic}.items() if r != role]:
+                self.calibration_warning(
+                    "ambiguous_calibration",
+                    f"{self.path}: {topic} is beside both cameras' topics; not used for the {role} "
+                    f"(name it in {role}_info_topic)",
+                )
+                continue
+            chosen[role] = topic
+        return chosen
+
     def _pick_driver(self) -> str:
         drive = self.config.drive
         if drive == "auto":
@@ -166,6 +218,19 @@ class RosStreamSource(Source):
     @property
     def topics(self) -> dict[str, str]:
         return {role: f"{t.name} ({t.type})" for role, t in self._roles.items()}
+
+    @property
+    def intrinsics(self) -> dict[str, CameraIntrinsics]:
+        """Each camera's K from the first message of its CameraInfo topic (config
+        ``camera_info_topic``, ``rear_camera_info_topic``), read on first use: a log with none has
+        none, an unusable one is a counted warning."""
+        if self._intrinsics is None:
+            self._intrinsics = {}
+            for role, topic in self._info_topics.items():
+                found = self._read_calibration(topic)
+                if found is not None:
+                    self._intrinsics[role] = found
+        return dict(self._intrinsics)
 
     @property
     def description(self) -> str:
@@ -232,6 +297,35 @@ class RosStreamSource(Source):
             self.stats.skip("truncated", why + "; stopping (strict=False)")
 
     # ---------------------------------------------------------------- helpers
+
+    def _read_calibration(self, topic: str) -> CameraIntrinsics | None:
+        where = f"{self.path}: {topic}"
+        try:
+            values, width, height = ros_convert.decode_camera_info(self._first_message(topic), where)
+        except FrontendInputError as error:
+            self.calibration_warning("unreadable_calibration", f"{error}; calibration ignored")
+            return None
+        except Exception as error:  # a cut or corrupt log: the frames' pass reports where
+            self.calibration_warning(
+                "unreadable_calibration", f"{where}: cannot be read ({error!r}); calibration ignored"
+            )
+            return None
+        return self.calibration(values, width, height, where)
+
+    def _first_message(self, topic: str) -> Any:
+        """The topic's first decoded message, reading no further; what the reader notes on the
+        way (a clock going back, say) is the frames' pass to count and tell."""
+        counting, self.stats = self.stats, SourceStats(quiet=True)
+        messages = self._decoded([topic])
+        try:
+            for _, _, decoded in messages:
+                if decoded is None:
+                    raise FrontendInputError(f"{self.path}: {topic}: its first message cannot be decoded")
+                return decoded
+        finally:
+            messages.close()
+            self.stats = counting
+        raise FrontendInputError(f"{self.path}: {topic} has no message")
 
     @staticmethod
     def _stamp(decoded: Any, log_time: float) -> float | None:
