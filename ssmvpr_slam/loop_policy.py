@@ -16,6 +16,7 @@ from dataclasses import replace
 import numpy as np
 
 from loopclosure.detector import LoopDetector, LoopProposal
+from loopclosure.pair_verifier import PairVerifier
 from ssmvpr_slam.backend.config import LoopRegistrationConfig
 from ssmvpr_slam.backend.loop_consistency import LoopPose, support
 from ssmvpr_slam.backend.loop_registration import LoopRegistrar, LoopRegistration, build_local_map, carry_loop
@@ -26,7 +27,9 @@ from ssmvpr_slam.run_result import Keyframe, LoopRecord
 
 # registrations whose T_mq says where the loop puts its two keyframes (a poor ICP alignment and an
 # implausible loop do not)
-_POSED_METHODS = frozenset({"icp", "two_view_essential", "two_view_homography", "yaw_prior", "unverified", "spaced"})
+_POSED_METHODS = frozenset(
+    {"icp", "two_view_deep", "two_view_essential", "two_view_homography", "yaw_prior", "unverified", "spaced"}
+)
 
 
 class LoopPolicy:
@@ -35,7 +38,7 @@ class LoopPolicy:
     def __init__(self, config: SlamConfig, detector: LoopDetector, prior_map: PriorMap | None) -> None:
         self.registration_config = config.backend.registration
         self.odometry_kind = config.frontend.odometry.kind
-        self.registrar = LoopRegistrar(self.registration_config)
+        self.registrar = LoopRegistrar(self.registration_config, _deep_verifier(self.registration_config, detector))
         self.detector = detector
         self.prior_map = prior_map
 
@@ -162,7 +165,8 @@ class LoopPolicy:
     def _register_to_map(
         self, kf: Keyframe, proposal: LoopProposal, keyframes: Sequence[Keyframe], loops: Sequence[LoopRecord]
     ) -> LoopRegistration:
-        """ICP against the prior map's scans around the place, else the visual place prior."""
+        """ICP against the prior map's scans around the place, else two views of the keyframe and
+        the place's kept image (a camera-only map), else the visual place prior."""
         place = proposal.match_place
         pose = self.prior_map.pose(place) if self.prior_map is not None else None
         if pose is None or self.prior_map is None:
@@ -174,13 +178,26 @@ class LoopPolicy:
             scans, poses = zip(*parts)
             local_map = build_local_map(scans, poses, pose, lidar.max_range)
             return self.registrar.register_scans(kf.scan.points, local_map, proposal.yaw_guess)
-        return self._checked(
-            keyframes,
-            loops,
-            kf,
-            proposal,
-            self.registrar.yaw_prior(proposal.yaw_guess, "prior-map place: no scans to align"),
-        )
+        return self._checked(keyframes, loops, kf, proposal, self._register_to_place_images(kf, proposal))
+
+    def _register_to_place_images(self, kf: Keyframe, proposal: LoopProposal) -> LoopRegistration:
+        """The keyframe's image (its rear one for a rear match) against the prior place's kept
+        forward image, as within the session (`_register_images`); the yaw prior without them."""
+        assert self.prior_map is not None  # a prior-map proposal needs a prior map
+        place_image = self.prior_map.images.front.get(proposal.match_place)
+        rear = proposal.camera == "rear"
+        image = kf.rear_image if rear else kf.image
+        if place_image is None or image is None:
+            return self.registrar.yaw_prior(proposal.yaw_guess, "prior-map place: no scans or images to align")
+        return self.registrar.register_images(image, place_image, proposal.yaw_guess, math.pi if rear else 0.0)
+
+
+def _deep_verifier(config: LoopRegistrationConfig, detector: LoopDetector) -> PairVerifier | None:
+    """The two-view verifier on the detector's own backbone (`two_view.method` deep), or None: ORB
+    is asked for, or the detector matches stored codes and has no backbone."""
+    if config.two_view.method != "deep" or not detector.has_encoder:
+        return None
+    return PairVerifier(detector.encoder.backbone, config.two_view.deep)
 
 
 def _session_icp_loop(record: LoopRecord) -> bool:

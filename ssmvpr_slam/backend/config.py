@@ -10,6 +10,7 @@ from typing import Literal
 
 from pydantic import Field, field_validator
 
+from loopclosure.config import VerifierConfig
 from ssmvpr_common.settings_model import SettingsModel
 
 RobustKernelKind = Literal["cauchy", "huber", "dcs", "geman_mcclure", "tukey", "none"]
@@ -238,6 +239,17 @@ class TwoViewConfig(SettingsModel):
     body_from_camera: list[list[float]] = Field(
         default_factory=_optical_to_flu, description="3x3 rotation, camera axes in body frame"
     )
+    method: Literal["deep", "orb"] = Field(
+        "deep",
+        description="deep: the backbone's conv4_2 cells matched and an essential matrix fitted by MAGSAC "
+        "(loopclosure/pair_verifier.py, settings in `deep`), which holds across day and night; orb: ORB "
+        "features, an essential matrix or a pure-rotation homography (the settings below)",
+    )
+    deep: VerifierConfig = Field(default_factory=VerifierConfig, description="the deep-feature verifier")
+    orb_refines_deep: bool = Field(
+        True, description="deep: where ORB also gives a rotation (same light) that agrees, use ORB's (sub-pixel)"
+    )
+    orb_agreement_deg: float = Field(5.0, gt=0, description="deep: how far ORB's rotation may be from the deep one")
     orb_features: int = Field(2000, ge=8, description="ORB keypoints detected per image at most")
     ratio_test: float = Field(0.8, gt=0, le=1, description="Lowe ratio for ORB matches")
     ransac_confidence: float = Field(0.999, gt=0, lt=1, description="RANSAC confidence of the E and H fits")
@@ -258,7 +270,14 @@ class TwoViewConfig(SettingsModel):
         0.05, gt=0, description="K^-1 H K counts as a rotation if s_min/s_max >= 1 - tol"
     )
     translation_sigma: float = Field(2.0, gt=0, description="m; the place radius")
-    rot_sigma: float = Field(0.05, gt=0, description="rad; when two-view geometry succeeded")
+    rot_sigma: float = Field(
+        0.03, gt=0, description="rad; a rotation from keypoints (ORB; with method deep, ORB agreeing with the deep "
+        "features): 0.6-0.8 deg median error, 1.5-1.8 deg p90 on the demo's loops (docs/loop_verification.md)"
+    )  # fmt: skip
+    deep_rot_sigma: float = Field(
+        0.05, gt=0, description="rad; a rotation from the deep features' cells alone (no agreeing ORB rotation, as "
+        "across light): 1.3 deg median error, 2.8 deg p90 on the demo's loops"
+    )  # fmt: skip
     yaw_prior_yaw_sigma: float = Field(0.35, gt=0, description="rad; fallback yaw sigma")
     yaw_prior_tilt_sigma: float = Field(0.1, gt=0, description="rad; fallback roll/pitch")
 

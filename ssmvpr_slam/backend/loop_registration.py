@@ -16,9 +16,14 @@ Which path is used when:
   Accepted only if the inlier ratio and the inlier RMSE pass the config thresholds; rejected
   (with a reason, never an exception) when either cloud is too small after cleaning.
 * No LiDAR -> `LoopRegistrar.register_images`: a place prior. Translation is zero with
-  `two_view.translation_sigma` (the place radius). Rotation comes from two-view geometry
-  (ORB + essential matrix / pure-rotation homography) when enough inliers support it,
-  with `two_view.rot_sigma`; otherwise from the yaw guess with the looser yaw-prior sigmas.
+  `two_view.translation_sigma` (the place radius): the essential matrix gives the direction of
+  the baseline but not its length, and the recogniser vouches for the place, not for a distance.
+  Rotation comes from two-view geometry when it verifies, with `two_view.rot_sigma` (keypoints)
+  or `deep_rot_sigma` (the deep features' cells alone): by default
+  the backbone's conv4_2 cells matched across the two images and an essential matrix fitted
+  by MAGSAC (`loopclosure.pair_verifier`, which holds across day and night); with
+  `two_view.method: orb`, ORB + essential matrix / pure-rotation homography. Otherwise the
+  rotation is the yaw guess with the looser yaw-prior sigmas.
   By default a place prior is always accepted: the recogniser and sequence gate already vouched
   for the place, and the wide sigmas plus the graph's robust kernel bound the damage if it is
   wrong. With `two_view.on_geometry_failure: reject` a pair of images that gives no rotation
@@ -31,6 +36,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -38,7 +44,10 @@ from ssmvpr_slam.backend.config import LoopRegistrationConfig
 from ssmvpr_slam.backend.icp import SeededIcp, clean_points, transform_points
 from ssmvpr_slam.backend.noise import sigmas6
 from ssmvpr_slam.backend.se3 import as_pose, invert, make_pose, project_to_so3, rot_z, yaw_of
-from ssmvpr_slam.backend.two_view import ReducedImage, estimate_rotation
+from ssmvpr_slam.backend.two_view import ReducedImage, TwoViewRotation, deep_rotation, estimate_rotation
+
+if TYPE_CHECKING:
+    from loopclosure.pair_verifier import PairVerifier
 
 
 @dataclass(frozen=True)
@@ -56,7 +65,8 @@ class LoopRegistration:
     sigmas: np.ndarray = field(default_factory=lambda: np.full(6, np.nan))
     """Loop factor sigmas (rx, ry, rz, tx, ty, tz) for `PoseGraph.add_loop`."""
     method: str = "icp"
-    """'icp', 'two_view_essential', 'two_view_homography', 'two_view_failed' (rejected),
+    """'icp', 'two_view_deep' (deep features, essential matrix), 'two_view_essential',
+    'two_view_homography' (ORB), 'two_view_failed' (rejected),
     'yaw_prior', 'unverified' (a yaw prior no earlier loop vouched for: rejected), or, not
     registered, 'spaced' and 'implausible' (`LoopRegistrar.spaced`, `.implausible`)."""
     yaw_seed: float = float("nan")
@@ -122,8 +132,11 @@ def carry_loop(
 class LoopRegistrar:
     """Computes `LoopRegistration`s from scans (ICP) or images (place prior)."""
 
-    def __init__(self, config: LoopRegistrationConfig | None = None) -> None:
+    def __init__(self, config: LoopRegistrationConfig | None = None, verifier: PairVerifier | None = None) -> None:
+        """verifier: the deep-feature verifier on the recogniser's backbone, which `two_view.method`
+        deep needs (without one, two views are registered by ORB)."""
         self.config = config or LoopRegistrationConfig()
+        self.verifier = verifier
         self._icp = SeededIcp(self.config.lidar)
 
     # ------------------------------------------------------------------ LiDAR
@@ -207,7 +220,11 @@ class LoopRegistrar:
         matched against the place's forward camera)."""
         cfg = self.config.two_view
         yaw_guess = _finite_yaw(yaw_guess)
-        est = estimate_rotation(match_image, query_image, cfg)
+        est: TwoViewRotation
+        if cfg.method == "deep" and self.verifier is not None:
+            est = deep_rotation(match_image, query_image, cfg, self.verifier)
+        else:
+            est = estimate_rotation(match_image, query_image, cfg)
         if est.rotation_mq is None:
             ratio = est.n_inliers / est.n_matches if est.n_matches else 0.0
             if cfg.on_geometry_failure == "reject":
@@ -221,8 +238,8 @@ class LoopRegistrar:
             reason=est.reason,
             inlier_ratio=est.n_inliers / est.n_matches,
             rmse=est.error_px,
-            sigmas=sigmas6(cfg.rot_sigma, cfg.translation_sigma),
-            method=f"two_view_{est.model}",
+            sigmas=sigmas6(cfg.deep_rot_sigma if est.model == "deep" else cfg.rot_sigma, cfg.translation_sigma),
+            method="two_view_deep" if est.model.startswith("deep") else f"two_view_{est.model}",
         )
 
     def yaw_prior(self, yaw_guess: float, why: str, inlier_ratio: float = 0.0) -> LoopRegistration:

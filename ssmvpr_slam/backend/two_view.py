@@ -1,6 +1,7 @@
 """Relative camera rotation between two images of the same place (no LiDAR available).
 
-ORB features, Lowe-ratio matching, then two models fitted with RANSAC:
+By default from the backbone's deep features (`deep_rotation`, `loopclosure.pair_verifier`);
+with `two_view.method: orb`: ORB features, Lowe-ratio matching, then two models fitted with RANSAC:
 * the essential matrix (`cv2.findEssentialMat` + `cv2.recoverPose`), valid with a baseline;
 * a homography; if it explains (nearly) as many matches as E does and ``K^-1 H K`` is a
   scaled rotation, the views differ by a pure rotation (a revisit from the same spot), where
@@ -16,13 +17,18 @@ kept pixels, so a calibration given for the camera's resolution stays valid.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
 from ssmvpr_slam.backend.config import TwoViewConfig
-from ssmvpr_slam.backend.se3 import project_to_so3
+from ssmvpr_slam.backend.se3 import project_to_so3, rotation_angle
+
+if TYPE_CHECKING:
+    from loopclosure.pair_verifier import PairVerifier
 
 MIN_MODEL_POINTS = 8
 """Fewer matches than this cannot support either RANSAC model (5-point E, 4-point H)."""
@@ -88,7 +94,7 @@ class TwoViewRotation:
     """Rotation of the query camera in the matched camera's frame (optical axes), or None."""
 
     rotation_mq: np.ndarray | None
-    model: str
+    model: str  # essential, homography (ORB); deep, deep_orb (deep features verified, rotation from ORB); none
     n_matches: int
     n_inliers: int
     error_px: float
@@ -240,6 +246,39 @@ def estimate_rotation(
     err = float(np.mean(_sampson(f_px, pts_m[inl], pts_q[inl])))
     reason = f"essential matrix: {n_pose}/{n} inliers"
     return TwoViewRotation(project_to_so3(r_qm).T, "essential", n, int(n_pose), err, reason)
+
+
+def deep_rotation(
+    image_m: np.ndarray | ReducedImage,
+    image_q: np.ndarray | ReducedImage,
+    config: TwoViewConfig,
+    verifier: PairVerifier,
+) -> TwoViewRotation:
+    """As `estimate_rotation`, from the backbone's deep features and an essential matrix with the
+    intrinsics of the images as kept (`loopclosure.pair_verifier`). The deep features decide
+    (they hold across light); their positions are conv4_2 cells, so where ORB gives a rotation
+    too and it agrees within `orb_agreement_deg`, ORB's sub-pixel keypoints give the rotation
+    (on the demo's loops: median error 0.6 deg against 1.3; docs/loop_verification.md). error_px
+    is NaN: MAGSAC scores its inliers by a marginalised threshold, not one residual."""
+    gray_m, full_m, scale = _gray_and_size("match_image", image_m)
+    gray_q, full_q, _ = _gray_and_size("query_image", image_q)
+    if gray_m.shape != gray_q.shape or full_m != full_q:
+        reason = f"image sizes differ: {gray_m.shape} vs {gray_q.shape} (from {full_m} vs {full_q})"
+        return _failed(0, 0, reason)
+    k = intrinsics(config, full_m[0], full_m[1], scale)
+    verdict = verifier.verify(verifier.features(gray_m, "match_image"), verifier.features(gray_q, "query_image"), k, k)
+    if not verdict.accepted or verdict.rotation is None:
+        return _failed(verdict.n_matches, verdict.n_inliers, verdict.reason)
+    rotation, reason = project_to_so3(verdict.rotation), verdict.reason
+    if config.orb_refines_deep:
+        orb = estimate_rotation(image_m, image_q, config)
+        if orb.rotation_mq is not None:
+            apart = math.degrees(rotation_angle(orb.rotation_mq.T @ rotation))
+            if apart <= config.orb_agreement_deg:
+                reason += f"; rotation from ORB ({orb.reason}), {apart:.1f} deg from the deep features'"
+                return TwoViewRotation(orb.rotation_mq, "deep_orb", verdict.n_matches, verdict.n_inliers,
+                                       float("nan"), reason)  # fmt: skip
+    return TwoViewRotation(rotation, "deep", verdict.n_matches, verdict.n_inliers, float("nan"), reason)
 
 
 def _failed(n_matches: int, n_inliers: int, reason: str) -> TwoViewRotation:

@@ -287,7 +287,9 @@ def texture(seed: int) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def camera():
+    """ORB's path (`two_view.method: orb`); the deep-feature path is tested below on the same scenes."""
     cfg = LoopRegistrationConfig()
+    cfg = cfg.model_copy(update={"two_view": cfg.two_view.model_copy(update={"method": "orb"})})
     body_from_cam = np.asarray(cfg.two_view.body_from_camera)
     k = intrinsics(cfg.two_view, W_PX, H_PX)
     return cfg, body_from_cam, k, texture(0)
@@ -449,3 +451,58 @@ def test_kept_images_from_different_cameras_fall_back_to_the_yaw_guess(camera):
     reg = LoopRegistrar(cfg).register_images(reduce_image(img_m, KEPT_PIXELS), reduce_image(img_m[:, :600], KEPT_PIXELS),
                                              yaw_guess=0.2)  # fmt: skip
     assert reg.method == "yaw_prior" and "sizes differ" in reg.reason
+
+
+# --------------------------------------------------------------------------- deep features (the default)
+@pytest.fixture(scope="module")
+def deep(weights_path):
+    from loopclosure.backbone import load_backbone
+    from loopclosure.config import BackboneConfig
+    from loopclosure.pair_verifier import PairVerifier
+
+    cfg = LoopRegistrationConfig()
+    assert cfg.two_view.method == "deep"
+    verifier = PairVerifier(load_backbone(BackboneConfig(weights=str(weights_path), device="cpu")), cfg.two_view.deep)
+    return LoopRegistrar(cfg, verifier)
+
+
+@pytest.mark.parametrize(("yaw_deg", "t_mq_cam"), [(10.0, [1.0, 0.0, 0.3]), (-6.0, [-1.5, 0.0, 0.5])])
+def test_deep_features_give_the_yaw_with_a_baseline_on_the_kept_images(camera, deep, yaw_deg, t_mq_cam):
+    """The corner scene on the keyframes' grey copies: conv4_2 matches verify it and the
+    essential matrix of their inliers gives the yaw; the translation stays the place prior."""
+    _, body_from_cam, k, img_m = camera
+    img_q = _corner_view(img_m, k, cam_rotation_qm(body_from_cam, yaw_deg), t_mq_cam, W_PX // 2)
+    reg = deep.register_images(reduce_image(img_q, KEPT_PIXELS), reduce_image(img_m, KEPT_PIXELS), yaw_guess=0.0)
+    assert reg.accepted and reg.method == "two_view_deep", reg.reason
+    assert "essential matrix" in reg.reason
+    assert np.degrees(yaw_of(reg.T_mq[:3, :3])) == pytest.approx(yaw_deg, abs=2.5)
+    np.testing.assert_allclose(reg.T_mq[:3, 3], 0.0)
+    two_view = deep.config.two_view
+    assert "rotation from ORB" in reg.reason  # same light: ORB's keypoints agree and give the rotation
+    assert reg.sigmas[0] == two_view.rot_sigma and reg.sigmas[3] == two_view.translation_sigma
+    alone = LoopRegistrar(
+        deep.config.model_copy(update={"two_view": two_view.model_copy(update={"orb_refines_deep": False})}),
+        deep.verifier,
+    ).register_images(reduce_image(img_q, KEPT_PIXELS), reduce_image(img_m, KEPT_PIXELS), yaw_guess=0.0)
+    assert alone.method == "two_view_deep" and "rotation from ORB" not in alone.reason
+    assert alone.sigmas[0] == two_view.deep_rot_sigma  # the cells' coarser rotation, a looser factor
+    assert np.degrees(yaw_of(alone.T_mq[:3, :3])) == pytest.approx(yaw_deg, abs=2.5)
+
+
+@pytest.mark.parametrize("yaw_deg", [6.0, -9.0])
+def test_deep_features_read_a_pure_rotation_from_the_homography(camera, deep, yaw_deg):
+    _, body_from_cam, k, img_m = camera
+    h = k @ cam_rotation_qm(body_from_cam, yaw_deg) @ np.linalg.inv(k)
+    img_q = cv2.warpPerspective(img_m, h, (W_PX, H_PX))
+    reg = deep.register_images(reduce_image(img_q, KEPT_PIXELS), reduce_image(img_m, KEPT_PIXELS))
+    assert reg.accepted and reg.method == "two_view_deep" and "a rotation only" in reg.reason, reg.reason
+    assert np.degrees(yaw_of(reg.T_mq[:3, :3])) == pytest.approx(yaw_deg, abs=1.5)
+
+
+def test_deep_features_refuse_another_scene_and_fall_back_as_configured(camera, deep):
+    """Two different textures look alike to no geometry: the yaw prior, which the policy admits
+    only once earlier loops of the revisit agree (on_geometry_failure: consistent)."""
+    _, _, _, img_m = camera
+    reg = deep.register_images(texture(7), img_m, yaw_guess=0.25)
+    assert reg.method == "yaw_prior" and "fundamental matrix" in reg.reason, reg.reason
+    assert yaw_of(reg.T_mq[:3, :3]) == pytest.approx(0.25)
