@@ -69,6 +69,7 @@ def run_log(
     source, odometry = open_camera_source(log, config, resume)
     config = config.model_copy(deep=True)  # resolved for this log; the caller's config stays as given
     config.frontend.odometry = odometry
+    use_calibration(config, source)
     prior = PriorMap.load(prior_map, config.vpr) if prior_map is not None else None  # before the slow part
     pipeline = SlamPipeline(build_system(config, prior, backbone))
     if config.pipeline.realtime:
@@ -116,6 +117,20 @@ def open_camera_source(
     if resume is not None:
         check_log(resume, log)
     return source, choose_odometry(config.frontend.odometry, topics, str(log))
+
+
+def use_calibration(config: SlamConfig, source: Source) -> None:
+    """Two-view registration takes the forward camera's calibration from the log (CameraInfo,
+    KITTI's calib.txt) where the config gives no fx: a guessed field of view bends every rotation
+    the essential matrix gives. The rear camera is taken to be the same model (one K serves both).
+    The run's config.yaml then records the K it used."""
+    two_view = config.backend.registration.two_view
+    camera = source.intrinsics.get("camera")
+    if camera is None or two_view.fx is not None:
+        return
+    k = camera.k
+    update = {"fx": float(k[0, 0]), "fy": float(k[1, 1]), "cx": float(k[0, 2]), "cy": float(k[1, 2])}
+    config.backend.registration.two_view = two_view.model_copy(update=update)
 
 
 def build_system(config: SlamConfig, prior: PriorMap | None, backbone: Backbone | None = None) -> SlamSystem:
@@ -280,7 +295,7 @@ def simulate_to_mcap(config: SlamConfig, out: Path, console: Console) -> Path:
                 yield frame
                 progress.advance(task)
 
-        write_frames(frames(), out, config.frontend.writer)
+        write_frames(frames(), out, config.frontend.writer, simulator.intrinsics)
     return out
 
 
