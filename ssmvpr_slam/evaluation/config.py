@@ -46,6 +46,10 @@ class LoopMetricsConfig(SettingsModel):
         le=180,
         description="deg; a revisit is camera-visible when an earlier visit looked within this of its heading",
     )
+    revisit_gap_keyframes: int = Field(
+        10, ge=1, description="keyframes; accepted loops whose queries and matches each lie within this of the "
+        "previous one's close the same revisit (how first loops of a revisit are counted)"
+    )  # fmt: skip
 
     @model_validator(mode="after")
     def _correct_not_tighter(self) -> LoopMetricsConfig:

@@ -11,6 +11,7 @@ and `metrics()` gives the JSON for metrics.json.
 from __future__ import annotations
 
 import copy
+from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Any, Literal
@@ -78,6 +79,8 @@ class LoopReport:
     in_graph_by_sequence_direction: dict[str, int]  # what the detector called each judged loop
     rear_camera_keyframes: int
     in_graph_by_camera: dict[str, int]
+    in_graph_by_method: dict[str, int]  # how each loop in the graph was verified
+    first_sight: dict[str, int]  # revisits, and those whose first loop entered the graph on its own registration
 
     def to_dict(self) -> dict[str, Any]:
         out = copy.deepcopy(self.evaluation.to_dict())  # its by_direction is extended below, not the evaluation's
@@ -89,6 +92,8 @@ class LoopReport:
             counts["loops_in_graph_by_sequence_direction"] = self.in_graph_by_sequence_direction.get(name, 0)
         out["rear_camera_keyframes"] = self.rear_camera_keyframes
         out["in_graph_by_camera"] = dict(self.in_graph_by_camera)
+        out["in_graph_by_method"] = dict(self.in_graph_by_method)
+        out["first_sight"] = dict(self.first_sight)
         if self.judged_in_graph is not None:
             out["judged_in_graph"] = self.judged_in_graph  # those precision/recall are computed on (with spaced ones)
         return out
@@ -259,7 +264,38 @@ def _loop_report(
         },
         rear_camera_keyframes=result.rear_keyframes,
         in_graph_by_camera={c: sum(r.proposal.camera == c for r in in_graph) for c in CAMERAS},
+        in_graph_by_method=dict(sorted(Counter(_verified_by(r) for r in counted if r.in_graph).items())),
+        first_sight=_first_sight(counted, cfg.revisit_gap_keyframes),
     )
+
+
+def _verified_by(record: LoopRecord) -> str:
+    """What let a loop into the graph: its registration's method, or `earlier_loops` for a place
+    prior that earlier loops of its revisit vouched for."""
+    method = record.registration.method if record.registration is not None else "none"
+    return "earlier_loops" if method == "yaw_prior" and "earlier loops of the revisit agree" in (
+        record.registration.reason if record.registration is not None else ""
+    ) else method  # fmt: skip
+
+
+def _first_sight(records: list[LoopRecord], gap: int) -> dict[str, int]:
+    """Revisits (runs of accepted loops, each query and match within `gap` keyframes of the run's
+    last) and how many of them had their first loop in the graph on its own registration (ICP
+    or two views), not waiting for earlier loops of the revisit to agree."""
+    runs: list[list[LoopRecord]] = []
+    for record in records:
+        if not record.proposal.accepted or record.spaced or record.proposal.prior_map:
+            continue
+        q, m = record.proposal.query_id, record.proposal.match_id
+        for run in reversed(runs[-4:]):  # a revisit's loops alternate with another's where streets repeat
+            last = run[-1].proposal
+            if 0 < q - last.query_id <= gap and abs(m - last.match_id) <= gap:
+                run.append(record)
+                break
+        else:
+            runs.append([record])
+    first_in = sum(run[0].in_graph and _verified_by(run[0]) not in ("earlier_loops", "none") for run in runs)
+    return {"revisits": len(runs), "first_loop_in_graph": first_in}
 
 
 def _stream_pr_auc(

@@ -122,6 +122,8 @@ class Loops(_Part):
     spaced: NonNegativeInt = 0  # gate-accepted, not registered (loop_spacing_keyframes); absent when none
     rear_camera_keyframes: NonNegativeInt
     in_graph_by_camera: dict[str, NonNegativeInt]
+    in_graph_by_method: dict[str, NonNegativeInt] = {}  # how each loop in the graph was verified
+    first_sight: dict[str, NonNegativeInt] = {}  # revisits, and those whose first loop entered on its own registration
     judged_in_graph: NonNegativeInt | None = None  # loops in graph with both ends covered; absent when all are
 
 
