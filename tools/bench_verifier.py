@@ -130,6 +130,7 @@ def main() -> None:
     for name, (ref_dir, query_dir) in jobs.items():
         log(f"{name}: {query_dir} against {ref_dir}")
         out[name] = run_set(name, ref_dir, query_dir, args.weights, config, args.queries)
+        log(f"{name}: {json.dumps(out[name])}")  # each set's figures as soon as it is done
     print(json.dumps(out, indent=1))
 
 

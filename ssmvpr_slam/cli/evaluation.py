@@ -101,6 +101,8 @@ def vpr_eval(
         "ssmvpr-slam loop-eval images/ --gt-poses poses.txt --radius 10",
         "ssmvpr-slam loop-eval kitti00/image_0 --gt-matrix kitti00_loops.mat",
         "ssmvpr-slam loop-eval drive.bag --radius 10 --weights $W",
+        "ssmvpr-slam loop-eval ../shared/data/gardens_point_half/day_right ../shared/data/gardens_point_half/night_right "
+        "--verify --weights $W",
     ),
 )
 @friendly_errors
@@ -154,6 +156,15 @@ def loop_eval(
     rear: Annotated[
         list[Path] | None, typer.Option(help="A rear camera's image folder per sequence (repeat, in order).")
     ] = None,
+    verify: Annotated[
+        bool,
+        typer.Option(
+            "--verify",
+            help="Check every accepted loop by two views on the backbone's own features (the verifier `run` uses, "
+            "backend.registration.two_view.deep; a fundamental matrix, images carry no intrinsics) and report the "
+            "loops with and without it.",
+        ),
+    ] = False,
     config: ConfigOpt = None,
     weights: WeightsOpt = None,
     device: DeviceOpt = None,
@@ -168,7 +179,7 @@ def loop_eval(
     inputs = LoopEvalInputs(tuple(sequences), gt, gt_poses, gt_matrix, tolerance, radius, spacing, tuple(rear or ()),
                             gt_threshold=gt_threshold)  # fmt: skip
     with output_dir(cfg.results.out_dir, out_option(out)):
-        run_loop_eval(inputs, cfg, console)
+        run_loop_eval(inputs, cfg, console, verify=verify)
 
 
 @app.command(

@@ -5,7 +5,7 @@ from __future__ import annotations
 import csv
 import io
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -28,6 +28,7 @@ from ssmvpr_slam.loop_eval import score
 from ssmvpr_slam.loop_eval.log_frames import images_of_log, keyframes_of
 from ssmvpr_slam.loop_eval.revisit_truth import LoopTruth, LoopTruthError
 from ssmvpr_slam.loop_eval.stream import ImagePair, StreamOutcome, images_of, path_positions, stream, travelled
+from ssmvpr_slam.loop_eval.verification import Verification, verify_accepted
 from ssmvpr_slam.results.run_folder import staged_results_dir, write_json
 
 
@@ -153,7 +154,13 @@ def _prepare_log(inputs: LoopEvalInputs, config: SlamConfig) -> Prepared:
                     _truth_from_positions(positions, inputs, config), from_log=True)  # fmt: skip
 
 
-def compute_metrics(outcome: StreamOutcome, loop_truth: LoopTruth, config: SlamConfig, n_passes: int) -> dict[str, Any]:
+def compute_metrics(
+    outcome: StreamOutcome,
+    loop_truth: LoopTruth,
+    config: SlamConfig,
+    n_passes: int,
+    verification: Verification | None = None,
+) -> dict[str, Any]:
     judged = score.judge(outcome.proposals, loop_truth)
     det = config.detector
     metrics: dict[str, Any] = {
@@ -170,15 +177,51 @@ def compute_metrics(outcome: StreamOutcome, loop_truth: LoopTruth, config: SlamC
         "s_per_frame_median": float(np.median(outcome.seconds)) if len(outcome.seconds) else None,
         "s_per_frame_mean": float(np.mean(outcome.seconds)) if len(outcome.seconds) else None,
     }
+    if verification is not None:
+        metrics["verify"] = _verify_metrics(judged, verification, n_passes)
     return metrics
 
 
+def _verify_metrics(judged: score.Judged, verification: Verification, n_passes: int) -> dict[str, Any]:
+    """The loops again with only the verified ones accepted, and what the verifier refused."""
+    verified = verification.verified(len(judged.match))
+    kept = replace(judged, accepted=judged.accepted & verified)
+    refused = judged.accepted & ~verified
+    seconds = verification.seconds
+    out: dict[str, Any] = {
+        "checked": len(verification.verdicts),
+        "verified": int((judged.accepted & verified).sum()),
+        "refused_right_loops": int((refused & judged.correct).sum()),
+        "refused_wrong_loops": int((refused & ~judged.correct).sum()),
+        "loops": _at_the_decision(score.loop_metrics(kept, n_passes)),
+        "ms_per_loop_median": 1000.0 * float(np.median(seconds)) if seconds else None,
+    }
+    if n_passes > 1:
+        out["loops_across_passes"] = _at_the_decision(score.loop_metrics(score.only_across(kept), passes=1))
+    return out
+
+
+def _at_the_decision(loops: dict[str, Any]) -> dict[str, Any]:
+    """Only accepted loops are verified: the curve over every winner's score is not the
+    verified detector's, so its figures are left out (null) rather than repeated."""
+    return loops | {"max_recall_at_full_precision": None, "pr_auc": None}
+
+
 LOOP_COLUMNS = ["frame", "pass", "image", "match_frame", "match_image", "decision_score", "sequence_score",
-                "single_score", "runner_up", "direction", "camera", "accepted", "correct", "true_frame", "reason"]  # fmt: skip
+                "single_score", "runner_up", "direction", "camera", "accepted", "correct", "true_frame", "reason",
+                "verified", "verification"]  # fmt: skip
 
 
-def write_loops_csv(path: Path, outcome: StreamOutcome, loop_truth: LoopTruth, names: Sequence[str]) -> None:
-    """One row per frame that had a winner."""
+def write_loops_csv(
+    path: Path,
+    outcome: StreamOutcome,
+    loop_truth: LoopTruth,
+    names: Sequence[str],
+    verification: Verification | None = None,
+) -> None:
+    """One row per frame that had a winner; `verified` (1/0) and the verifier's words for the
+    accepted loops under --verify, empty otherwise."""
+    verdicts = verification.verdicts if verification is not None else {}
     buffer = io.StringIO()
     writer = csv.writer(buffer)
     writer.writerow(LOOP_COLUMNS)
@@ -192,6 +235,7 @@ def write_loops_csv(path: Path, outcome: StreamOutcome, loop_truth: LoopTruth, n
             f"{p.score:.4f}", "" if p.runner_up_score is None else f"{p.runner_up_score:.4f}", p.direction or "",
             p.camera, int(p.accepted), int(bool(loop_truth.has_truth[q]) and loop_truth.correct(q, p.match_id)),
             "" if not len(true) else int(true[np.argmin(np.abs(true - p.match_id))]), p.reason,
+            int(verdicts[q].accepted) if q in verdicts else "", verdicts[q].reason if q in verdicts else "",
         ])  # fmt: skip
     atomic_write_text(path, buffer.getvalue())
 
@@ -231,6 +275,10 @@ def summary_table(metrics: dict[str, Any]) -> Table:
     views = [("all decisions", metrics["loops"])]
     if "loops_across_passes" in metrics:
         views.append(("across passes only", metrics["loops_across_passes"]))
+    if "verify" in metrics:
+        views.append(("verified by two views", metrics["verify"]["loops"]))
+        if "loops_across_passes" in metrics["verify"]:
+            views.append(("verified, across passes", metrics["verify"]["loops_across_passes"]))
 
     def num(v: float | None) -> str:
         return "n/a" if v is None else f"{v:.3f}"
@@ -242,9 +290,10 @@ def summary_table(metrics: dict[str, Any]) -> Table:
 
 
 def run_loop_eval(
-    inputs: LoopEvalInputs, config: SlamConfig, console: Console | None = None
+    inputs: LoopEvalInputs, config: SlamConfig, console: Console | None = None, verify: bool = False
 ) -> tuple[Path, dict[str, Any]]:
-    """Stream, judge, write metrics.json, loops.csv, pr.png and config.yaml; returns (folder, metrics)."""
+    """Stream, judge, write metrics.json, loops.csv, pr.png and config.yaml; returns (folder, metrics).
+    verify: check every accepted loop by two views too (`loop_eval.verification`)."""
     console = console or Console()
     prepared = prepare(inputs, config)
     loop_truth = prepared.truth
@@ -257,7 +306,13 @@ def run_loop_eval(
         task = progress.add_task("streaming", total=sum(prepared.lengths))
         passes = [read() for read in prepared.passes]
         outcome = stream(config, backbone, passes, prepared.positions, lambda: progress.advance(task))
-    metrics = compute_metrics(outcome, loop_truth, config, len(passes))
+        verification = None
+        if verify:
+            n_accepted = sum(1 for p in outcome.proposals if p is not None and p.accepted)
+            checking = progress.add_task("verifying", total=n_accepted)
+            verification = verify_accepted(outcome, prepared.passes, config, backbone,
+                                           lambda: progress.advance(checking))  # fmt: skip
+    metrics = compute_metrics(outcome, loop_truth, config, len(passes), verification)
     from_log = prepared.from_log
     by_poses = from_log or inputs.gt_poses is not None
     metrics["inputs"] = {
@@ -275,7 +330,7 @@ def run_loop_eval(
     with staged_results_dir(config.results.out_dir, "loop_eval") as staged:
         folder = staged.path
         write_json(folder / "metrics.json", metrics)
-        write_loops_csv(folder / "loops.csv", outcome, loop_truth, prepared.names)
+        write_loops_csv(folder / "loops.csv", outcome, loop_truth, prepared.names, verification)
         atomic_write_text(folder / "config.yaml", dump_config(config))
         if config.results.plots and loop_truth.has_truth.any():
             name = " then ".join(s.name for s in inputs.sequences)

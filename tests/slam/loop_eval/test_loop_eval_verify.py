@@ -1,0 +1,68 @@
+"""`loop-eval --verify` on real day/night passes (the shared Gardens Point half cut short): every
+accepted loop checked by two views on the backbone's deep features, reported beside the
+unverified figures; with the accept level lowered until the detector takes wrong places, the
+verifier refuses them."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import pytest
+from cli_helpers import clean_ssmvpr_environment, invoke  # noqa: F401
+from test_first_revisit import cut
+
+pytestmark = pytest.mark.slow
+
+LOWERED = "detector:\n  calibrated: {accept: -5.0}\n"  # every winner accepted, wrong places too
+
+
+def _loop_eval(*args: object, out: Path) -> tuple[dict, list[dict[str, str]]]:
+    result = invoke("loop-eval", *args, "--verify", "--device", "cpu", "--out", out)
+    assert result.exit_code == 0, result.output
+    assert "verified by two views" in result.output
+    folder = out / "latest"
+    with (folder / "loops.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    return json.loads((folder / "metrics.json").read_text()), rows
+
+
+@pytest.fixture(scope="module")
+def passes(shared_dir: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
+    half = shared_dir / "data" / "gardens_point_half"
+    root = tmp_path_factory.mktemp("gp")
+    return cut(half / "day_right", root / "day", 40, 30), cut(half / "night_right", root / "night", 40, 30)
+
+
+def test_verified_loops_are_reported_beside_the_detectors(
+    tmp_path: Path, passes: tuple[Path, Path], weights_path: Path, shared_backbone_passes: object
+) -> None:
+    metrics, rows = _loop_eval(*passes, "--weights", weights_path, out=tmp_path)
+    loops, verify = metrics["loops"], metrics["verify"]
+    assert loops["accepted"] >= 20 and loops["precision"] == 1.0
+    assert verify["checked"] == loops["accepted"]
+    assert verify["verified"] + verify["refused_right_loops"] + verify["refused_wrong_loops"] == loops["accepted"]
+    assert verify["loops"]["accepted"] == verify["verified"] >= 0.8 * loops["accepted"]
+    assert verify["loops"]["precision"] == 1.0
+    assert verify["loops"]["pr_auc"] is None  # only accepted loops are verified: no curve of its own
+    assert verify["ms_per_loop_median"] > 0
+    accepted = [r for r in rows if r["accepted"] == "1"]
+    assert len(accepted) == loops["accepted"]
+    assert all(r["verified"] in ("0", "1") and r["verification"].startswith("fundamental matrix") for r in accepted)
+    assert sum(r["verified"] == "1" for r in accepted) == verify["verified"]
+    assert all(r["verified"] == "" for r in rows if r["accepted"] == "0")
+
+
+def test_the_verifier_refuses_the_wrong_places_a_lowered_accept_level_takes(
+    tmp_path: Path, passes: tuple[Path, Path], weights_path: Path, shared_backbone_passes: object
+) -> None:
+    config = tmp_path / "lowered.yaml"
+    config.write_text(LOWERED)
+    metrics, _ = _loop_eval(*passes, "--weights", weights_path, "-c", config, out=tmp_path / "out")
+    loops, verify = metrics["loops"], metrics["verify"]
+    wrong = loops["false_accepts"]
+    assert wrong >= 5  # the lowered level takes wrong places (within the day pass too)
+    assert verify["refused_wrong_loops"] >= 0.9 * wrong
+    assert verify["loops"]["precision"] > loops["precision"]
+    assert verify["refused_right_loops"] <= 0.2 * loops["correct"]
