@@ -36,6 +36,12 @@ def summary_table(metrics: RunMetrics, title: str = "ssmvpr-slam run") -> Table:
         if loops.rear_camera_keyframes:  # the rear camera is what recognises reverse revisits
             by_camera = loops.in_graph_by_camera
             table.add_row("loops in graph: front / rear camera", f"{by_camera['front']} / {by_camera['rear']}")
+        if loops.first_sight.get("revisits"):  # loops that waited for earlier ones miss the revisit's start
+            by_method = loops.in_graph_by_method
+            verified = ", ".join(f"{n} {how}" for how, n in by_method.items()) or "none"
+            table.add_row("loops in graph, verified by", verified)
+            table.add_row("revisits with their first loop in the graph",
+                          f"{loops.first_sight['first_loop_in_graph']} / {loops.first_sight['revisits']}")  # fmt: skip
     prior = metrics.prior_map_loops
     if prior is not None:  # `--map`: loops to the earlier sessions' places are counted apart from the session's own
         table.add_row("prior-map loops proposed / gate-accepted / in graph",
