@@ -1,8 +1,11 @@
-"""A saved session as a prior map: its place database plus each place's pose and scan.
+"""A saved session as a prior map: its place database plus each place's pose and scan (or images).
 
 A run writes its place database into the results folder; with the places' optimised poses
 (in that session's map frame) and their down-sampled scans beside it, a later run given
 ``--map DIR`` can turn a recognised prior place into a loop factor against the fixed map.
+A place without a scan (a camera-only run) keeps its grey keyframe images instead
+(`KeptImages`), so a loop to it can still be verified by two views: by `map` between
+sessions, by `run --map` against the map.
 The manifest records the encoder settings, because codes from another backbone layer, input
 size or cube layout are not comparable and would match nonsense.
 """
@@ -12,11 +15,12 @@ from __future__ import annotations
 import copy
 import io
 import logging
+import math
 import zipfile
 import zlib
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -25,8 +29,14 @@ from loopclosure.database import MANIFEST, PlaceDatabase
 from loopclosure.errors import LoopClosureInputError
 from ssmvpr_common.atomic import atomic_write_bytes
 from ssmvpr_common.poses import pose_problem
+from ssmvpr_slam.backend.config import TwoViewConfig
+from ssmvpr_slam.backend.two_view import ReducedImage
 
 SCANS_FILE = "scans.npz"
+IMAGES_FILE = "images.npz"
+"""The kept grey images of the places without a scan (`KeptImages`), beside the scans."""
+CAMERA_FIELDS = ("fx", "fy", "cx", "cy", "hfov_deg")
+"""The two-view intrinsics settings a run registered its kept images with, saved per place."""
 MAP_MANIFEST = "map.json"
 """A merged map's manifest (`ssmvpr-slam map`); its places are in its database/ folder."""
 REAR_FOLDER = "rear"
@@ -37,6 +47,7 @@ POSE_TOLERANCE = {"map_pose": 1e-4, "gt_pose": 1e-3}
 sources accept (`PoseFileConfig.rotation_tolerance`)."""
 
 log = logging.getLogger(__name__)
+_V = TypeVar("_V")
 
 
 def encoder_signature(vpr: VPRConfig) -> dict[str, Any]:
@@ -54,8 +65,50 @@ def encoder_signature(vpr: VPRConfig) -> dict[str, Any]:
 
 
 @dataclass
+class KeptImages:
+    """The grey keyframe images (`ReducedImage`) a session kept where it had no scan, forward and
+    rear, by place, with the two-view intrinsics its run used for them (`CAMERA_FIELDS`, NaN where
+    unset): two views of a place verify a loop to it only in the calibration they were taken in."""
+
+    front: dict[int, ReducedImage] = field(default_factory=dict)
+    rear: dict[int, ReducedImage] = field(default_factory=dict)
+    cameras: dict[int, tuple[float, ...]] = field(default_factory=dict)
+
+    def __bool__(self) -> bool:
+        return bool(self.front or self.rear)
+
+    @staticmethod
+    def camera_of(config: TwoViewConfig) -> tuple[float, ...]:
+        """A run's intrinsics settings as saved (NaN for those it left to the image size)."""
+        return tuple(math.nan if (v := getattr(config, name)) is None else float(v) for name in CAMERA_FIELDS)
+
+    def two_view(self, place: int, config: TwoViewConfig) -> TwoViewConfig:
+        """`config` with the intrinsics the place's images were kept with (as it is where unknown)."""
+        camera = self.cameras.get(place)
+        if camera is None:
+            return config
+        update = {name: None if math.isnan(v) else v for name, v in zip(CAMERA_FIELDS, camera)}
+        return config.model_copy(update=update)  # checked when loaded (`_cameras_of`)
+
+    def moved(self, offset: int) -> KeptImages:
+        """The same images with every place `offset` further on (a session's places in a merged map)."""
+        return KeptImages(_shifted(self.front, offset), _shifted(self.rear, offset), _shifted(self.cameras, offset))
+
+    def update(self, other: KeptImages) -> None:
+        """Add `other`'s places (a prior map's, carried into the map a run grew from it)."""
+        self.front.update(other.front)
+        self.rear.update(other.rear)
+        self.cameras.update(other.cameras)
+
+
+def _shifted(by_place: dict[int, _V], offset: int) -> dict[int, _V]:
+    return {place + offset: value for place, value in by_place.items()}
+
+
+@dataclass
 class PriorMap:
-    """Places of an earlier session: codes (in `database`), map-frame poses and scans."""
+    """Places of an earlier session: codes (in `database`), map-frame poses and scans, and the
+    kept images of the places without a scan."""
 
     database: PlaceDatabase
     poses: dict[int, np.ndarray] = field(default_factory=dict)
@@ -63,6 +116,7 @@ class PriorMap:
     gt_poses: dict[int, np.ndarray] = field(default_factory=dict)
     folder: Path | None = None
     rear: PlaceDatabase | None = None  # rear-image codes by keyframe id, where the session kept them
+    images: KeptImages = field(default_factory=KeptImages)
 
     def session_starts(self) -> list[int]:
         """Places where another session of a merged map (`ssmvpr-slam map`) begins: no path runs
@@ -127,7 +181,8 @@ class PriorMap:
         rear = PlaceDatabase.load(folder / REAR_FOLDER) if (folder / REAR_FOLDER / MANIFEST).is_file() else None
         if rear is not None and not rear.codebooks.same_as(database.codebooks):
             raise LoopClosureInputError(f"{folder / REAR_FOLDER}: rear codes made with other codebooks than the map's")
-        return cls(database, poses, _load_scans(folder / SCANS_FILE, len(database)), gt, folder, rear)
+        scans = _load_scans(folder / SCANS_FILE, len(database))
+        return cls(database, poses, scans, gt, folder, rear, _load_images(folder / IMAGES_FILE, len(database)))
 
 
 def save_map(
@@ -137,18 +192,22 @@ def save_map(
     poses: dict[int, np.ndarray],
     scans: dict[int, np.ndarray],
     gt_poses: dict[int, np.ndarray],
+    images: KeptImages | None = None,
 ) -> None:
-    """Write the database with each place's map pose (and ground truth) and the scans.
+    """Write the database with each place's map pose (and ground truth), the scans and the
+    kept images (none: no images file).
 
-    Scans go first and the database's manifest last, so an interrupted save leaves either the
-    previous map or the new one readable. The poses go into the saved place records only: the
-    caller's database (a live run's, which keeps growing) is not changed.
+    Scans and images go first and the database's manifest last, so an interrupted save leaves
+    either the previous map or the new one readable. The poses go into the saved place records
+    only: the caller's database (a live run's, which keeps growing) is not changed.
     """
     folder.mkdir(parents=True, exist_ok=True)
     buffer = io.BytesIO()
     arrays = {f"p{place}": np.asarray(scan, np.float32) for place, scan in scans.items()}
     np.savez_compressed(buffer, **arrays)  # type: ignore[arg-type]  # numpy's stub reads the first keyword as allow_pickle
     atomic_write_bytes(folder / SCANS_FILE, buffer.getvalue())
+    if images:
+        atomic_write_bytes(folder / IMAGES_FILE, _images_npz(images))
     places = []
     for index, info in enumerate(database.places):
         extra = dict(info.extra)
@@ -196,3 +255,65 @@ def _load_scans(path: Path, num_places: int) -> dict[int, np.ndarray]:
     if bad:
         raise LoopClosureInputError(f"{path}: scans of places {bad[:5]} contain NaN or inf")
     return scans
+
+
+def _images_npz(images: KeptImages) -> bytes:
+    """`images.npz`: per camera (front, rear) the places, their full image sizes and each PNG as
+    bytes; the places' intrinsics settings. Stored, not compressed: PNG bytes are already."""
+    arrays: dict[str, np.ndarray] = {}
+    for camera, kept in (("front", images.front), ("rear", images.rear)):
+        places = sorted(kept)
+        arrays[f"{camera}_places"] = np.array(places, dtype=np.int64)
+        arrays[f"{camera}_sizes"] = np.array(
+            [[kept[p].full_width, kept[p].full_height] for p in places], dtype=np.int64
+        ).reshape(-1, 2)
+        arrays.update({f"{camera}{p}": np.frombuffer(kept[p].png, np.uint8) for p in places})
+    calibrated = sorted(images.cameras)
+    arrays["camera_places"] = np.array(calibrated, dtype=np.int64)
+    arrays["cameras"] = np.array([images.cameras[p] for p in calibrated], np.float64).reshape(-1, len(CAMERA_FIELDS))
+    buffer = io.BytesIO()
+    np.savez(buffer, **arrays)  # type: ignore[arg-type]  # numpy's stub reads the first keyword as allow_pickle
+    return buffer.getvalue()
+
+
+def _load_images(path: Path, num_places: int) -> KeptImages:
+    """The kept images of `images.npz` (none when there is no such file); a damaged or
+    inconsistent file is refused in one line naming it."""
+    if not path.is_file():
+        return KeptImages()
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {name: np.asarray(data[name]) for name in data.files}
+        kept = KeptImages(_images_of(arrays, "front"), _images_of(arrays, "rear"), _cameras_of(arrays))
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile, zlib.error) as exc:
+        # a truncated .npz raises any of these, depending on where it was cut
+        raise LoopClosureInputError(f"cannot read the prior map's images {path}: {type(exc).__name__}: {exc}") from None
+    bad = sorted(p for d in (kept.front, kept.rear, kept.cameras) for p in d if not 0 <= p < num_places)
+    if bad:
+        raise LoopClosureInputError(f"{path}: images of unknown places: {bad[:5]}")
+    return kept
+
+
+def _images_of(arrays: dict[str, np.ndarray], camera: str) -> dict[int, ReducedImage]:
+    """One camera's images; ValueError or KeyError naming what does not fit."""
+    places, sizes = arrays[f"{camera}_places"], arrays[f"{camera}_sizes"]
+    if places.ndim != 1 or sizes.shape != (len(places), 2) or not (sizes > 0).all():
+        raise ValueError(f"{camera}: {len(places)} places with sizes of shape {sizes.shape} (need positive (n, 2))")
+    out = {}
+    for place, (width, height) in zip(places.tolist(), sizes.tolist()):
+        png = arrays[f"{camera}{place}"]
+        try:
+            out[int(place)] = ReducedImage.from_png(png.astype(np.uint8, copy=False).tobytes(), width, height)
+        except ValueError as exc:
+            raise ValueError(f"{camera} image of place {place}: {exc}") from None
+    return out
+
+
+def _cameras_of(arrays: dict[str, np.ndarray]) -> dict[int, tuple[float, ...]]:
+    places, cameras = arrays["camera_places"], arrays["cameras"]
+    if places.ndim != 1 or cameras.shape != (len(places), len(CAMERA_FIELDS)):
+        raise ValueError(f"intrinsics of shape {cameras.shape} for {len(places)} places")
+    fx, fy, hfov = cameras[:, 0], cameras[:, 1], cameras[:, 4]
+    if np.isinf(cameras).any() or (fx <= 0).any() or (fy <= 0).any() or not ((hfov > 0) & (hfov < 180)).all():
+        raise ValueError("intrinsics: fx, fy positive or NaN (unset), cx, cy finite or NaN, hfov_deg in (0, 180)")
+    return {int(p): tuple(float(v) for v in row) for p, row in zip(places.tolist(), cameras)}

@@ -2,7 +2,7 @@
 """Many sessions, one map: simulate N sessions of one city, run `map` on them, print JSON.
 
     python tools/bench_map.py --sessions 4 [--frames-per-session F] [--workers W] [--config PRESET]
-                              [--weights FILE] [--out DIR] [--ray-address ADDR] [--then-add]
+                              [--weights FILE] [--out DIR] [--ray-address ADDR] [--then-add] [--camera-only]
 
 Each session drives its own loop of the city's street grid (`frontend.simulation.sessions`),
 from its own start, by day or at dusk, with its own traffic and odometry drift; the ground truth
@@ -14,6 +14,9 @@ loops: `ssmvpr_slam.multi_session.evaluation.oracle_ate`), wall_s (the `map` cal
 excluded), plus keyframes, keyframes_per_second_per_worker, the per-session ATE in the map and
 of each session's own run, and the loop counts. --then-add: one more session of the city is run
 in the merged map (`run --map`: its prior-map loops) and then added to it (`map --add`).
+--camera-only: the sessions run without LiDAR loops over their logged (wheel) odometry, so
+every loop, within a session and between sessions, is verified by two views (the oracle's loops
+then carry the two-view place prior's sigmas).
 """
 
 from __future__ import annotations
@@ -51,6 +54,15 @@ def localise_and_add(log: Path, folder: Path, config: SlamConfig, console: Conso
     return {"run_map": localised, "map_add": {**merged, "wall_s": time.perf_counter() - start}}
 
 
+def loop_sigmas(config: SlamConfig, camera_only: bool) -> tuple[float, float]:
+    """(rotation, translation) sigmas of the map's loops: ICP's, or the two-view place prior's."""
+    if camera_only:
+        two_view = config.backend.registration.two_view
+        return two_view.rot_sigma, two_view.translation_sigma
+    lidar = config.backend.registration.lidar
+    return lidar.rot_sigma, lidar.trans_sigma
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--sessions", type=int, default=4)
@@ -63,6 +75,8 @@ def main() -> None:
     parser.add_argument("--ray-address", default=None)
     parser.add_argument("--then-add", action="store_true",
                         help="then one more session of the city: localised in the map (run --map), then merged (--add)")  # fmt: skip
+    parser.add_argument("--camera-only", action="store_true",
+                        help="no LiDAR loops, the logs' wheel odometry: loops verified by two views")  # fmt: skip
     args = parser.parse_args()
     if args.sessions < 1 or args.workers < 1:
         parser.error("--sessions and --workers must be >= 1")
@@ -73,7 +87,12 @@ def main() -> None:
     }  # fmt: skip
     if args.weights:
         overrides["vpr"] = {"backbone": {"weights": args.weights}}
+    if args.camera_only:
+        overrides["pipeline"] = {"use_lidar_for_loops": False}
+        overrides["frontend"] = {"odometry": {"kind": "logged"}}
     config = load_config(args.config, overrides)
+    if args.camera_only:  # the renderer's field of view where a cached log carries no calibration
+        config.backend.registration.two_view.hfov_deg = config.simulation.camera.hfov_deg
     console = Console(stderr=True)
     logs = []
     for simulation in city_sessions(config.simulation, args.sessions + int(args.then_add)):
@@ -97,8 +116,7 @@ def main() -> None:
         wall = time.perf_counter() - start
         records = [r for r in metrics["session_results"] if r["error"] is None]
         sessions = [SessionMap.load(r["name"], r["log"], folder / r["folder"], config.vpr) for r in records]
-        lidar = config.backend.registration.lidar
-        oracle = oracle_ate(sessions, config.evaluation.loops.revisit_radius, lidar.rot_sigma, lidar.trans_sigma)
+        oracle = oracle_ate(sessions, config.evaluation.loops.revisit_radius, *loop_sigmas(config, args.camera_only))
         added = None if later is None else localise_and_add(later, folder, config, console)
     keyframes = sum(len(s) for s in sessions)
     session_seconds = sum(r["seconds"] for r in records)
@@ -111,6 +129,7 @@ def main() -> None:
         "ate_oracle_m": oracle,
         "wall_s": wall,
         "workers": args.workers,
+        "camera_only": args.camera_only,
         "keyframes": keyframes,
         "keyframes_per_second_per_worker": keyframes / session_seconds if session_seconds else None,
         "session_seconds": {r["name"]: r["seconds"] for r in records},

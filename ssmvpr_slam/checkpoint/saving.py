@@ -128,7 +128,7 @@ def _write_version(
     write_trajectories(folder, partial)
     write_loop_csv(folder / "loop_closures.csv", partial.keyframes, partial.loops, prior_gt(partial))
     write_config(folder, config)
-    write_database(folder / "database", partial, config, poses=partial.in_map_frame)
+    write_database(folder / "database", partial, config, poses=partial.in_map_frame, images=False)  # in images/
     _write_images(folder / "images", partial.keyframes, previous)
     atomic_write_bytes(folder / "keyframes.npz", _npz(_keyframe_arrays(partial)))
     atomic_write_bytes(folder / "detector.npz", _npz(detector_state))

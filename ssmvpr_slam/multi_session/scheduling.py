@@ -15,7 +15,7 @@ from rich.console import Console
 from rich.markup import escape
 
 from ssmvpr_slam.config.slam import SlamConfig
-from ssmvpr_slam.multi_session.cross_loops import CrossLoop, find_cross_loops
+from ssmvpr_slam.multi_session.cross_loops import CrossLoop, find_cross_loops, views_verifier
 from ssmvpr_slam.multi_session.session_map import SessionMap
 from ssmvpr_slam.multi_session.stop import MapStop
 from ssmvpr_slam.multi_session.workers import SessionOutcome, remote_worker
@@ -96,8 +96,10 @@ def run_sessions(
 
 
 def _cross_loops_task(query: int, folders: list[tuple[str, str, str]], config: SlamConfig) -> list[CrossLoop]:
+    """One session's cross loops; the backbone is loaded (once per worker process) only where
+    camera-only sessions need two views verified."""
     sessions = [SessionMap.load(name, log, Path(folder), config.vpr) for name, log, folder in folders]
-    return find_cross_loops(query, sessions, config)
+    return find_cross_loops(query, sessions, config, views_verifier(query, sessions, config))
 
 
 def all_cross_loops(sessions: list[SessionMap], config: SlamConfig, stop: MapStop) -> list[CrossLoop] | None:

@@ -3,7 +3,7 @@
 - `map.json`: the manifest `map --add` and `run --map` read: sessions (name, log, results
   folder, component), components, each session's frame in its component's frame;
 - `database/`: the main map's places (every session joined into it), each with its pose in the
-  map frame, its ground truth and its scan: a prior map for `run --map`;
+  map frame, its ground truth and its scan (or kept images): a prior map for `run --map`;
 - `trajectories/<session>.tum|.kitti`: each session's keyframes in its map's frame;
 - `map.g2o`: the main map's pose graph with the solved poses;
 - `cross_session_loops.csv`: every accepted cross-session proposal and what became of it;
@@ -30,7 +30,7 @@ from ssmvpr_slam.config.slam import SlamConfig, dump_config
 from ssmvpr_slam.multi_session.cross_loops import CrossLoop, merged_place_links
 from ssmvpr_slam.multi_session.merged_graph import MapGraph
 from ssmvpr_slam.multi_session.session_map import SessionMap
-from ssmvpr_slam.prior_map import MAP_MANIFEST, save_map
+from ssmvpr_slam.prior_map import MAP_MANIFEST, KeptImages, save_map
 from ssmvpr_slam.results.run_folder import write_json
 
 MAP_VERSION = 1
@@ -75,8 +75,10 @@ def write_map_database(
     ]  # a place two sessions share is one place to the next session
     database.extra[PLACE_LINKS_KEY] = links
     map_poses, scans, gt = {}, {}, {}
+    images = KeptImages()  # what `run --map` verifies its loops to a camera-only map with
     for s in members:
         places = sessions[s].places
+        images.update(places.images.moved(start_of[s]))
         for k in range(len(sessions[s])):
             index = start_of[s] + k
             map_poses[index] = poses[s][k]
@@ -84,7 +86,7 @@ def write_map_database(
                 scans[index] = places.scans[k]
             if k in places.gt_poses:
                 gt[index] = places.gt_poses[k]
-    save_map(folder, database, config.vpr, map_poses, scans, gt)
+    save_map(folder, database, config.vpr, map_poses, scans, gt, images)
 
 
 def write_trajectories(folder: Path, sessions: list[SessionMap], poses: dict[int, np.ndarray]) -> None:

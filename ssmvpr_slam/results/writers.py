@@ -7,7 +7,7 @@ the same functions as the final results):
 - `write_trajectories`: odometry / optimised / ground truth in TUM and KITTI (evo reads them);
 - `write_pose_graph`: pose_graph.g2o;
 - `write_loop_csv`: loop_closures.csv, one row per proposal with its final in-graph status;
-- `write_database`: the place database with map poses and scans (a prior map for `--map`);
+- `write_database`: the place database with map poses and scans or kept images (a prior map for `--map`);
 - `write_metrics`: metrics.json;
 - `write_plots`: top view, translation error, loop precision/recall;
 - `write_trajectory_mcap`: trajectory.mcap for Foxglove (`ssmvpr_slam.results.mcap_output`).
@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import csv
 import io
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -27,7 +28,7 @@ from ssmvpr_common.trajectory_io import write_kitti, write_tum
 from ssmvpr_slam.backend.g2o_io import write_g2o
 from ssmvpr_slam.config.slam import SlamConfig, dump_config
 from ssmvpr_slam.evaluation.run_report import RunReport
-from ssmvpr_slam.prior_map import REAR_FOLDER, save_map
+from ssmvpr_slam.prior_map import REAR_FOLDER, KeptImages, save_map
 from ssmvpr_slam.results.metrics import RunInputs, RunMetrics
 from ssmvpr_slam.results.run_folder import write_json
 from ssmvpr_slam.run_result import Keyframe, LoopRecord, RunResult, has_ground_truth
@@ -137,11 +138,15 @@ def _gt_distance(
     return distance if distance is not None and np.isfinite(distance) else None  # NaN: no ground truth there
 
 
-def write_database(folder: Path, result: RunResult, config: SlamConfig, poses: np.ndarray | None = None) -> None:
-    """The session's place database with each place's map-frame pose, ground truth and scan.
+def write_database(
+    folder: Path, result: RunResult, config: SlamConfig, poses: np.ndarray | None = None, images: bool = True
+) -> None:
+    """The session's place database with each place's map-frame pose, ground truth and scan (or,
+    without one, its kept images).
 
     poses: the keyframe poses to store (default the result's map-frame poses; a checkpoint
-    passes iSAM2's current estimate)."""
+    passes iSAM2's current estimate). images: False leaves the kept images out (a checkpoint
+    holds them in its own images/ folder)."""
     if result.database is None:
         return
     in_map = result.in_map_frame if poses is None else poses
@@ -150,11 +155,23 @@ def write_database(folder: Path, result: RunResult, config: SlamConfig, poses: n
     map_poses = {} if in_map is None else {places[k.id]: in_map[k.id] for k in kfs if k.id in places}
     scans = {places[k.id]: k.scan.points.astype(np.float32) for k in kfs if k.id in places and k.scan is not None}
     gt = {places[k.id]: k.gt_pose for k in kfs if k.id in places and k.gt_pose is not None}
-    if result.prior_map is not None:  # carry the prior places' scans into the grown map
+    kept = kept_images(kfs, places, config) if images else None
+    if result.prior_map is not None:  # carry the prior places' scans and images into the grown map
         scans.update(result.prior_map.scans)
+        if kept is not None:
+            kept.update(result.prior_map.images)
     if result.rear_database is not None and len(result.rear_database):  # first: the manifest below is the last write
         result.rear_database.save(folder / REAR_FOLDER)
-    save_map(folder, result.database, config.vpr, map_poses, scans, gt)
+    save_map(folder, result.database, config.vpr, map_poses, scans, gt, kept)
+
+
+def kept_images(keyframes: Sequence[Keyframe], places: Mapping[int, int], config: SlamConfig) -> KeptImages:
+    """The grey images the keyframes without a scan kept, by place, with the run's two-view
+    intrinsics: what verifies a loop to these places from another session (`map`, `run --map`)."""
+    camera = KeptImages.camera_of(config.backend.registration.two_view)
+    front = {places[k.id]: k.image for k in keyframes if k.id in places and k.image is not None}
+    rear = {places[k.id]: k.rear_image for k in keyframes if k.id in places and k.rear_image is not None}
+    return KeptImages(front, rear, dict.fromkeys(front.keys() | rear.keys(), camera))
 
 
 def run_metrics(result: RunResult) -> dict[str, Any]:
