@@ -3,7 +3,7 @@ light and season. Prints ONE JSON object (progress on stderr).
 
 Usage:
   python tools/bench_verifier.py --weights PATH [--shared ../shared] [--sets gp,nordland]
-                                 [--set NAME=FOLDER:REF:QUERY ...] [--queries N] [--width W]
+                                 [--set NAME=FOLDER:REF:QUERY ...] [--queries N] [--every K] [--width W]
 
 For every query frame of a set: its true pair (the reference frame of the same index) and its
 wrong pairs (every stage-I candidate of the default recogniser at least 5 frames from the truth,
@@ -49,7 +49,9 @@ def share(flags: list[bool]) -> float | None:
     return round(float(np.mean(flags)), 4) if flags else None
 
 
-def run_set(name: str, ref_dir: Path, query_dir: Path, weights: str, config: VerifierConfig, limit: int | None) -> dict:
+def run_set(
+    name: str, ref_dir: Path, query_dir: Path, weights: str, config: VerifierConfig, limit: int | None, every: int
+) -> dict:
     refs, queries = list_images(ref_dir), list_images(query_dir)
     if limit is not None:
         refs, queries = refs[:limit], queries[:limit]
@@ -69,7 +71,7 @@ def run_set(name: str, ref_dir: Path, query_dir: Path, weights: str, config: Ver
 
     rows = []
     verify_s: list[float] = []
-    for q in range(n):
+    for q in range(0, n, every):
         candidates = [int(c) for c in recognizer.query(read_image(queries[q])).candidates.places]
         pairs = [(q, True)] + [(c, False) for c in candidates if abs(c - q) >= MIN_WRONG_OFFSET]
         for r, true in pairs:
@@ -90,7 +92,7 @@ def run_set(name: str, ref_dir: Path, query_dir: Path, weights: str, config: Ver
             "wrong_verified": share([o for o, r in zip(ok, rows) if not r[0]]),
         }
     return {
-        "queries": n,
+        "queries": len(range(0, n, every)),
         "true_pairs": len(true_rows),
         "wrong_pairs": len(wrong_rows),
         "true_verified": share([r[2] for r in true_rows]),
@@ -115,6 +117,7 @@ def main() -> None:
     parser.add_argument("--sets", default="gp,nordland")
     parser.add_argument("--set", action="append", default=[], help="NAME=FOLDER:REF:QUERY (held-out data)")
     parser.add_argument("--queries", type=int, default=None, help="the first N frames of each set only")
+    parser.add_argument("--every", type=int, default=1, help="every K-th query frame only (all references)")
     parser.add_argument("--width", type=int, default=None, help="override VerifierConfig.width")
     args = parser.parse_args()
     config = VerifierConfig() if args.width is None else VerifierConfig(width=args.width)
@@ -129,7 +132,7 @@ def main() -> None:
     out: dict[str, object] = {"config": config.model_dump()}
     for name, (ref_dir, query_dir) in jobs.items():
         log(f"{name}: {query_dir} against {ref_dir}")
-        out[name] = run_set(name, ref_dir, query_dir, args.weights, config, args.queries)
+        out[name] = run_set(name, ref_dir, query_dir, args.weights, config, args.queries, args.every)
         log(f"{name}: {json.dumps(out[name])}")  # each set's figures as soon as it is done
     print(json.dumps(out, indent=1))
 
