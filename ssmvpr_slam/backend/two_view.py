@@ -193,6 +193,17 @@ def _gray_and_size(
     return gray, (gray.shape[1], gray.shape[0]), (1.0, 1.0)
 
 
+def _same_camera(
+    image_m: np.ndarray | ReducedImage, image_q: np.ndarray | ReducedImage, config: TwoViewConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | str:
+    """(grey m, grey q, K of the pixels as kept), or why the two cannot be one camera's views."""
+    gray_m, full_m, scale = _gray_and_size("match_image", image_m)
+    gray_q, full_q, _ = _gray_and_size("query_image", image_q)
+    if gray_m.shape != gray_q.shape or full_m != full_q:
+        return f"image sizes differ: {gray_m.shape} vs {gray_q.shape} (from {full_m} vs {full_q})"
+    return gray_m, gray_q, intrinsics(config, full_m[0], full_m[1], scale)
+
+
 def estimate_rotation(
     image_m: np.ndarray | ReducedImage, image_q: np.ndarray | ReducedImage, config: TwoViewConfig
 ) -> TwoViewRotation:
@@ -200,12 +211,10 @@ def estimate_rotation(
 
     Either image may be a `ReducedImage`; both must then come from the same camera size and
     be kept at the same size."""
-    gray_m, full_m, scale = _gray_and_size("match_image", image_m)
-    gray_q, full_q, _ = _gray_and_size("query_image", image_q)
-    if gray_m.shape != gray_q.shape or full_m != full_q:
-        reason = f"image sizes differ: {gray_m.shape} vs {gray_q.shape} (from {full_m} vs {full_q})"
-        return _failed(0, 0, reason)
-    k = intrinsics(config, full_m[0], full_m[1], scale)
+    pair = _same_camera(image_m, image_q, config)
+    if isinstance(pair, str):
+        return _failed(0, 0, pair)
+    gray_m, gray_q, k = pair
     pts_m, pts_q = _matches(gray_m, gray_q, config)
     n = len(pts_m)
     if n < max(MIN_MODEL_POINTS, config.min_inliers):
@@ -260,12 +269,10 @@ def deep_rotation(
     too and it agrees within `orb_agreement_deg`, ORB's sub-pixel keypoints give the rotation
     (on the demo's loops: median error 0.6 deg against 1.3; docs/loop_verification.md). error_px
     is NaN: MAGSAC scores its inliers by a marginalised threshold, not one residual."""
-    gray_m, full_m, scale = _gray_and_size("match_image", image_m)
-    gray_q, full_q, _ = _gray_and_size("query_image", image_q)
-    if gray_m.shape != gray_q.shape or full_m != full_q:
-        reason = f"image sizes differ: {gray_m.shape} vs {gray_q.shape} (from {full_m} vs {full_q})"
-        return _failed(0, 0, reason)
-    k = intrinsics(config, full_m[0], full_m[1], scale)
+    pair = _same_camera(image_m, image_q, config)
+    if isinstance(pair, str):
+        return _failed(0, 0, pair)
+    gray_m, gray_q, k = pair
     verdict = verifier.verify(verifier.features(gray_m, "match_image"), verifier.features(gray_q, "query_image"), k, k)
     if not verdict.accepted or verdict.rotation is None:
         return _failed(verdict.n_matches, verdict.n_inliers, verdict.reason)
