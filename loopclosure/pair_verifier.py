@@ -36,7 +36,8 @@ class PairVerdict:
     fundamental matrix's, which decide."""
 
     accepted: bool
-    model: str  # "fundamental" (no pose), "essential", "rotation" (no baseline), "none" (too few matches)
+    model: str  # "fundamental" (no pose), "essential", "rotation" (no baseline), "none" (too few matches),
+    # "unverifiable" (images too small for geometry: neither verified nor refused by their views)
     n_matches: int
     n_inliers: int
     rotation: np.ndarray | None
@@ -46,6 +47,11 @@ class PairVerdict:
     @property
     def inlier_ratio(self) -> float:
         return self.n_inliers / self.n_matches if self.n_matches else 0.0
+
+    @property
+    def verifiable(self) -> bool:
+        """False when the images were too small to tell: not accepted, yet no evidence against."""
+        return self.model != "unverifiable"
 
 
 class PairVerifier:
@@ -73,6 +79,11 @@ class PairVerifier:
         if (k_a is None) != (k_b is None):
             raise LoopClosureInputError("verify: give the intrinsics of both images or of neither")
         cfg = self.config
+        small = [size for size in (a.image_size, b.image_size) if size[0] < cfg.min_image_width]
+        if small:
+            width, height = small[0]
+            reason = f"a {width}x{height} px image is too small to verify by two views (min_image_width {cfg.min_image_width})"
+            return PairVerdict(False, "unverifiable", 0, 0, None, None, reason)
         matches = mutual_matches(a, b, cfg.max_distance_ratio)
         n = len(matches)
         if n < max(MIN_MODEL_POINTS, cfg.min_inliers):

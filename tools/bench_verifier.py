@@ -4,6 +4,7 @@ light and season. Prints ONE JSON object (progress on stderr).
 Usage:
   python tools/bench_verifier.py --weights PATH [--shared ../shared] [--sets gp,nordland]
                                  [--set NAME=FOLDER:REF:QUERY ...] [--queries N] [--every K] [--width W]
+                                 [--min-image-width PX]
 
 For every query frame of a set: its true pair (the reference frame of the same index) and its
 wrong pairs (every stage-I candidate of the default recogniser at least 5 frames from the truth,
@@ -79,7 +80,9 @@ def run_set(
             start = time.perf_counter()
             verdict = verifier.verify(fq, fr)  # type: ignore[arg-type]
             verify_s.append(time.perf_counter() - start)
-            rows.append((true, abs(r - q), verdict.accepted, verdict.inlier_ratio, verdict.n_inliers))
+            rows.append(
+                (true, abs(r - q), verdict.accepted, verdict.inlier_ratio, verdict.n_inliers, verdict.verifiable)
+            )
         if q % 20 == 0:
             log(f"{name}: query {q}/{n}")
     true_rows = [r for r in rows if r[0]]
@@ -97,6 +100,7 @@ def run_set(
         "wrong_pairs": len(wrong_rows),
         "true_verified": share([r[2] for r in true_rows]),
         "wrong_verified": share([r[2] for r in wrong_rows]),
+        "unverifiable": share([not r[5] for r in rows]),  # images too small to judge (VerifierConfig.min_image_width)
         "wrong_verified_no_shared_view": share([r[2] for r in wrong_rows if r[1] >= NO_SHARED_VIEW]),
         "wrong_verified_offsets": sorted({r[1] for r in wrong_rows if r[2]}),
         "inlier_ratio_true_p10_p50": [round(float(np.quantile([r[3] for r in true_rows], p)), 3) for p in (0.1, 0.5)],
@@ -119,8 +123,10 @@ def main() -> None:
     parser.add_argument("--queries", type=int, default=None, help="the first N frames of each set only")
     parser.add_argument("--every", type=int, default=1, help="every K-th query frame only (all references)")
     parser.add_argument("--width", type=int, default=None, help="override VerifierConfig.width")
+    parser.add_argument("--min-image-width", type=int, default=None, help="override VerifierConfig.min_image_width")
     args = parser.parse_args()
-    config = VerifierConfig() if args.width is None else VerifierConfig(width=args.width)
+    overrides = {"width": args.width, "min_image_width": args.min_image_width}
+    config = VerifierConfig(**{k: v for k, v in overrides.items() if v is not None})
     jobs = {}
     for name in [s for s in args.sets.split(",") if s]:
         folder, ref, query = SETS[name]

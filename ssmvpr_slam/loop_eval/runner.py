@@ -21,6 +21,7 @@ from frontend.poses_io import read_poses
 from frontend.sources import detect_kind
 from loopclosure.backbone import load_backbone
 from loopclosure.backbone_input import list_images
+from loopclosure.pair_verifier import PairVerdict
 from ssmvpr_common.atomic import atomic_write_text
 from ssmvpr_slam.config.slam import SlamConfig, dump_config
 from ssmvpr_slam.loop_eval import revisit_truth as truth
@@ -185,12 +186,14 @@ def compute_metrics(
 def _verify_metrics(judged: score.Judged, verification: Verification, n_passes: int) -> dict[str, Any]:
     """The loops again with only the verified ones accepted, and what the verifier refused."""
     verified = verification.verified(len(judged.match))
-    kept = replace(judged, accepted=judged.accepted & verified)
-    refused = judged.accepted & ~verified
+    unjudged = verification.unverifiable(len(judged.match))  # too small to tell: kept as decided
+    kept = replace(judged, accepted=judged.accepted & (verified | unjudged))
+    refused = judged.accepted & ~verified & ~unjudged
     seconds = verification.seconds
     out: dict[str, Any] = {
         "checked": len(verification.verdicts),
         "verified": int((judged.accepted & verified).sum()),
+        "unverifiable": int((judged.accepted & unjudged).sum()),
         "refused_right_loops": int((refused & judged.correct).sum()),
         "refused_wrong_loops": int((refused & ~judged.correct).sum()),
         "loops": _at_the_decision(score.loop_metrics(kept, n_passes)),
@@ -235,9 +238,16 @@ def write_loops_csv(
             f"{p.score:.4f}", "" if p.runner_up_score is None else f"{p.runner_up_score:.4f}", p.direction or "",
             p.camera, int(p.accepted), int(bool(loop_truth.has_truth[q]) and loop_truth.correct(q, p.match_id)),
             "" if not len(true) else int(true[np.argmin(np.abs(true - p.match_id))]), p.reason,
-            int(verdicts[q].accepted) if q in verdicts else "", verdicts[q].reason if q in verdicts else "",
+            _verified_cell(verdicts.get(q)), verdicts[q].reason if q in verdicts else "",
         ])  # fmt: skip
     atomic_write_text(path, buffer.getvalue())
+
+
+def _verified_cell(verdict: PairVerdict | None) -> int | str:
+    """1 or 0; empty for a loop not checked, `unverifiable` where its images were too small."""
+    if verdict is None:
+        return ""
+    return int(verdict.accepted) if verdict.verifiable else "unverifiable"
 
 
 def write_pr_plot(path: Path, outcome: StreamOutcome, loop_truth: LoopTruth, n_passes: int, title: str) -> None:

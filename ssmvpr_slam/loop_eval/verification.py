@@ -41,6 +41,13 @@ class Verification:
             out[frame] = verdict.accepted
         return out
 
+    def unverifiable(self, n_frames: int) -> np.ndarray:
+        """(n_frames,) bool: the frame's images were too small to judge (kept as the detector decided)."""
+        out = np.zeros(n_frames, bool)
+        for frame, verdict in self.verdicts.items():
+            out[frame] = not verdict.verifiable
+        return out
+
 
 def _reduced(image: np.ndarray, width: int | None) -> np.ndarray:
     """The image at the verifier's width, as `dense_features` would make it: what is kept costs

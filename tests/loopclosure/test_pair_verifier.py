@@ -145,3 +145,18 @@ def test_bad_inputs_are_named(verifier: PairVerifier, half: Path) -> None:
         mutual_matches(verifier.features(day), other.features(day))
     flat = verifier.verify_images(np.full((240, 320), 128, np.uint8), day)
     assert not flat.accepted  # a blank image matches nothing it can fit a geometry to
+
+
+def test_images_too_small_for_geometry_are_not_judged(verifier: PairVerifier, shared_dir: Path) -> None:
+    """Nordland-64's 64x32 frames, upscaled, hold no detail for geometry (15 % of its wrong pairs
+    verified, docs/loop_verification.md): the verifier says it cannot tell instead of guessing."""
+    nordland = shared_dir / "data" / "nordland64_half"
+    winter, summer = (
+        read_image(nordland / "winter" / "images-00100.png"),
+        read_image(nordland / "summer" / "images-00100.png"),
+    )
+    verdict = verifier.verify_images(winter, summer)
+    assert not verdict.accepted and not verdict.verifiable and verdict.model == "unverifiable"
+    assert "64x32 px image is too small" in verdict.reason
+    judged = PairVerifier(verifier.backbone, VerifierConfig(min_image_width=0)).verify_images(winter, summer)
+    assert judged.verifiable and judged.model in ("fundamental", "none")
