@@ -149,7 +149,7 @@ class PairVerifier:
             problems.append(f"{inliers} inliers < {cfg.min_inliers}")
         if ratio < cfg.min_inlier_ratio:
             problems.append(f"inlier share {ratio:.2f} < {cfg.min_inlier_ratio:.2f}")
-        words = f"fundamental matrix: {inliers}/{n} deep-feature matches agree"
+        words = f"fundamental matrix: {inliers} of {n} deep-feature matches are inliers"
         reason = words if not problems else f"{words}; " + "; ".join(problems)
         return PairVerdict(not problems, "fundamental", n, inliers, None, None, reason)
 
