@@ -21,6 +21,7 @@ from ssmvpr_slam.backend.config import LoopRegistrationConfig
 from ssmvpr_slam.backend.loop_consistency import LoopPose, support
 from ssmvpr_slam.backend.loop_registration import LoopRegistrar, LoopRegistration, build_local_map, carry_loop
 from ssmvpr_slam.backend.se3 import yaw_of
+from ssmvpr_slam.backend.two_view import ReducedImage
 from ssmvpr_slam.config.slam import SlamConfig
 from ssmvpr_slam.prior_map import PriorMap
 from ssmvpr_slam.run_result import Keyframe, LoopRecord
@@ -85,20 +86,24 @@ class LoopPolicy:
             return self.registrar.register_scans(
                 kf.scan.points, local_map, proposal.yaw_guess, None if seed is None else seed[1]
             )
-        return self._checked(keyframes, loops, kf, proposal, self._register_images(kf, match, proposal))
+        return self._checked(
+            keyframes, loops, kf, proposal, self._register_images(kf, match.image, proposal, "the matched keyframe")
+        )
 
-    def _register_images(self, kf: Keyframe, match: Keyframe, proposal: LoopProposal) -> LoopRegistration:
-        if proposal.camera == "rear":  # the rear image saw what the match's forward camera saw
-            if kf.rear_image is None:
-                return self.registrar.yaw_prior(proposal.yaw_guess, "rear camera match: no rear image kept")
-            if match.image is None:
-                return self.registrar.yaw_prior(proposal.yaw_guess, "the matched keyframe kept no image")
-            return self.registrar.register_images(
-                kf.rear_image, match.image, proposal.yaw_guess, query_yaw_offset=math.pi
-            )
-        if kf.image is None or match.image is None:
-            return self.registrar.yaw_prior(proposal.yaw_guess, "a keyframe kept no image")
-        return self.registrar.register_images(kf.image, match.image, proposal.yaw_guess)
+    def _register_images(
+        self, kf: Keyframe, place_image: ReducedImage | None, proposal: LoopProposal, place: str
+    ) -> LoopRegistration:
+        """The keyframe's image (its rear one for a rear match: it saw what the place's forward
+        camera saw) against the place's kept forward image; the yaw prior where either was not
+        kept. place: what the place is, for the reason."""
+        rear = proposal.camera == "rear"
+        image = kf.rear_image if rear else kf.image
+        if image is None:
+            why = "rear camera match: no rear image kept" if rear else "the keyframe kept no image"
+            return self.registrar.yaw_prior(proposal.yaw_guess, why)
+        if place_image is None:
+            return self.registrar.yaw_prior(proposal.yaw_guess, f"{place} kept no image")
+        return self.registrar.register_images(image, place_image, proposal.yaw_guess, math.pi if rear else 0.0)
 
     def _checked(
         self,
@@ -178,18 +183,15 @@ class LoopPolicy:
             scans, poses = zip(*parts)
             local_map = build_local_map(scans, poses, pose, lidar.max_range)
             return self.registrar.register_scans(kf.scan.points, local_map, proposal.yaw_guess)
-        return self._checked(keyframes, loops, kf, proposal, self._register_to_place_images(kf, proposal))
-
-    def _register_to_place_images(self, kf: Keyframe, proposal: LoopProposal) -> LoopRegistration:
-        """The keyframe's image (its rear one for a rear match) against the prior place's kept
-        forward image, as within the session (`_register_images`); the yaw prior without them."""
-        assert self.prior_map is not None  # a prior-map proposal needs a prior map
-        place_image = self.prior_map.images.front.get(proposal.match_place)
-        rear = proposal.camera == "rear"
-        image = kf.rear_image if rear else kf.image
-        if place_image is None or image is None:
-            return self.registrar.yaw_prior(proposal.yaw_guess, "prior-map place: no scans or images to align")
-        return self.registrar.register_images(image, place_image, proposal.yaw_guess, math.pi if rear else 0.0)
+        return self._checked(
+            keyframes,
+            loops,
+            kf,
+            proposal,
+            self._register_images(
+                kf, self.prior_map.images.front.get(place), proposal, "the prior-map place (no scans)"
+            ),
+        )
 
 
 def _deep_verifier(config: LoopRegistrationConfig, detector: LoopDetector) -> PairVerifier | None:
