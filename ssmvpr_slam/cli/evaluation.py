@@ -161,8 +161,9 @@ def loop_eval(
         typer.Option(
             "--verify",
             help="Check every accepted loop by two views on the backbone's own features (the verifier `run` uses, "
-            "backend.registration.two_view.deep; a fundamental matrix, images carry no intrinsics) and report the "
-            "loops with and without it.",
+            "backend.registration.two_view.deep; a fundamental matrix, images carry no intrinsics); a loop the views "
+            "refuse stands when 2 earlier verified loops of its revisit agree with it along the path, as a run's "
+            "on_geometry_failure: consistent. Reports the loops with and without it.",
         ),
     ] = False,
     config: ConfigOpt = None,

@@ -184,19 +184,27 @@ def compute_metrics(
 
 
 def _verify_metrics(judged: score.Judged, verification: Verification, n_passes: int) -> dict[str, Any]:
-    """The loops again with only the verified ones accepted, and what the verifier refused."""
-    verified = verification.verified(len(judged.match))
-    unjudged = verification.unverifiable(len(judged.match))  # too small to tell: kept as decided
-    kept = replace(judged, accepted=judged.accepted & (verified | unjudged))
-    refused = judged.accepted & ~verified & ~unjudged
+    """The loops again with only those a run would let in accepted (verified by the views, too
+    small to judge, or refused but vouched for by earlier verified loops), the views' verdicts
+    alone beside them, and what was refused."""
+    n = len(judged.match)
+    verified = verification.verified(n)
+    unjudged = verification.unverifiable(n)  # too small to tell: kept as decided
+    agreed = verification.kept_by_agreement(n)
+    kept = replace(judged, accepted=judged.accepted & (verified | unjudged | agreed))
+    views_alone = replace(judged, accepted=judged.accepted & (verified | unjudged))
+    refused = judged.accepted & ~verified & ~unjudged & ~agreed
     seconds = verification.seconds
     out: dict[str, Any] = {
         "checked": len(verification.verdicts),
         "verified": int((judged.accepted & verified).sum()),
         "unverifiable": int((judged.accepted & unjudged).sum()),
+        "kept_by_agreement": int((judged.accepted & agreed).sum()),
+        "kept_by_agreement_wrong": int((judged.accepted & agreed & ~judged.correct).sum()),
         "refused_right_loops": int((refused & judged.correct).sum()),
         "refused_wrong_loops": int((refused & ~judged.correct).sum()),
         "loops": _at_the_decision(score.loop_metrics(kept, n_passes)),
+        "views_alone": _at_the_decision(score.loop_metrics(views_alone, n_passes)),
         "ms_per_loop_median": 1000.0 * float(np.median(seconds)) if seconds else None,
     }
     if n_passes > 1:
@@ -212,7 +220,7 @@ def _at_the_decision(loops: dict[str, Any]) -> dict[str, Any]:
 
 LOOP_COLUMNS = ["frame", "pass", "image", "match_frame", "match_image", "decision_score", "sequence_score",
                 "single_score", "runner_up", "direction", "camera", "accepted", "correct", "true_frame", "reason",
-                "verified", "verification"]  # fmt: skip
+                "verified", "verification", "kept"]  # fmt: skip
 
 
 def write_loops_csv(
@@ -222,9 +230,11 @@ def write_loops_csv(
     names: Sequence[str],
     verification: Verification | None = None,
 ) -> None:
-    """One row per frame that had a winner; `verified` (1/0) and the verifier's words for the
-    accepted loops under --verify, empty otherwise."""
+    """One row per frame that had a winner; under --verify, for the accepted loops, `verified`
+    (the views' verdict: 1/0), their words, and `kept` (1: the loop stands: verified, too small
+    to judge, or vouched for by earlier verified loops); empty otherwise."""
     verdicts = verification.verdicts if verification is not None else {}
+    agreed = verification.agreed if verification is not None else {}
     buffer = io.StringIO()
     writer = csv.writer(buffer)
     writer.writerow(LOOP_COLUMNS)
@@ -238,7 +248,8 @@ def write_loops_csv(
             f"{p.score:.4f}", "" if p.runner_up_score is None else f"{p.runner_up_score:.4f}", p.direction or "",
             p.camera, int(p.accepted), int(bool(loop_truth.has_truth[q]) and loop_truth.correct(q, p.match_id)),
             "" if not len(true) else int(true[np.argmin(np.abs(true - p.match_id))]), p.reason,
-            _verified_cell(verdicts.get(q)), verdicts[q].reason if q in verdicts else "",
+            _verified_cell(verdicts.get(q)), _verification_words(verdicts.get(q), agreed.get(q)),
+            "" if q not in verdicts else int(verdicts[q].accepted or not verdicts[q].verifiable or q in agreed),
         ])  # fmt: skip
     atomic_write_text(path, buffer.getvalue())
 
@@ -248,6 +259,14 @@ def _verified_cell(verdict: PairVerdict | None) -> int | str:
     if verdict is None:
         return ""
     return int(verdict.accepted) if verdict.verifiable else "unverifiable"
+
+
+def _verification_words(verdict: PairVerdict | None, agreeing: int | None) -> str:
+    if verdict is None:
+        return ""
+    if agreeing is None:
+        return verdict.reason
+    return f"{verdict.reason}; kept: {agreeing} earlier verified loops of the revisit agree along the path"
 
 
 def write_pr_plot(path: Path, outcome: StreamOutcome, loop_truth: LoopTruth, n_passes: int, title: str) -> None:
@@ -286,7 +305,8 @@ def summary_table(metrics: dict[str, Any]) -> Table:
     if "loops_across_passes" in metrics:
         views.append(("across passes only", metrics["loops_across_passes"]))
     if "verify" in metrics:
-        views.append(("verified by two views", metrics["verify"]["loops"]))
+        views.append(("verified by two views alone", metrics["verify"]["views_alone"]))
+        views.append(("verified, or earlier verified loops agree", metrics["verify"]["loops"]))
         if "loops_across_passes" in metrics["verify"]:
             views.append(("verified, across passes", metrics["verify"]["loops_across_passes"]))
 
@@ -320,7 +340,7 @@ def run_loop_eval(
         if verify:
             n_accepted = sum(1 for p in outcome.proposals if p is not None and p.accepted)
             checking = progress.add_task("verifying", total=n_accepted)
-            verification = verify_accepted(outcome, prepared.passes, config, backbone,
+            verification = verify_accepted(outcome, prepared.passes, prepared.positions, config, backbone,
                                            lambda: progress.advance(checking))  # fmt: skip
     metrics = compute_metrics(outcome, loop_truth, config, len(passes), verification)
     from_log = prepared.from_log

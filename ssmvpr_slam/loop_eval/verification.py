@@ -5,13 +5,20 @@ backbone). loop-eval only asks whether the two images can be views of one rigid 
 fits the fundamental matrix and needs no intrinsics: image folders carry none. The passes are
 read a second time and only the images of accepted loops are kept (at the verifier's width),
 so a long sequence is never held in memory.
+
+A loop the views refuse is treated as a run treats it (`two_view.on_geometry_failure`): with
+`consistent`, it is kept when enough earlier loops of its revisit that the views *did* verify
+agree with it along the path (`agreeing_loops`); a run checks that agreement under odometry,
+loop-eval has only the distance travelled along the stream. Supporters must be verified ones:
+the detector's own loops agree with each other by construction (its sequence matching), so
+letting unverified ones vouch would keep a stretch of look-alikes the views refused.
 """
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -19,8 +26,9 @@ import numpy as np
 from loopclosure.backbone import Backbone
 from loopclosure.dense_matches import DenseFeatures
 from loopclosure.pair_verifier import PairVerdict, PairVerifier
+from ssmvpr_slam.backend.config import LoopConsistencyConfig
 from ssmvpr_slam.config.slam import SlamConfig
-from ssmvpr_slam.loop_eval.stream import ImagePair, StreamOutcome
+from ssmvpr_slam.loop_eval.stream import ImagePair, StreamOutcome, travelled
 
 RECENT_FEATURES = 16
 """Dense features kept for reuse (about 2 MB each at 480 px wide)."""
@@ -28,17 +36,25 @@ RECENT_FEATURES = 16
 
 @dataclass(frozen=True)
 class Verification:
-    """The verdict on each accepted loop (by its query's stream frame) and the seconds each took
-    (both images' features and the geometry)."""
+    """The verdict on each accepted loop (by its query's stream frame), the seconds each took
+    (both images' features and the geometry), and the refused loops kept because earlier
+    verified loops of their revisit agree with them (frame -> how many)."""
 
     verdicts: dict[int, PairVerdict]
     seconds: tuple[float, ...]
+    agreed: dict[int, int] = field(default_factory=dict)
 
     def verified(self, n_frames: int) -> np.ndarray:
         """(n_frames,) bool: the frame's accepted loop verified."""
         out = np.zeros(n_frames, bool)
         for frame, verdict in self.verdicts.items():
             out[frame] = verdict.accepted
+        return out
+
+    def kept_by_agreement(self, n_frames: int) -> np.ndarray:
+        """(n_frames,) bool: the frame's loop was refused by the views but earlier verified loops vouch for it."""
+        out = np.zeros(n_frames, bool)
+        out[list(self.agreed)] = True
         return out
 
     def unverifiable(self, n_frames: int) -> np.ndarray:
@@ -61,11 +77,13 @@ def _reduced(image: np.ndarray, width: int | None) -> np.ndarray:
 def verify_accepted(
     outcome: StreamOutcome,
     passes: Sequence[Callable[[], Iterable[ImagePair]]],
+    positions: np.ndarray,
     config: SlamConfig,
     backbone: Backbone,
     on_loop: Callable[[], None] | None = None,
 ) -> Verification:
-    """Verify the accepted loops of `outcome`; `passes` read the stream's images again."""
+    """Verify the accepted loops of `outcome`; `passes` read the stream's images again,
+    `positions` (one a frame) give the distance travelled for the agreement rule."""
     verifier = PairVerifier(backbone, config.backend.registration.two_view.deep)
     loops = {q: p for q, p in enumerate(outcome.proposals) if p is not None and p.accepted}
     wanted: dict[tuple[int, str], None] = {}
@@ -98,4 +116,44 @@ def verify_accepted(
         seconds.append(time.perf_counter() - start)
         if on_loop is not None:
             on_loop()
-    return Verification(verdicts, tuple(seconds))
+    agreed: dict[int, int] = {}
+    if config.backend.registration.two_view.on_geometry_failure == "consistent":
+        agreed = agreeing_loops(outcome, verdicts, travelled(positions), config.backend.registration.consistency)
+    return Verification(verdicts, tuple(seconds), agreed)
+
+
+def agreeing_loops(
+    outcome: StreamOutcome, verdicts: dict[int, PairVerdict], path_m: np.ndarray, rule: LoopConsistencyConfig
+) -> dict[int, int]:
+    """The refused loops that at least `rule.min_support` earlier *verified* loops of the same
+    revisit agree with, and how many do. Loops q_j -> m_j and q -> m agree, as in a run
+    (`backend.loop_consistency`), when the two stretches of path between them match: the match
+    moved as far as the query did (backwards for a reverse revisit), within
+    `max_translation_m` plus `per_m_travelled` of both stretches; supporters lie at most
+    `window_keyframes` before the query and from the match."""
+    proposals = outcome.proposals
+    verified = [q for q, v in verdicts.items() if v.accepted]
+    out: dict[int, int] = {}
+    for q, verdict in verdicts.items():
+        if verdict.accepted or not verdict.verifiable:
+            continue
+        loop = proposals[q]
+        assert loop is not None
+        sign = -1.0 if loop.direction == "reverse" else 1.0
+        support = 0
+        for j in verified:
+            earlier = proposals[j]
+            assert earlier is not None
+            if not (
+                0 < q - j <= rule.window_keyframes and abs(loop.match_id - earlier.match_id) <= rule.window_keyframes
+            ):
+                continue
+            if earlier.direction != loop.direction:
+                continue
+            moved_query = path_m[q] - path_m[j]
+            moved_match = path_m[loop.match_id] - path_m[earlier.match_id]
+            allowed = rule.max_translation_m + rule.per_m_travelled * (abs(moved_query) + abs(moved_match))
+            support += abs(moved_match - sign * moved_query) <= allowed
+        if support >= rule.min_support:
+            out[q] = support
+    return out

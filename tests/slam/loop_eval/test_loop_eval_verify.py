@@ -50,16 +50,21 @@ def test_verified_loops_are_reported_beside_the_detectors(
     loops, verify = metrics["loops"], metrics["verify"]
     assert loops["accepted"] >= 20 and loops["precision"] == 1.0
     assert verify["checked"] == loops["accepted"]
-    assert verify["verified"] + verify["refused_right_loops"] + verify["refused_wrong_loops"] == loops["accepted"]
-    assert verify["loops"]["accepted"] == verify["verified"] >= 0.8 * loops["accepted"]
-    assert verify["loops"]["precision"] == 1.0
+    refused = verify["refused_right_loops"] + verify["refused_wrong_loops"]
+    assert verify["verified"] + verify["kept_by_agreement"] + refused == loops["accepted"]
+    assert verify["views_alone"]["accepted"] == verify["verified"] >= 0.8 * loops["accepted"]
+    assert verify["loops"]["accepted"] == verify["verified"] + verify["kept_by_agreement"]
+    assert verify["loops"]["precision"] == verify["views_alone"]["precision"] == 1.0
     assert verify["loops"]["pr_auc"] is None  # only accepted loops are verified: no curve of its own
     assert verify["ms_per_loop_median"] > 0
     accepted = [r for r in rows if r["accepted"] == "1"]
     assert len(accepted) == loops["accepted"]
     assert all(r["verified"] in ("0", "1") and r["verification"].startswith("fundamental matrix") for r in accepted)
     assert sum(r["verified"] == "1" for r in accepted) == verify["verified"]
-    assert all(r["verified"] == "" for r in rows if r["accepted"] == "0")
+    assert sum(r["kept"] == "1" for r in accepted) == verify["loops"]["accepted"]
+    kept_by_agreement = [r for r in accepted if r["verified"] == "0" and r["kept"] == "1"]
+    assert all("earlier verified loops of the revisit agree" in r["verification"] for r in kept_by_agreement)
+    assert all(r["verified"] == r["kept"] == "" for r in rows if r["accepted"] == "0")
 
 
 def test_the_verifier_refuses_the_wrong_places_a_lowered_accept_level_takes(
@@ -78,4 +83,6 @@ def test_the_verifier_refuses_the_wrong_places_a_lowered_accept_level_takes(
     assert len(accepted) >= 10 and metrics["verify"]["checked"] == len(accepted)
     verified = [r for r in accepted if r["verified"] == "1"]
     assert len(verified) <= 0.1 * len(accepted), [(r["image"], r["match_image"]) for r in verified]
+    kept = [r for r in accepted if r["kept"] == "1"]  # a run of wrong places has too few verified ones to vouch
+    assert len(kept) <= 0.1 * len(accepted), [(r["image"], r["match_image"]) for r in kept]
     assert all("fundamental matrix" in r["verification"] for r in accepted)
