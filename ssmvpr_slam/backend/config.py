@@ -269,7 +269,11 @@ class TwoViewConfig(SettingsModel):
     rotation_singular_tol: float = Field(
         0.05, gt=0, description="K^-1 H K counts as a rotation if s_min/s_max >= 1 - tol"
     )
-    translation_sigma: float = Field(2.0, gt=0, description="m; the place radius")
+    translation_sigma: float = Field(
+        3.0, gt=0, description="m; the place prior's zero translation. Two views of one place lie a few metres "
+        "apart, and the loops of one revisit share their offset (another lane), so they are not independent: "
+        "each is weighted at 1.5x the 2 m place radius (docs/loop_verification.md has the sweep)"
+    )  # fmt: skip
     rot_sigma: float = Field(
         0.03, gt=0, description="rad; a rotation from keypoints (ORB; with method deep, ORB agreeing with the deep "
         "features): 0.6-0.8 deg median error, 1.5-1.8 deg p90 on the demo's loops (docs/loop_verification.md)"

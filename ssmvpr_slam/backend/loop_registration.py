@@ -16,7 +16,7 @@ Which path is used when:
   Accepted only if the inlier ratio and the inlier RMSE pass the config thresholds; rejected
   (with a reason, never an exception) when either cloud is too small after cleaning.
 * No LiDAR -> `LoopRegistrar.register_images`: a place prior. Translation is zero with
-  `two_view.translation_sigma` (the place radius): the essential matrix gives the direction of
+  `two_view.translation_sigma` (3 m: see its description): the essential matrix gives the direction of
   the baseline but not its length, and the recogniser vouches for the place, not for a distance.
   Rotation comes from two-view geometry when it verifies, with `two_view.rot_sigma` (keypoints)
   or `deep_rot_sigma` (the deep features' cells alone): by default
@@ -243,7 +243,7 @@ class LoopRegistrar:
         )
 
     def yaw_prior(self, yaw_guess: float, why: str, inlier_ratio: float = 0.0) -> LoopRegistration:
-        """Place prior from the visual match alone: zero translation within the place radius,
+        """Place prior from the visual match alone: zero translation within `translation_sigma`,
         yaw from the spatial matching's column shift, loose roll and pitch."""
         cfg = self.config.two_view
         sigmas = np.array(
