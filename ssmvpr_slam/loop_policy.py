@@ -28,9 +28,8 @@ from ssmvpr_slam.run_result import Keyframe, LoopRecord
 
 # registrations whose T_mq says where the loop puts its two keyframes (a poor ICP alignment and an
 # implausible loop do not)
-_POSED_METHODS = frozenset(
-    {"icp", "two_view_deep", "two_view_essential", "two_view_homography", "yaw_prior", "unverified", "spaced"}
-)
+_VERIFIED_METHODS = frozenset({"icp", "two_view_deep", "two_view_essential", "two_view_homography"})
+_POSED_METHODS = _VERIFIED_METHODS | {"yaw_prior", "unverified", "spaced"}
 
 
 class LoopPolicy:
@@ -115,7 +114,9 @@ class LoopPolicy:
     ) -> LoopRegistration:
         """A loop no geometry verified (a yaw prior) becomes a factor only as
         `two_view.on_geometry_failure` says: with `consistent`, once enough earlier loops of its
-        revisit agree with it under odometry (`loop_consistency`), else it is refused."""
+        revisit agree with it under odometry (`loop_consistency`), else it is refused. A loop whose
+        views the deep features refused counts only loops a scan or two views verified: a stretch
+        of look-alikes refused one by one agrees with itself under odometry (a parallel street)."""
         registration_config = self.registration_config
         if registration.method != "yaw_prior" or registration_config.two_view.on_geometry_failure != "consistent":
             return registration
@@ -128,7 +129,7 @@ class LoopPolicy:
             if r.proposal.accepted
             and r.proposal.prior_map == proposal.prior_map
             and r.registration is not None
-            and r.registration.method in _POSED_METHODS
+            and r.registration.method in (_VERIFIED_METHODS if registration.views_refused else _POSED_METHODS)
             and (e := self._loop_pose(keyframes, r.proposal, r.registration.T_mq)) is not None
         ]
         agreeing = support(loop, earlier, registration_config.consistency)
@@ -275,7 +276,7 @@ def unverified(config: LoopRegistrationConfig, prior: LoopRegistration, agreeing
         prior,
         accepted=False,
         reason=f"unverified: {agreeing} of the {need} earlier loops of the revisit needed agree "
-        f"(backend.registration.consistency); {prior.reason}",
+        f"(backend.registration.consistency{_VERIFIED_ONLY if prior.views_refused else ''}); {prior.reason}",
         sigmas=np.full(6, np.nan),
         method="unverified",
     )
@@ -283,7 +284,11 @@ def unverified(config: LoopRegistrationConfig, prior: LoopRegistration, agreeing
 
 def confirmed(prior: LoopRegistration, agreeing: int) -> LoopRegistration:
     """The place prior as a factor: `agreeing` earlier loops of the revisit vouch for it."""
-    return replace(prior, reason=f"{prior.reason}; {agreeing} earlier loops of the revisit agree")
+    only = f" ({_VERIFIED_ONLY.lstrip('; ')})" if prior.views_refused else ""
+    return replace(prior, reason=f"{prior.reason}; {agreeing} earlier loops of the revisit agree{only}")
+
+
+_VERIFIED_ONLY = "; the views refused it, so only loops a scan or two views verified count"
 
 
 def _refused(reason: str) -> LoopRegistration:

@@ -71,6 +71,9 @@ class LoopRegistration:
     registered, 'spaced' and 'implausible' (`LoopRegistrar.spaced`, `.implausible`)."""
     yaw_seed: float = float("nan")
     """ICP: the yaw seed (rad) that won."""
+    views_refused: bool = False
+    """A yaw prior because the deep features judged the two views and refused them (not merely
+    found no geometry): only loops a scan or two views verified may then vouch for it."""
 
     @property
     def T_qm(self) -> np.ndarray:
@@ -229,7 +232,7 @@ class LoopRegistrar:
             ratio = est.n_inliers / est.n_matches if est.n_matches else 0.0
             if cfg.on_geometry_failure == "reject":
                 return self._rejected(f"two-view geometry failed: {est.reason}", yaw_guess, ratio, "two_view_failed")
-            return self.yaw_prior(yaw_guess, est.reason, ratio)
+            return self.yaw_prior(yaw_guess, est.reason, ratio, views_refused=est.refused)
         body_from_cam = project_to_so3(np.asarray(cfg.body_from_camera, dtype=np.float64))
         rot = project_to_so3(body_from_cam @ est.rotation_mq @ body_from_cam.T @ rot_z(-_finite_yaw(query_yaw_offset)))
         return LoopRegistration(
@@ -242,7 +245,9 @@ class LoopRegistrar:
             method="two_view_deep" if est.model.startswith("deep") else f"two_view_{est.model}",
         )
 
-    def yaw_prior(self, yaw_guess: float, why: str, inlier_ratio: float = 0.0) -> LoopRegistration:
+    def yaw_prior(
+        self, yaw_guess: float, why: str, inlier_ratio: float = 0.0, views_refused: bool = False
+    ) -> LoopRegistration:
         """Place prior from the visual match alone: zero translation within `translation_sigma`,
         yaw from the spatial matching's column shift, loose roll and pitch."""
         cfg = self.config.two_view
@@ -257,6 +262,7 @@ class LoopRegistrar:
             rmse=float("nan"),
             sigmas=sigmas,
             method="yaw_prior",
+            views_refused=views_refused,
         )
 
 

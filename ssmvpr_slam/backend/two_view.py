@@ -18,7 +18,7 @@ kept pixels, so a calibration given for the camera's resolution stays valid.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import cv2
@@ -99,6 +99,9 @@ class TwoViewRotation:
     n_inliers: int
     error_px: float
     reason: str
+    refused: bool = False
+    """The deep features judged the pair and found no common rigid scene: evidence against the
+    loop, not merely no geometry (ORB finding nothing across light, images too small to judge)."""
 
 
 def to_gray(name: str, image: object) -> np.ndarray:
@@ -275,7 +278,8 @@ def deep_rotation(
     gray_m, gray_q, k = pair
     verdict = verifier.verify(verifier.features(gray_m, "match_image"), verifier.features(gray_q, "query_image"), k, k)
     if not verdict.accepted or verdict.rotation is None:
-        return _failed(verdict.n_matches, verdict.n_inliers, verdict.reason)
+        refused = not verdict.accepted and verdict.verifiable
+        return replace(_failed(verdict.n_matches, verdict.n_inliers, verdict.reason), refused=refused)
     rotation, reason = project_to_so3(verdict.rotation), verdict.reason
     if config.orb_refines_deep:
         orb = estimate_rotation(image_m, image_q, config)

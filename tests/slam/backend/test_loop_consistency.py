@@ -5,6 +5,7 @@ and such a loop becomes a factor only as `two_view.on_geometry_failure` says."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -12,7 +13,7 @@ import pytest
 from ssmvpr_slam import loop_policy
 from ssmvpr_slam.backend.config import LoopConsistencyConfig, LoopRegistrationConfig, TwoViewConfig
 from ssmvpr_slam.backend.loop_consistency import LoopPose, agrees, disagreement, support
-from ssmvpr_slam.backend.loop_registration import LoopRegistrar
+from ssmvpr_slam.backend.loop_registration import LoopRegistrar, LoopRegistration
 from ssmvpr_slam.backend.se3 import make_pose, rot_z
 
 CONFIG = LoopConsistencyConfig()
@@ -77,6 +78,61 @@ def test_unverified_and_confirmed_registrations() -> None:
     np.testing.assert_array_equal(refused.T_mq, prior.T_mq)  # what later loops check against
     kept = loop_policy.confirmed(prior, 2)
     assert kept.accepted and kept.method == "yaw_prior" and kept.reason.endswith("2 earlier loops of the revisit agree")
+
+
+class _Detector:
+    """What the policy reads of the detector here: place k is keyframe k, driven k metres in."""
+
+    has_encoder = False
+
+    def place_of(self, keyframe_id: int) -> int:
+        return keyframe_id
+
+    def travelled_at(self, place: int) -> float:
+        return float(place)
+
+
+def _checked(earlier_method: str, views_refused: bool) -> LoopRegistration:
+    """Loop 105 -> 5 on a street driven twice (keyframes 0-20, then 100-120 along the same x,
+    odometry 6 m to the side by then), after loops 101 -> 1 and 103 -> 3 registered by
+    `earlier_method`; its own views gave no rotation (refused by the deep features, or not)."""
+    from loopclosure.detector import LoopProposal
+    from ssmvpr_slam.config.slam import SlamConfig
+    from ssmvpr_slam.run_result import Keyframe, LoopRecord
+
+    config = SlamConfig()
+    assert config.backend.registration.two_view.on_geometry_failure == "consistent"
+    policy = loop_policy.LoopPolicy(config, _Detector(), None)  # type: ignore[arg-type]
+    drift = street(0.0, y=6.0)
+    keyframes = [
+        Keyframe(k, k, float(k), street(float(k)) if k < 100 else drift @ street(float(k - 100)), None, None, None)
+        for k in range(121)
+    ]
+
+    def proposal(q: int, m: int) -> LoopProposal:
+        return LoopProposal(q, m, m, 0.5, 0.5, 0, 0.0, True, "accepted")
+
+    prior = policy.registrar.yaw_prior(0.0, "no rotation", views_refused=False)
+    earlier = [
+        LoopRecord(proposal(q, q - 100), replace(prior, method=earlier_method, accepted=earlier_method != "unverified"))
+        for q in (101, 103)
+    ]
+    now = policy.registrar.yaw_prior(0.0, "the views refused", views_refused=views_refused)
+    return policy._checked(keyframes, earlier, keyframes[105], proposal(105, 5), now)
+
+
+def test_loops_whose_views_were_refused_are_vouched_for_only_by_verified_loops() -> None:
+    """Two loops the views refused before it agree with a third under odometry, as a parallel
+    look-alike street would: that is not enough. Two loops the views verified are."""
+    alone = _checked("unverified", views_refused=True)
+    assert alone.method == "unverified" and not alone.accepted
+    assert "only loops a scan or two views verified count" in alone.reason
+    backed = _checked("two_view_deep", views_refused=True)
+    assert backed.accepted and backed.method == "yaw_prior"
+    assert "2 earlier loops of the revisit agree" in backed.reason
+    # no geometry at all (ORB across light, a keyframe without an image): any earlier loop vouches, as before
+    assert _checked("unverified", views_refused=False).accepted
+    assert _checked("yaw_prior", views_refused=False).accepted
 
 
 @pytest.mark.parametrize("bad", [{"min_support": 0}, {"max_translation_m": 0.0}, {"max_rotation_deg": 200.0}])

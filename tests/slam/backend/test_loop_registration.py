@@ -451,6 +451,7 @@ def test_kept_images_from_different_cameras_fall_back_to_the_yaw_guess(camera):
     reg = LoopRegistrar(cfg).register_images(reduce_image(img_m, KEPT_PIXELS), reduce_image(img_m[:, :600], KEPT_PIXELS),
                                              yaw_guess=0.2)  # fmt: skip
     assert reg.method == "yaw_prior" and "sizes differ" in reg.reason
+    assert not reg.views_refused  # nothing was judged
 
 
 # --------------------------------------------------------------------------- deep features (the default)
@@ -505,4 +506,5 @@ def test_deep_features_refuse_another_scene_and_fall_back_as_configured(camera, 
     _, _, _, img_m = camera
     reg = deep.register_images(texture(7), img_m, yaw_guess=0.25)
     assert reg.method == "yaw_prior" and "fundamental matrix" in reg.reason, reg.reason
+    assert reg.views_refused  # judged and refused: only verified loops may vouch for it
     assert yaw_of(reg.T_mq[:3, :3]) == pytest.approx(0.25)
