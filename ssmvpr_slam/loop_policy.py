@@ -123,13 +123,14 @@ class LoopPolicy:
         loop = self._loop_pose(keyframes, proposal, registration.T_mq)
         if loop is None:
             return unverified(registration_config, registration, 0)
+        vouching = _VERIFIED_METHODS if registration.views_refused else _POSED_METHODS
         earlier = [
             e
             for r in loops
             if r.proposal.accepted
             and r.proposal.prior_map == proposal.prior_map
             and r.registration is not None
-            and r.registration.method in (_VERIFIED_METHODS if registration.views_refused else _POSED_METHODS)
+            and r.registration.method in vouching
             and (e := self._loop_pose(keyframes, r.proposal, r.registration.T_mq)) is not None
         ]
         agreeing = support(loop, earlier, registration_config.consistency)
@@ -226,6 +227,9 @@ def loop_to_carry(loops: Sequence[LoopRecord], query_id: int, match_id: int, rea
     return None
 
 
+_VERIFIED_ONLY = "the views refused it, so only loops a scan or two views verified count"
+"""Said of a loop whose views the deep features refused (`LoopRegistration.views_refused`)."""
+
 # ---- the verdicts: what the policy decided for a loop it did not (or not yet) let in, and why,
 # naming the setting that decided; registration only registers
 
@@ -272,11 +276,12 @@ def unverified(config: LoopRegistrationConfig, prior: LoopRegistration, agreeing
     """No factor: nothing verified the loop's geometry and too few earlier loops of its revisit
     agree with it (`consistency`). T_mq stays the place prior, for the loops after it to check against."""
     need = config.consistency.min_support
+    only = f"; {_VERIFIED_ONLY}" if prior.views_refused else ""
     return replace(
         prior,
         accepted=False,
         reason=f"unverified: {agreeing} of the {need} earlier loops of the revisit needed agree "
-        f"(backend.registration.consistency{_VERIFIED_ONLY if prior.views_refused else ''}); {prior.reason}",
+        f"(backend.registration.consistency{only}); {prior.reason}",
         sigmas=np.full(6, np.nan),
         method="unverified",
     )
@@ -284,11 +289,8 @@ def unverified(config: LoopRegistrationConfig, prior: LoopRegistration, agreeing
 
 def confirmed(prior: LoopRegistration, agreeing: int) -> LoopRegistration:
     """The place prior as a factor: `agreeing` earlier loops of the revisit vouch for it."""
-    only = f" ({_VERIFIED_ONLY.lstrip('; ')})" if prior.views_refused else ""
+    only = f" ({_VERIFIED_ONLY})" if prior.views_refused else ""
     return replace(prior, reason=f"{prior.reason}; {agreeing} earlier loops of the revisit agree{only}")
-
-
-_VERIFIED_ONLY = "; the views refused it, so only loops a scan or two views verified count"
 
 
 def _refused(reason: str) -> LoopRegistration:

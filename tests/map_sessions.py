@@ -34,3 +34,13 @@ def session_log(weights: Path, out: Path, frames: int, index: int, seed: int = 0
         path.parent.mkdir(parents=True, exist_ok=True)
         simulate_to_mcap(config, path, Console(quiet=True))
     return path
+
+
+def linked_session_logs(weights: Path, out: Path, frames: int, indices: tuple[int, ...]) -> list[Path]:
+    """Sessions `indices` of the city as `out/session<index>.mcap`, links to the cached logs (the
+    names `map` gives the sessions)."""
+    logs = []
+    for index in indices:
+        logs.append(out / f"session{index}.mcap")
+        logs[-1].symlink_to(session_log(weights, out, frames, index))
+    return logs

@@ -44,22 +44,32 @@ def disagreement(earlier: LoopPose, loop: LoopPose) -> tuple[float, float]:
     return float(np.linalg.norm(residual[:3, 3])), math.degrees(math.acos(min(1.0, max(-1.0, cos))))
 
 
+def allowed_m(config: LoopConsistencyConfig, path_m: float) -> float:
+    """Metres two loops of one revisit may disagree by, `path_m` driven on the two stretches
+    between them (odometry drifts along them)."""
+    return config.max_translation_m + config.per_m_travelled * path_m
+
+
+def in_window(config: LoopConsistencyConfig, query: int, match: int, earlier_query: int, earlier_match: int) -> bool:
+    """Whether loop earlier_query -> earlier_match may vouch for query -> match: before it, and
+    within `window_keyframes` of it on both visits (the same revisit)."""
+    window = config.window_keyframes
+    return 0 < query - earlier_query <= window and abs(match - earlier_match) <= window
+
+
 def agrees(earlier: LoopPose, loop: LoopPose, config: LoopConsistencyConfig) -> bool:
     path = abs(loop.travelled_query - earlier.travelled_query)
     if math.isfinite(loop.travelled_match) and math.isfinite(earlier.travelled_match):
         path += abs(loop.travelled_match - earlier.travelled_match)
     metres, degrees = disagreement(earlier, loop)
-    return metres <= config.max_translation_m + config.per_m_travelled * path and degrees <= config.max_rotation_deg
+    return metres <= allowed_m(config, path) and degrees <= config.max_rotation_deg
 
 
 def support(loop: LoopPose, earlier: Iterable[LoopPose], config: LoopConsistencyConfig) -> int:
     """How many `earlier` loops of the same revisit (query at most `window_keyframes` before,
     match within as many of this match) agree with `loop`."""
-    window = config.window_keyframes
     return sum(
         1
         for e in earlier
-        if 0 < loop.query_id - e.query_id <= window
-        and abs(loop.match_id - e.match_id) <= window
-        and agrees(e, loop, config)
+        if in_window(config, loop.query_id, loop.match_id, e.query_id, e.match_id) and agrees(e, loop, config)
     )

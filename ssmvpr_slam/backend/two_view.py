@@ -18,7 +18,7 @@ kept pixels, so a calibration given for the camera's resolution stays valid.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import cv2
@@ -279,7 +279,7 @@ def deep_rotation(
     verdict = verifier.verify(verifier.features(gray_m, "match_image"), verifier.features(gray_q, "query_image"), k, k)
     if not verdict.accepted or verdict.rotation is None:
         refused = not verdict.accepted and verdict.verifiable
-        return replace(_failed(verdict.n_matches, verdict.n_inliers, verdict.reason), refused=refused)
+        return _failed(verdict.n_matches, verdict.n_inliers, verdict.reason, refused)
     rotation, reason = project_to_so3(verdict.rotation), verdict.reason
     if config.orb_refines_deep:
         orb = estimate_rotation(image_m, image_q, config)
@@ -292,5 +292,5 @@ def deep_rotation(
     return TwoViewRotation(rotation, "deep", verdict.n_matches, verdict.n_inliers, float("nan"), reason)
 
 
-def _failed(n_matches: int, n_inliers: int, reason: str) -> TwoViewRotation:
-    return TwoViewRotation(None, "none", n_matches, n_inliers, float("nan"), reason)
+def _failed(n_matches: int, n_inliers: int, reason: str, refused: bool = False) -> TwoViewRotation:
+    return TwoViewRotation(None, "none", n_matches, n_inliers, float("nan"), reason, refused)

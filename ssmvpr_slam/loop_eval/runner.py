@@ -191,9 +191,10 @@ def _verify_metrics(judged: score.Judged, verification: Verification, n_passes: 
     verified = verification.verified(n)
     unjudged = verification.unverifiable(n)  # too small to tell: kept as decided
     agreed = verification.kept_by_agreement(n)
-    kept = replace(judged, accepted=judged.accepted & (verified | unjudged | agreed))
+    stands = verification.standing(n)
+    kept = replace(judged, accepted=judged.accepted & stands)
     views_alone = replace(judged, accepted=judged.accepted & (verified | unjudged))
-    refused = judged.accepted & ~verified & ~unjudged & ~agreed
+    refused = judged.accepted & ~stands
     seconds = verification.seconds
     out: dict[str, Any] = {
         "checked": len(verification.verdicts),
@@ -249,7 +250,7 @@ def write_loops_csv(
             p.camera, int(p.accepted), int(bool(loop_truth.has_truth[q]) and loop_truth.correct(q, p.match_id)),
             "" if not len(true) else int(true[np.argmin(np.abs(true - p.match_id))]), p.reason,
             _verified_cell(verdicts.get(q)), _verification_words(verdicts.get(q), agreed.get(q)),
-            "" if q not in verdicts else int(verdicts[q].accepted or not verdicts[q].verifiable or q in agreed),
+            "" if verification is None or q not in verdicts else int(verification.stands(q)),
         ])  # fmt: skip
     atomic_write_text(path, buffer.getvalue())
 

@@ -27,6 +27,7 @@ from loopclosure.backbone import Backbone
 from loopclosure.dense_matches import DenseFeatures
 from loopclosure.pair_verifier import PairVerdict, PairVerifier
 from ssmvpr_slam.backend.config import LoopConsistencyConfig
+from ssmvpr_slam.backend.loop_consistency import allowed_m, in_window
 from ssmvpr_slam.config.slam import SlamConfig
 from ssmvpr_slam.loop_eval.stream import ImagePair, StreamOutcome, travelled
 
@@ -43,6 +44,18 @@ class Verification:
     verdicts: dict[int, PairVerdict]
     seconds: tuple[float, ...]
     agreed: dict[int, int] = field(default_factory=dict)
+
+    def stands(self, frame: int) -> bool:
+        """The frame's accepted loop stands: verified, too small to judge, or vouched for."""
+        verdict = self.verdicts[frame]
+        return verdict.accepted or not verdict.verifiable or frame in self.agreed
+
+    def standing(self, n_frames: int) -> np.ndarray:
+        """(n_frames,) bool: `stands`, per frame (False where no loop was checked)."""
+        out = np.zeros(n_frames, bool)
+        for frame in self.verdicts:
+            out[frame] = self.stands(frame)
+        return out
 
     def verified(self, n_frames: int) -> np.ndarray:
         """(n_frames,) bool: the frame's accepted loop verified."""
@@ -144,16 +157,11 @@ def agreeing_loops(
         for j in verified:
             earlier = proposals[j]
             assert earlier is not None
-            if not (
-                0 < q - j <= rule.window_keyframes and abs(loop.match_id - earlier.match_id) <= rule.window_keyframes
-            ):
-                continue
-            if earlier.direction != loop.direction:
+            if earlier.direction != loop.direction or not in_window(rule, q, loop.match_id, j, earlier.match_id):
                 continue
             moved_query = path_m[q] - path_m[j]
             moved_match = path_m[loop.match_id] - path_m[earlier.match_id]
-            allowed = rule.max_translation_m + rule.per_m_travelled * (abs(moved_query) + abs(moved_match))
-            support += abs(moved_match - sign * moved_query) <= allowed
+            support += abs(moved_match - sign * moved_query) <= allowed_m(rule, abs(moved_query) + abs(moved_match))
         if support >= rule.min_support:
             out[q] = support
     return out

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from map_sessions import map_config, session_log
+from map_sessions import linked_session_logs, map_config
 from rich.console import Console
 
 from ssmvpr_slam.config.slam import SlamConfig
@@ -37,10 +37,7 @@ def camera_only(config: SlamConfig) -> SlamConfig:
 @pytest.fixture(scope="module")
 def camera_map(weights_path: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
     out = tmp_path_factory.mktemp("camera_map")
-    logs = []
-    for index in (0, 4):
-        logs.append(out / f"session{index}.mcap")
-        logs[-1].symlink_to(session_log(weights_path, out, FRAMES, index))
+    logs = linked_session_logs(weights_path, out, FRAMES, (0, 4))
     config = camera_only(map_config(weights_path, out, None))
     folder, metrics = map_logs(logs, config, Console(quiet=True))
     return {"folder": folder, "metrics": metrics, "config": config, "logs": logs}

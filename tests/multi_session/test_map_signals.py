@@ -20,7 +20,7 @@ import time
 from pathlib import Path
 
 import pytest
-from map_sessions import session_log
+from map_sessions import linked_session_logs
 from processes import all_pids, command_line, process_stat, session_workers
 
 pytestmark = pytest.mark.slow
@@ -97,10 +97,7 @@ class MapCall:
 @pytest.fixture(scope="module")
 def calls(weights_path: Path, tmp_path_factory: pytest.TempPathFactory) -> dict[str, object]:
     base = tmp_path_factory.mktemp("map_signals")
-    logs = []
-    for index in (0, 4):
-        logs.append(base / f"session{index}.mcap")
-        logs[-1].symlink_to(session_log(weights_path, base, FRAMES, index))
+    logs = linked_session_logs(weights_path, base, FRAMES, (0, 4))
     config = base / "map.yaml"
     config.write_text("preset: quick\nresults:\n  mcap: false\n  plots: false\nmap:\n  workers: 1\n"
                       "  codebook_images_per_session: 12\n")  # fmt: skip
