@@ -1,4 +1,4 @@
-"""The GPU measurements of issue 10, prepared on this machine and run on a lent GPU machine.
+"""The GPU measurements of issues 10 and 41, prepared on this machine and run on a lent GPU machine.
 
 A session is lent a GPU only now and then, for 15 minutes in all, and that machine has torch
 with CUDA but none of this project's other dependencies, no shared weights, and no network.
@@ -7,28 +7,33 @@ timeout each, writing one JSON per step:
 
     python tools/device_checks.py prepare            # here: wheels for its Python, fp16 weights, images
 
-    device run, call 1 (carry .device/core .device/weights .device/images):
-        python3 tools/device_checks.py run stage1 backbone --out $OUT
-    device run, call 2, at once on the same warm machine (carry .device/slam):
+    device run, call 1 (carry .device/core .device/slam):
+        python3 tools/device_checks.py run simulate --out $OUT
+    device run, call 2, at once on the same warm machine (carry .device/faiss .device/weights):
         python3 tools/device_checks.py run slam --out $OUT
+    (stage1 and backbone, measured in earlier sessions, can follow slam in call 2; backbone also
+    carries .device/images)
 
 Steps:
+  simulate  the demo traverse simulated into a log (.device/demo.mcap), for `slam`.
+  slam      the whole pipeline on that log with the backbone on the GPU (tools/bench_slam.py
+            --device cuda --precision auto): by default pipelined against --serial (keyframes
+            per second, the stages' latency, speedup and same_loops), then -c fast with
+            --omp-wait-policy PASSIVE.
   stage1    stage I exact search as torch matrix products on the GPU at 100k and 1M places
             (tools/bench_vpr.py --only-index --exact-backend torch --torch-device cuda): query ms,
             build seconds, and whether its votes equal numpy brute force on 3 queries; then
             where a 1M query's time goes (tools/bench_device_search.py).
   backbone  VGG16 to conv5_2 on the GPU at fp32 and auto (bf16 on a card that has it):
             ms per image at batch 1 and 8, agreement with fp32 (tools/bench_backbone.py).
-  slam      the demo traverse simulated into a log, then the whole pipeline on it with the
-            backbone on the GPU (tools/bench_slam.py --device cuda --precision auto), by default
-            and with -c fast and --omp-wait-policy PASSIVE: keyframes per second and the
-            stages' latency.
 
-The wheels of both calls together are too large for one call's carry (64 MiB), so the second
-call relies on what the first installed under .device/site; if the machine was given back in
-between, `run` says which folder to carry again. `--device cpu --quick` runs the same steps
-small on this machine (the test does), so a GPU session spends its minutes measuring: 2000
-places, 20000 search vectors, the backbone at 112 px, an 8-frame log (3 keyframes).
+The wheels and weights of the slam measurement together are too large for one call's carry
+(64 MiB: gtsam alone is 35 MB, the weights 29 MB), so the first call simulates with what it
+carries, and the second relies on what the first installed under .device/site and on the log it
+left in .device/; if the machine was given back in between, `run` says what to carry or to run
+again. `--device cpu --quick` runs the same steps small on this machine (the test does), so a
+GPU session spends its minutes measuring: 2000 places, 20000 search vectors, the backbone at
+112 px, an 8-frame log (3 keyframes).
 """
 
 from __future__ import annotations
@@ -63,16 +68,18 @@ IMAGE_HAS = {"torch", "numpy", "scipy", "scikit-learn", "opencv-python-headless"
 # dependencies: a log reader's import missing there cost a GPU session a call).
 WHEELS = {
     "core": ["pydantic", "pydantic-core", "annotated-types", "typing-inspection", "typing-extensions",
-             "pydantic-settings", "python-dotenv", "faiss-cpu", "packaging"],
+             "pydantic-settings", "python-dotenv", "packaging"],
+    "faiss": ["faiss-cpu"],
     "slam": ["gtsam", "kiss-icp", "natsort", "pyquaternion", "mcap", "mcap-ros2-support", "zstandard", "lz4",
              "rosbags", "ruamel.yaml", "apsw", "backports.zstd"],
 }  # fmt: skip
-NEEDS = {"stage1": ["core"], "backbone": ["core", "weights", "images"], "slam": ["core", "slam", "weights"]}
-# Each command's limit (a first call runs stage1 and backbone: 570 s at most, inside the
-# device's 600 s a call; the second, slam: 550 s). On an H200 they took 84 s and 169 s (82 s
-# simulating, 86 s one bench_slam, before the -c fast run was added).
+# "log": the simulate step's output, left on the machine for the slam step of the next call.
+NEEDS = {"stage1": ["core", "faiss"], "backbone": ["core", "weights", "images"], "simulate": ["core", "slam"],
+         "slam": ["core", "slam", "faiss", "weights", "log"]}  # fmt: skip
+# Each command's limit, inside the device's 600 s a call (call 2: slam's 530 s). On an H200
+# simulating took 80-92 s, one default bench_slam 52-80 s before the pipelined schedule.
 TIMEOUT_S = {"stage1_100000": 100, "stage1_1000000": 240, "stage1_2000": 60, "stage1_breakdown": 90, "backbone": 140,
-             "simulate": 150, "bench_slam": 200, "bench_slam_fast": 200}  # fmt: skip
+             "simulate": 200, "bench_slam": 330, "bench_slam_fast": 200}  # fmt: skip
 PLATFORMS = ["manylinux_2_17_x86_64", "manylinux2014_x86_64", "manylinux_2_24_x86_64", "manylinux_2_27_x86_64",
              "manylinux_2_28_x86_64", "manylinux_2_31_x86_64", "manylinux_2_34_x86_64", "manylinux_2_35_x86_64"]  # fmt: skip
 
@@ -147,14 +154,14 @@ def prepare(args: argparse.Namespace) -> dict:
     _images(Path(args.images))
     tracked = subprocess.run(["git", "ls-files", "-z"], cwd=REPO, capture_output=True, check=True).stdout
     repo_bytes = sum((REPO / f).stat().st_size for f in tracked.decode().split("\0") if f and (REPO / f).is_file())
-    calls = {"1": ["core", "weights", "images"], "2": ["slam"]}
+    calls = {"1": ["core", "slam"], "2": ["faiss", "weights", "images"]}
     out: dict = {"kit": str(KIT), "repo_bytes": repo_bytes, "calls": {}}
     for name, folders in calls.items():
         total = repo_bytes + sum(_size(KIT / f) for f in folders)
         out["calls"][name] = {"carry": [f".device/{f}" for f in folders], "bytes": total,
                               "fits": total < CARRY_LIMIT_BYTES}  # fmt: skip
     out["commands"] = {
-        "1": "python3 tools/device_checks.py run stage1 backbone --out $OUT",
+        "1": "python3 tools/device_checks.py run simulate --out $OUT",
         "2": "python3 tools/device_checks.py run slam --out $OUT",
     }
     return out
@@ -200,23 +207,30 @@ def _step_commands(step: str, args: argparse.Namespace) -> list[tuple[str, list[
                   "--batch-sizes", "1" if quick else "1,8", "--repeats", "2" if quick else "9",
                   "--weights", weights, "--images", images,
                   *(["--quick", "--no-gemm", "--input-size", "112"] if quick else [])], True)]  # fmt: skip
-    if step == "slam":
-        log_path = KIT / ("quick.mcap" if quick else "demo.mcap")
+    log_path = _log_path(quick)
+    if step == "simulate":
         simulate = [py, "-c", "from ssmvpr_slam.cli import app; app()", "simulate", "--out", str(log_path)]
-        if quick:
-            simulate += ["--frames", "8"]
+        return [("simulate", [*simulate, *(["--frames", "8"] if quick else [])], False)]
+    if step == "slam":
         bench = [py, str(tools / "bench_slam.py"), "--log", str(log_path), "--device", device, "--precision", "auto",
                  "--overlap", "--weights", weights]  # fmt: skip
+        # the pipelined schedule and, in the same process, the one-after-another one (--serial);
         # then -c fast with idle threads asleep: the H200 run's odometry child spun 16 cores
         fast = [*bench, "--config", "fast", "--omp-wait-policy", "PASSIVE"]
-        return [("simulate", simulate, False), ("bench_slam", bench, True), ("bench_slam_fast", fast, True)]
+        return [("bench_slam", [*bench, "--serial"], True), ("bench_slam_fast", fast, True)]
     raise AssertionError(step)  # argparse allows only the steps of NEEDS
+
+
+def _log_path(quick: bool) -> Path:
+    return KIT / ("quick.mcap" if quick else "demo.mcap")
 
 
 def _missing(step: str, args: argparse.Namespace, local: bool) -> list[str]:
     """The kit's folders `step` needs that are neither here nor installed already."""
     out = []
     for need in NEEDS[step]:
+        if need == "log":  # made there by the simulate step, not carried (400 MB)
+            continue
         if need in WHEELS:
             installed = (SITE / f".installed-{need}").exists() or any((KIT / need).glob("*.whl"))
             if not local and not installed:  # a rehearsal here uses this machine's packages
@@ -266,6 +280,9 @@ def run_step(step: str, args: argparse.Namespace, out_dir: Path) -> dict:
     if missing:
         return {"step": step, "ok": False,
                 "error": f"carry {' '.join('.device/' + m for m in missing)} (made by `prepare`)"}  # fmt: skip
+    if "log" in NEEDS[step] and not _log_path(args.quick).is_file():
+        return {"step": step, "ok": False,
+                "error": f"no {_log_path(args.quick).name} in {KIT}: run the simulate step first on this machine"}  # fmt: skip
     if not local:
         _install([g for g in NEEDS[step] if g in WHEELS])
     env = _environment(local)

@@ -22,7 +22,8 @@ def _run(*args: str, timeout: float = 600) -> subprocess.CompletedProcess[str]:
 @pytest.mark.slow
 def test_every_step_runs_and_leaves_its_measurements(tmp_path: Path, weights_path: Path, corridor_dir: Path) -> None:
     out = tmp_path / "out"
-    proc = _run("--kit", str(tmp_path / "kit"), "run", "stage1", "backbone", "slam", "--device", "cpu", "--quick",
+    proc = _run("--kit", str(tmp_path / "kit"), "run", "stage1", "backbone", "simulate", "slam", "--device", "cpu",
+                "--quick",
                 "--weights", str(weights_path), "--images", str(corridor_dir / "ref"), "--out", str(out))  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-3000:]
     summary = json.loads(proc.stdout)
@@ -42,14 +43,19 @@ def test_every_step_runs_and_leaves_its_measurements(tmp_path: Path, weights_pat
         assert backbone["precisions"][precision]["batch_1"]["ms_per_image"] > 0
     assert backbone["precisions"]["auto"]["agreement_with_fp32"]["stage1"]["cosine_min"] > 0.999
 
+    simulate = json.loads((out / "simulate.json").read_text())
+    assert [(c["name"], c["returncode"]) for c in simulate["commands"]] == [("simulate", 0)]
     slam = json.loads((out / "slam.json").read_text())
     names = [(c["name"], c["returncode"]) for c in slam["commands"]]
-    assert names == [("simulate", 0), ("bench_slam", 0), ("bench_slam_fast", 0)]
+    assert names == [("bench_slam", 0), ("bench_slam_fast", 0)]
     bench, fast = slam["results"]["bench_slam"], slam["results"]["bench_slam_fast"]  # the simulated log, overlapped
     for run in (bench, fast):
         assert run["frames"] == 8 and run["keyframes"] >= 2 and run["error"] is None
         assert run["settings"]["overlap"] is True
     assert fast["machine"]["omp_wait_policy"] == "PASSIVE"
+    # the default preset also ran one stage after another, in the same process
+    assert bench["serial"]["keyframes"] == bench["keyframes"] and bench["serial"]["settings"]["overlap"] is False
+    assert bench["same_loops"] is True and bench["speedup"] > 0
 
 
 def test_a_kit_folder_the_call_did_not_carry_is_named(tmp_path: Path) -> None:
@@ -61,10 +67,13 @@ def test_a_kit_folder_the_call_did_not_carry_is_named(tmp_path: Path) -> None:
         assert proc.returncode == 1
         return {step: record["error"] for step, record in json.loads(proc.stdout)["steps"].items()}
 
-    assert errors() == {"stage1": "carry .device/core (made by `prepare`)",
-                        "slam": "carry .device/core .device/slam .device/weights (made by `prepare`)"}  # fmt: skip
-    (kit / "weights" / "vgg16_fp16.pth").write_bytes(b"the first call's weights")
-    assert errors()["slam"] == "carry .device/core .device/slam (made by `prepare`)"
+    assert errors() == {"stage1": "carry .device/core .device/faiss (made by `prepare`)",
+                        "slam": "carry .device/core .device/slam .device/faiss .device/weights (made by `prepare`)"}  # fmt: skip
+    (kit / "weights" / "vgg16_fp16.pth").write_bytes(b"the second call's weights")
+    for group in ("core", "slam", "faiss"):  # what the first call installed
+        (kit / "site").mkdir(exist_ok=True)
+        (kit / "site" / f".installed-{group}").write_text("")
+    assert errors()["slam"] == f"no demo.mcap in {kit}: run the simulate step first on this machine"
     assert json.loads((tmp_path / "out" / "slam.json").read_text())["ok"] is False
 
 
@@ -74,13 +83,15 @@ def test_a_command_past_its_limit_is_killed_and_named(tmp_path: Path, monkeypatc
 
     monkeypatch.setitem(device_checks.TIMEOUT_S, "simulate", 1)  # the city alone takes longer
     started = time.monotonic()
-    code = device_checks.main(["--kit", str(tmp_path / "kit"), "run", "slam", "--device", "cpu", "--quick",
-                               "--weights", "unused", "--out", str(tmp_path / "out")])  # fmt: skip
+    code = device_checks.main(["--kit", str(tmp_path / "kit"), "run", "simulate", "slam", "--device", "cpu",
+                               "--quick", "--weights", "unused", "--out", str(tmp_path / "out")])  # fmt: skip
     assert code == 1 and time.monotonic() - started < 30
-    record = json.loads((tmp_path / "out" / "slam.json").read_text())
+    record = json.loads((tmp_path / "out" / "simulate.json").read_text())
     assert record["error"] == "simulate: timed out after 1 s"
-    assert [c["returncode"] for c in record["commands"]] == [None]  # bench_slam did not start
-    assert json.loads(capsys.readouterr().out)["steps"]["slam"]["ok"] is False
+    assert [c["returncode"] for c in record["commands"]] == [None]
+    steps = json.loads(capsys.readouterr().out)["steps"]
+    assert steps["simulate"]["ok"] is False
+    assert "run the simulate step first" in steps["slam"]["error"]  # no half-written log was taken for one
 
 
 def test_votes_that_differ_from_numpy_fail_the_step() -> None:
