@@ -35,7 +35,7 @@ from loopclosure.pca import Codebooks
 from loopclosure.saved_state import saved_finite, saved_ints
 from loopclosure.sequence_gate import SequenceGate
 from loopclosure.sequence_matcher import SequenceMatch, SequenceMatcher
-from loopclosure.spatial_torch import stage2_scores
+from loopclosure.spatial_torch import stage2_scores, stage2_scores_many
 from loopclosure.two_stage import Recognition, TwoStageRanker
 
 log = logging.getLogger(__name__)
@@ -111,9 +111,11 @@ class LoopDetector:
         # (a prior map's last place and the session's first; two traverses streamed one after the other)
         self._segment_starts: list[int] = [0] if self.prior_places == 0 else [0, self.prior_places]
         self._break_pending = False
-        self.sequence = SequenceMatcher(config.sequence, self._score_places, self._segment_of)
+        self.sequence = SequenceMatcher(config.sequence, self._score_places, self._segment_of, self._score_many)
         rear_sequence = config.sequence.model_copy(update={"direction": config.rear.direction})
-        self.rear_sequence = SequenceMatcher(rear_sequence, self._score_places, self._segment_of)  # its own stream
+        self.rear_sequence = SequenceMatcher(  # its own stream
+            rear_sequence, self._score_places, self._segment_of, self._score_many
+        )
         self.decision = CalibratedDecision(config.calibrated, config.calibrated.accept)  # the forward camera's
         self.rear_decision = CalibratedDecision(config.calibrated, config.rear_accept)
         self.links = PlaceLinks()
@@ -521,6 +523,11 @@ class LoopDetector:
         """Stage-II scores of an earlier keyframe's grid against database places (sequence terms)."""
         assert self.database is not None
         return stage2_scores(grid, self.database.stage2[places], self.vpr).scores
+
+    def _score_many(self, wanted: list[tuple[np.ndarray, np.ndarray]]) -> list[np.ndarray]:
+        """`_score_places` of several earlier keyframes at once (one device round trip on a GPU)."""
+        assert self.database is not None
+        return stage2_scores_many([(grid, self.database.stage2[places]) for grid, places in wanted], self.vpr)
 
     def _query(self, codes: PlaceCodes, keyframe_id: int, rear: bool = False) -> LoopProposal | None:
         """Stage I, stage II and sequence matching of one image of the keyframe."""

@@ -52,6 +52,8 @@ from loopclosure.saved_state import saved_finite, saved_ints
 Direction = Literal["forward", "reverse"]
 Scorer = Callable[[Any, np.ndarray], np.ndarray]
 """(token of an earlier query, place indices) -> stage-II scores of that query against them."""
+BatchScorer = Callable[[list[tuple[Any, np.ndarray]]], list[np.ndarray]]
+"""[(token, place indices), ...] -> the scorer's scores of each, in one call (see `SequenceMatcher`)."""
 Segments = Callable[[np.ndarray], np.ndarray]
 """place indices -> the id of the stretch of places each lies on (see `SequenceMatcher`)."""
 
@@ -283,11 +285,22 @@ class SequenceMatcher:
     segments (optional): the stretch id of each place. The database of a stream is not always one
     continuous path: a prior map's places end where the session's begin, and two traverses
     streamed one after the other (`loop-eval`) meet where the first ends. A line never runs
-    across such a seam: its terms beyond it are missing, as beyond the database's ends."""
+    across such a seam: its terms beyond it are missing, as beyond the database's ends.
 
-    def __init__(self, config: SequenceMatchConfig, scorer: Scorer, segments: Segments | None = None) -> None:
+    batch_scorer (optional): the same scores for several earlier queries in one call. A step
+    needs terms of up to L-1 earlier queries; on a GPU one call for all of them waits for the
+    device once instead of L-1 times. It must return what `scorer` would, query by query."""
+
+    def __init__(
+        self,
+        config: SequenceMatchConfig,
+        scorer: Scorer,
+        segments: Segments | None = None,
+        batch_scorer: BatchScorer | None = None,
+    ) -> None:
         self.config = config
         self.scorer = scorer
+        self.batch_scorer = batch_scorer
         self.segments = segments
         self._recent: deque[_Query] = deque(maxlen=config.length)
         self._previous: dict[str, np.ndarray] | None = None
@@ -346,8 +359,7 @@ class SequenceMatcher:
                 for k in range(1, min(self.config.length, len(history))):
                     row = xs[k]
                     needed.setdefault(k, set()).update(row[self._exists(row, cand, history[k].limit)].tolist())
-        for k, xs_needed in needed.items():
-            self._fill(history[k], np.fromiter(sorted(xs_needed), np.int64, len(xs_needed)))
+        self._fill_many([(history[k], np.fromiter(sorted(xs), np.int64, len(xs))) for k, xs in needed.items()])
 
         by_line = {}
         for line, xs in lines_terms.items():
@@ -374,12 +386,27 @@ class SequenceMatcher:
 
     def _fill(self, record: _Query, places: np.ndarray) -> None:
         """Score the places this query has no score for yet (one batched call)."""
-        missing = np.array([p for p in places.tolist() if p not in record.cache], np.int64)
-        if not len(missing):
+        self._fill_many([(record, places)])
+
+    def _fill_many(self, wanted: list[tuple[_Query, np.ndarray]]) -> None:
+        """`_fill` of several queries, through `batch_scorer` in one call where there is one."""
+        todo = []
+        for record, places in wanted:
+            missing = np.array([p for p in places.tolist() if p not in record.cache], np.int64)
+            if len(missing):
+                todo.append((record, missing))
+        if not todo:
             return
-        values = np.asarray(self.scorer(record.token, missing), np.float32)
-        self.scored_last_step += len(missing)
-        record.cache.update(zip(missing.tolist(), (float(v) - record.centre for v in values.tolist())))
+        if self.batch_scorer is not None and len(todo) > 1:
+            scored = self.batch_scorer([(record.token, missing) for record, missing in todo])
+        else:
+            scored = [self.scorer(record.token, missing) for record, missing in todo]
+        for (record, missing), values in zip(todo, scored, strict=True):
+            values = np.asarray(values, np.float32)
+            if values.shape != missing.shape:
+                raise LoopClosureInputError(f"the scorer gave {values.shape} scores for {len(missing)} places")
+            self.scored_last_step += len(missing)
+            record.cache.update(zip(missing.tolist(), (float(v) - record.centre for v in values.tolist())))
 
     def reset(self) -> None:
         """Forget the recent queries: the next one starts a new sequence."""

@@ -43,6 +43,43 @@ def spatial_scores_torch(query: np.ndarray, candidates: np.ndarray, device: str)
     return SpatialResult((raw_np / max_raw_score(gh, gw)).astype(np.float32), raw_np, shifts.cpu().numpy())
 
 
+def spatial_scores_torch_many(groups: list[tuple[np.ndarray, np.ndarray]], device: str) -> list[np.ndarray]:
+    """The scores of `spatial_scores_torch` for several (query grid, candidate grids) groups, with
+    one upload and one download for all. A sequence step scores a few places against each of its
+    L-1 earlier queries: on a GPU each separate call waited for the device twice, and the waits,
+    not the arithmetic, made sequence matching the slowest stage II work of a keyframe. Each
+    group's product has the shape its own call has, so the scores are that call's, exactly."""
+    import torch
+
+    from loopclosure.device_search import full_float32
+
+    if not groups:
+        return []
+    gh, gw, d = groups[0][0].shape
+    for query, candidates in groups:
+        if query.shape != (gh, gw, d) or candidates.ndim != 4 or candidates.shape[1:] != query.shape:
+            raise ValueError(f"candidate grids {candidates.shape} do not match the query grid {query.shape}")
+    sizes = [len(candidates) for _, candidates in groups]
+    if not sum(sizes):
+        return [np.empty(0, np.float32) for _ in groups]
+    queries = np.stack([np.asarray(query, np.float32).reshape(gh * gw, d) for query, _ in groups])
+    stored = np.concatenate([candidates for _, candidates in groups])  # as stored (float16: half the bytes)
+    q_all = torch.from_numpy(queries).to(device)
+    c_all = torch.from_numpy(np.require(stored, requirements=["C", "W"])).to(device).float()
+    bests, start = [], 0
+    with full_float32():
+        for g, n in enumerate(sizes):
+            if n:
+                q, c = q_all[g], c_all[start : start + n].reshape(-1, d)
+                affinity = c @ (2.0 * q.T)
+                affinity -= (q * q).sum(1)[None, :]
+                bests.append(affinity.argmax(1).reshape(n, gh, gw))
+            start += n
+    raw, _ = _consistency_counts(torch.cat(bests), gh, gw)
+    scores = (raw.cpu().numpy() / max_raw_score(gh, gw)).astype(np.float32)
+    return np.split(scores, np.cumsum(sizes)[:-1].tolist())
+
+
 def _consistency_counts(best: Any, gh: int, gw: int) -> tuple[Any, Any]:
     """`spatial.consistency_counts` in torch (the same closed form: squared group sizes per row
     and per column of each candidate's displacement codes)."""
@@ -74,6 +111,15 @@ def stage2_scores(query: np.ndarray, candidates: np.ndarray, vpr: VPRConfig) -> 
     if device == "cpu":
         return spatial_scores(query, candidates, vpr.spatial.chunk_candidates)
     return spatial_scores_torch(query, candidates, device)
+
+
+def stage2_scores_many(groups: list[tuple[np.ndarray, np.ndarray]], vpr: VPRConfig) -> list[np.ndarray]:
+    """`stage2_scores(...).scores` of several (query, candidates) groups: on the GPU in one batch
+    (`spatial_scores_torch_many`), on the CPU one group after another (nothing to wait for)."""
+    device = _device(vpr.spatial.device, vpr.backbone.device)
+    if device == "cpu":
+        return [spatial_scores(q, c, vpr.spatial.chunk_candidates).scores for q, c in groups]
+    return spatial_scores_torch_many(groups, device)
 
 
 @functools.cache

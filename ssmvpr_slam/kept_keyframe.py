@@ -24,8 +24,9 @@ def keep_keyframe(frame: Frame, pose: np.ndarray, keyframe_id: int, config: Slam
     pipeline = config.pipeline
     scan = None
     if pipeline.use_lidar_for_loops:
-        lidar = config.backend.registration.lidar
-        scan = keep_scan(scan_of(frame, odometry), lidar.voxel_size * lidar.map_downsample_factor)
+        voxel = kept_voxel(config)
+        assert voxel is not None
+        scan = keep_scan(scan_of(frame, odometry), voxel, voxelised=getattr(odometry, "last_scan_voxel", None) == voxel)
     image = rear = None
     if scan is None:
         image = reduce_image(frame.image, pipeline.keyframe_image_pixels, f"keyframe {keyframe_id} image")
@@ -46,6 +47,14 @@ def keep_keyframe(frame: Frame, pose: np.ndarray, keyframe_id: int, config: Slam
         rear_image=rear,
         thumbnail=thumbnail,
     )
+
+
+def kept_voxel(config: SlamConfig) -> float | None:
+    """The voxel size (m) a keyframe's scan is kept at for loop registration (None: no scans kept)."""
+    if not config.pipeline.use_lidar_for_loops:
+        return None
+    lidar = config.backend.registration.lidar
+    return lidar.voxel_size * lidar.map_downsample_factor
 
 
 def scan_of(frame: Frame, odometry: Odometry) -> np.ndarray | None:

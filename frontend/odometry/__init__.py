@@ -11,16 +11,20 @@ from frontend.odometry.own_process import OdometryProcess, OdometryProcessError
 
 
 def make_odometry(
-    config: OdometryConfig | None = None, pose_config: PoseFileConfig | None = None, own_process: bool = False
+    config: OdometryConfig | None = None,
+    pose_config: PoseFileConfig | None = None,
+    own_process: bool = False,
+    kept_voxel: float | None = None,
 ) -> Odometry:
     """The odometry ``config.kind`` names (``auto`` must first be resolved by `choose_odometry`).
 
     own_process: run it in a process of its own (`OdometryProcess`), so that threads beside it
-    are not held up by kiss-icp, which keeps the GIL while it registers a scan."""
+    are not held up by kiss-icp, which keeps the GIL while it registers a scan. kept_voxel: the
+    voxel size the caller keeps scans at (`KissIcpOdometry`)."""
     config = config or OdometryConfig(kind="kiss_icp")
     if own_process and config.kind != "auto":
-        return OdometryProcess(config, pose_config)
-    return make_in_process(config, pose_config)
+        return OdometryProcess(config, pose_config, kept_voxel)
+    return make_in_process(config, pose_config, kept_voxel)
 
 
 __all__ = [

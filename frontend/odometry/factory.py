@@ -44,10 +44,13 @@ def choose_odometry(config: OdometryConfig, topics: dict[str, str], log: str) ->
     return config.model_copy(update={"kind": kind})
 
 
-def make_in_process(config: OdometryConfig, pose_config: PoseFileConfig | None = None) -> Odometry:
-    """The odometry ``config.kind`` names (``auto`` resolved first), built in this process."""
+def make_in_process(
+    config: OdometryConfig, pose_config: PoseFileConfig | None = None, kept_voxel: float | None = None
+) -> Odometry:
+    """The odometry ``config.kind`` names (``auto`` resolved first), built in this process
+    (kept_voxel: see `KissIcpOdometry`)."""
     if config.kind == "auto":
         raise FrontendInputError("odometry kind 'auto' depends on the log: resolve it with choose_odometry first")
     if config.kind == "kiss_icp":
-        return KissIcpOdometry(config.kiss_icp)
+        return KissIcpOdometry(config.kiss_icp, kept_voxel)
     return LoggedPoseOdometry(config.logged, pose_config)

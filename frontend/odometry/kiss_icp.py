@@ -10,6 +10,8 @@ point, not all equal), otherwise kiss-icp gets none and does not deskew that sca
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from frontend.config import KissIcpConfig
@@ -50,18 +52,31 @@ def kiss_config(config: KissIcpConfig):  # -> kiss_icp.config.KISSConfig
 
 
 class KissIcpOdometry:
-    """``update(frame)`` registers ``frame.points`` with kiss-icp; returns the LiDAR pose."""
+    """``update(frame)`` registers ``frame.points`` with kiss-icp; returns the LiDAR pose.
 
-    def __init__(self, config: KissIcpConfig | None = None) -> None:
+    kept_voxel: the voxel size (m) at which the caller keeps scans for loop registration. When it
+    is the one kiss-icp voxelises each scan at for its map (half its voxel size), `last_scan` is
+    that voxelised scan (the same points the caller's voxel filter would give), so the scan is
+    not filtered twice nor shipped whole out of the odometry's process."""
+
+    def __init__(self, config: KissIcpConfig | None = None, kept_voxel: float | None = None) -> None:
         from kiss_icp.kiss_icp import KissICP  # heavy C++ extension: imported on use
 
         self.config = config or KissIcpConfig()
         self.stats = OdometryStats()
         claim_kiss_icp_threads(self.config.max_num_threads, "frontend.odometry.kiss_icp.max_num_threads")
-        self._kiss = KissICP(kiss_config(self.config))
+        kiss = kiss_config(self.config)
+        self._kiss = KissICP(kiss)
+        map_voxel = kiss.mapping.voxel_size * 0.5  # KissICP.voxelize: the map gets the scan at this size
+        self._reuse = kept_voxel is not None and math.isclose(kept_voxel, map_voxel, rel_tol=1e-12)
+        self._map_points: np.ndarray | None = None
+        if self._reuse:
+            self._kiss.voxelize = self._voxelize  # type: ignore[method-assign]
         self.last_scan: np.ndarray | None = None
         """The last registered scan, motion-compensated (deskewed) by kiss-icp; loop closure
         registration needs undistorted scans, and kiss-icp already computed this one."""
+        self.last_scan_voxel: float | None = None
+        """The voxel size `last_scan` is already filtered at (one point per voxel), or None."""
 
     @property
     def pose(self) -> np.ndarray:
@@ -71,7 +86,7 @@ class KissIcpOdometry:
     def update(self, frame: Frame) -> np.ndarray:
         self.stats.updates += 1
         points, times = self._clean(frame)
-        self.last_scan = None
+        self.last_scan = self.last_scan_voxel = self._map_points = None
         if points is None:
             return self._predict()
         previous_pose, previous_delta = self._kiss.last_pose.copy(), self._kiss.last_delta.copy()
@@ -80,8 +95,18 @@ class KissIcpOdometry:
             self.stats.skip("registration_failed", f"frame {frame.index}: kiss-icp returned a non-finite pose")
             self._kiss.last_pose, self._kiss.last_delta = previous_pose, previous_delta
             return self._predict()
-        self.last_scan = np.asarray(deskewed)
+        if self._reuse and self._map_points is not None:
+            self.last_scan, self.last_scan_voxel = self._map_points, self._kiss.config.mapping.voxel_size * 0.5
+        else:
+            self.last_scan = np.asarray(deskewed)
         return self._kiss.last_pose.copy()
+
+    def _voxelize(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """kiss-icp's own `voxelize`, keeping the map's voxelised scan it computes anyway."""
+        from kiss_icp.kiss_icp import KissICP
+
+        source, self._map_points = KissICP.voxelize(self._kiss, frame)
+        return source, self._map_points
 
     def _predict(self) -> np.ndarray:
         """Pose for a skipped scan; kiss-icp's state follows so the next guess stays right."""

@@ -70,8 +70,8 @@ def serve(fd: int) -> None:
     records = _Records()
     logging.getLogger().addHandler(records)  # warnings and above, the root logger's default
     try:
-        config, pose_config = connection.recv()
-        odometry = make_in_process(config, pose_config)
+        config, pose_config, kept_voxel = connection.recv()
+        odometry = make_in_process(config, pose_config, kept_voxel)
     except Exception as exc:
         connection.send(("error", _portable(exc), records.take()))
         return
@@ -85,9 +85,8 @@ def serve(fd: int) -> None:
             return
         try:
             pose = odometry.update(frame)
-            reply: tuple[str, Any, Any] = (
-                "pose", (pose, getattr(odometry, "last_scan", None), odometry.stats), records.take()
-            )  # fmt: skip
+            scan = (getattr(odometry, "last_scan", None), getattr(odometry, "last_scan_voxel", None))
+            reply: tuple[str, Any, Any] = ("pose", (pose, *scan, odometry.stats), records.take())
         except Exception as exc:
             reply = ("error", _portable(exc), records.take())
         connection.send(reply)
@@ -106,9 +105,12 @@ class OdometryProcess:
     """``make_odometry(config, pose_config)`` run in a child process; the same ``update``,
     ``stats`` and ``last_scan``. ``close()`` (or garbage collection) ends the process."""
 
-    def __init__(self, config: OdometryConfig, pose_config: PoseFileConfig | None = None) -> None:
+    def __init__(
+        self, config: OdometryConfig, pose_config: PoseFileConfig | None = None, kept_voxel: float | None = None
+    ) -> None:
         self.stats = OdometryStats()
         self.last_scan: np.ndarray | None = None
+        self.last_scan_voxel: float | None = None
         ours, theirs = socket.socketpair()
         env = dict(os.environ)  # the child imports what this process can (tools put the repo on sys.path)
         env["PYTHONPATH"] = os.pathsep.join(p for p in [*sys.path, env.get("PYTHONPATH", "")] if p)
@@ -124,7 +126,7 @@ class OdometryProcess:
         self._connection = Connection(ours.detach())
         self._closer = weakref.finalize(self, _stop, self._connection, self._process)
         what = f"starting {config.kind} odometry"
-        self._send((config, pose_config), what)
+        self._send((config, pose_config, kept_voxel), what)
         kind, payload = self._receive(what, _START_TIMEOUT_S)
         if kind == "error":
             self.close()
@@ -140,7 +142,7 @@ class OdometryProcess:
             raise
         if kind == "error":
             raise payload
-        pose, self.last_scan, self.stats = payload
+        pose, self.last_scan, self.last_scan_voxel, self.stats = payload
         return np.asarray(pose)
 
     def close(self) -> None:

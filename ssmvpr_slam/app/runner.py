@@ -39,6 +39,7 @@ from ssmvpr_slam.checkpoint.saving import (
 )
 from ssmvpr_slam.config.slam import SlamConfig
 from ssmvpr_slam.evaluation.run_report import RunReport, evaluate
+from ssmvpr_slam.kept_keyframe import kept_voxel
 from ssmvpr_slam.prior_map import PriorMap
 from ssmvpr_slam.results.metrics import ResumedFrom, RunInputs, RunMetrics
 from ssmvpr_slam.results.run_folder import RunFolder, staged_results_dir
@@ -145,7 +146,7 @@ def build_odometry(config: SlamConfig) -> Odometry:
     because it holds the GIL while it registers a scan and would stall the backbone's thread."""
     odometry = config.frontend.odometry
     own_process = config.pipeline.overlapped and odometry.kind == "kiss_icp"
-    return make_odometry(odometry, config.frontend.pose_files, own_process=own_process)
+    return make_odometry(odometry, config.frontend.pose_files, own_process=own_process, kept_voxel=kept_voxel(config))
 
 
 def stream_frames(pipeline: SlamPipeline, frames: Iterator[Frame], source: Source, checkpoints: Checkpointer,

@@ -157,9 +157,10 @@ class LidarRegistrationConfig(SettingsModel):
     max_range: float = Field(100.0, gt=0, description="m; points farther away are dropped")
     convergence_criterion: float = Field(1e-4, gt=0, description="ICP stops once a pose update's norm is below this")
     max_num_threads: int = Field(
-        4,
+        8,
         ge=0,
-        description="Threads of the loop ICP, at most the cores (0 = all cores), as the odometry's: kiss-icp fixes "
+        description="Threads of the loop ICP, at most the cores (0 = all cores), as the odometry's (the same "
+        "default, so that a run whose odometry shares its process keeps both): kiss-icp fixes "
         "one cap per process at its first registration "
         "(frontend/odometry/kiss_threads.py): where the odometry runs in the main process (pipeline.overlap "
         "false), the first built of this and frontend.odometry.kiss_icp.max_num_threads counts for both",

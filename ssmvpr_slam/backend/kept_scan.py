@@ -80,8 +80,9 @@ class KeptScan:
         return self.count
 
 
-def keep_scan(points: np.ndarray | None, voxel_m: float) -> KeptScan | None:
-    """A scan voxelised (kiss-icp's voxel filter, one point per voxel) and held as `KeptScan`."""
+def keep_scan(points: np.ndarray | None, voxel_m: float, voxelised: bool = False) -> KeptScan | None:
+    """A scan voxelised (kiss-icp's voxel filter, one point per voxel) and held as `KeptScan`;
+    voxelised: `points` already went through that filter at `voxel_m` (the odometry's own)."""
     if points is None or len(points) == 0:
         return None
     from kiss_icp.voxelization import voxel_down_sample
@@ -90,4 +91,4 @@ def keep_scan(points: np.ndarray | None, voxel_m: float) -> KeptScan | None:
     finite = finite[np.isfinite(finite).all(axis=1)]
     if not len(finite):
         return None
-    return KeptScan.from_points(voxel_down_sample(finite, voxel_m))
+    return KeptScan.from_points(finite if voxelised else voxel_down_sample(finite, voxel_m))

@@ -261,6 +261,46 @@ def test_streaming_equals_batch(config: SequenceMatchConfig, seed: int) -> None:
     assert all(p < limits[q] for q, p in scorer.asked)
 
 
+class BatchCounter:
+    """A batch scorer over a MatrixScorer that counts its calls."""
+
+    def __init__(self, scorer: MatrixScorer) -> None:
+        self.scorer, self.calls = scorer, 0
+
+    def __call__(self, wanted: list[tuple[int, np.ndarray]]) -> list[np.ndarray]:
+        self.calls += 1
+        return [self.scorer(token, places) for token, places in wanted]
+
+
+@pytest.mark.parametrize("config", [CONFIGS[3], CONFIGS[5], CONFIGS[11]], ids=["L5", "L4-3v-both", "L5-median"])
+def test_a_batch_scorer_scores_the_earlier_queries_in_one_call_with_the_same_result(
+    config: SequenceMatchConfig,
+) -> None:
+    """On a GPU the terms of all earlier queries of a step are scored in one device call; the
+    matches must be those of one call per query, and no pair scored twice."""
+    rng = np.random.default_rng(4)
+    s = noise(50, 70, 4)
+    plant(s, range(10, 30), list(range(20, 40)), 0.7)
+    cands = [rng.choice(70, 12, replace=False) for _ in range(50)]
+    limits = np.minimum(70, 30 + np.arange(50))
+    one_by_one = stream(s, config, cands, limits)
+    scorer = MatrixScorer(s)
+    batch = BatchCounter(scorer)
+    matcher = SequenceMatcher(config, scorer, batch_scorer=batch)
+    steps_with_terms = 0
+    for q in range(50):
+        limit = int(limits[q])
+        extra = matcher.continuations(limit)
+        asked = len(scorer.asked)
+        calls = batch.calls
+        match = matcher.step(q, cands[q], s[q, cands[q]], limit, extra, s[q, extra])
+        assert_same(match, one_by_one[q])
+        assert batch.calls - calls <= 1  # never more than one batch a step
+        steps_with_terms += len(scorer.asked) > asked
+    assert batch.calls >= steps_with_terms - 2 > 0  # the first steps have at most one earlier query
+    assert len(scorer.asked) == len(set(scorer.asked))
+
+
 @pytest.mark.parametrize("k", [None, 10])
 def test_streaming_cost_is_about_length_times_candidates(k: int | None) -> None:
     s = noise(100, 500, seed=9)

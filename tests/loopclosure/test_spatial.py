@@ -19,7 +19,7 @@ from loopclosure.spatial import (
     spatial_score_literal,
     spatial_scores,
 )
-from loopclosure.spatial_torch import spatial_scores_torch, stage2_scores
+from loopclosure.spatial_torch import spatial_scores_torch, spatial_scores_torch_many, stage2_scores
 
 
 @st.composite
@@ -204,6 +204,29 @@ def test_the_torch_batch_equals_the_literal_algorithm(grid):
     reference = spatial_scores(query, cands)
     np.testing.assert_array_equal(result.scores, reference.scores)
     np.testing.assert_array_equal(result.shifts, reference.shifts)
+
+
+def test_several_queries_in_one_torch_batch_score_as_each_alone():
+    """A sequence step's terms of several earlier queries go to the device together; each group
+    must get exactly the scores its own call gives (float codes, float16 storage, empty groups)."""
+    rng = np.random.default_rng(5)
+    groups = []
+    for n in (4, 0, 7, 1):
+        query = rng.normal(size=(13, 13, 16)).astype(np.float32)
+        stored = rng.normal(size=(n, 13, 13, 16)).astype(np.float16)
+        if n:
+            stored[0] = query.astype(np.float16)  # the place itself
+        groups.append((query, stored))
+    together = spatial_scores_torch_many(groups, "cpu")
+    assert [len(scores) for scores in together] == [4, 0, 7, 1]
+    for (query, stored), scores in zip(groups, together, strict=True):
+        np.testing.assert_array_equal(scores, spatial_scores_torch(query, stored, "cpu").scores)
+        np.testing.assert_array_equal(scores, spatial_scores(query, stored).scores)
+    assert all(scores[0] == 1.0 for scores in together if len(scores))
+    assert spatial_scores_torch_many([], "cpu") == []
+    assert [len(s) for s in spatial_scores_torch_many([groups[1], groups[1]], "cpu")] == [0, 0]
+    with pytest.raises(ValueError, match="do not match"):
+        spatial_scores_torch_many([groups[0], (groups[2][0], groups[2][1][:, :12])], "cpu")
 
 
 def test_the_torch_batch_takes_float16_storage_and_no_candidates():

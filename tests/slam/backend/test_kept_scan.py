@@ -76,6 +76,42 @@ def test_keep_scan_voxelises_to_one_point_per_voxel() -> None:
     assert len(kept) == len(np.unique(np.floor(points / 5.0), axis=0)) < 20000
 
 
+@pytest.mark.parametrize("own_process", [False, True])
+def test_the_odometry_s_own_voxelised_scan_is_kept_as_filtering_it_again_would(
+    shared_dir: Path, own_process: bool
+) -> None:
+    """kiss-icp voxelises each scan for its map at half its voxel size, which is the size a
+    keyframe keeps its scan at by default (0.5 m): that scan is kept as it is, not filtered a
+    second time (nor shipped whole out of the odometry's process), and it must be the very scan
+    filtering the deskewed one gives. Another size gets the deskewed scan, as before."""
+    from frontend.config import KissIcpConfig, OdometryConfig
+    from frontend.frame import Frame
+    from frontend.odometry import make_odometry
+
+    velodyne = shared_dir / "data" / "kitti00_scans" / "velodyne"
+    frames = [Frame(k, 0.1 * k, points=np.fromfile(velodyne / f"{94 + k:06d}.bin", np.float32).reshape(-1, 4)[:, :3])
+              for k in range(2)]  # two consecutive real scans  # fmt: skip
+    config = OdometryConfig(kind="kiss_icp", kiss_icp=KissIcpConfig(max_num_threads=1))  # voxel 1 m: map at 0.5
+    plain = make_odometry(config)
+    reused = make_odometry(config, own_process=own_process, kept_voxel=0.5)
+    other = make_odometry(config, own_process=own_process, kept_voxel=0.3)
+    try:
+        for frame in frames:
+            plain.update(frame)
+            reused.update(frame)
+            other.update(frame)
+            assert plain.last_scan is not None and reused.last_scan_voxel == 0.5 and other.last_scan_voxel is None
+            assert len(reused.last_scan) < len(plain.last_scan) / 3
+            filtered = keep_scan(plain.last_scan, 0.5)
+            kept = keep_scan(reused.last_scan, 0.5, voxelised=True)
+            assert filtered is not None and kept is not None
+            np.testing.assert_array_equal(kept.centimetres, filtered.centimetres)
+            np.testing.assert_allclose(other.last_scan, plain.last_scan, rtol=0, atol=1e-9)  # the deskewed scan
+    finally:
+        for odometry in (reused, other):
+            getattr(odometry, "close", lambda: None)()
+
+
 @pytest.mark.parametrize("bad", [np.zeros((4, 3), np.float32), np.zeros((4, 2), np.int16), np.zeros(3, np.int16)])
 def test_a_kept_scan_refuses_anything_but_int16_xyz(bad: np.ndarray) -> None:
     with pytest.raises(ValueError, match="int16"):
