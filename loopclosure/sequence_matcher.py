@@ -346,7 +346,7 @@ class SequenceMatcher:
         keep = (places >= 0) & (places < limit)
         chosen = _top_k(places[keep], scores[keep], self.config.sequence_candidates)
         cand = np.unique(np.concatenate([chosen, self.continuations(int(limit))]))
-        self._fill(current, cand)
+        self._fill_many([(current, cand)])
         single = np.array([current.cache[int(p)] for p in cand], np.float64)
 
         history = list(reversed(self._recent))  # history[k] is query q-k
@@ -384,12 +384,9 @@ class SequenceMatcher:
             ok[ok] = np.asarray(self.segments(row[ok])) == np.asarray(self.segments(cand[ok]))
         return ok
 
-    def _fill(self, record: _Query, places: np.ndarray) -> None:
-        """Score the places this query has no score for yet (one batched call)."""
-        self._fill_many([(record, places)])
-
     def _fill_many(self, wanted: list[tuple[_Query, np.ndarray]]) -> None:
-        """`_fill` of several queries, through `batch_scorer` in one call where there is one."""
+        """Score the places each query has no score for yet: one scorer call a query, or one
+        `batch_scorer` call for all where there is one."""
         todo = []
         for record, places in wanted:
             missing = np.array([p for p in places.tolist() if p not in record.cache], np.int64)

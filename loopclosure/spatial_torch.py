@@ -25,20 +25,14 @@ def spatial_scores_torch(query: np.ndarray, candidates: np.ndarray, device: str)
     """`spatial.spatial_scores` on `device` (cuda, or cpu for the tests), in one batch."""
     import torch
 
-    from loopclosure.device_search import full_float32
-
     if candidates.ndim != 4 or candidates.shape[1:] != query.shape:
         raise ValueError(f"candidate grids {candidates.shape} do not match the query grid {query.shape}")
     n, gh, gw, d = candidates.shape
     if n == 0:
         return SpatialResult(np.empty(0, np.float32), np.empty(0, np.int64), np.empty((0, 2), np.int64))
     q = torch.from_numpy(np.ascontiguousarray(query, dtype=np.float32).reshape(gh * gw, d)).to(device)
-    c = torch.from_numpy(np.require(candidates, requirements=["C", "W"])).to(device).float().reshape(-1, d)
-    with full_float32():
-        affinity = c @ (2.0 * q.T)
-    affinity -= (q * q).sum(1)[None, :]
-    best = affinity.argmax(1).reshape(n, gh, gw)
-    raw, shifts = _consistency_counts(best, gh, gw)
+    c = torch.from_numpy(np.require(candidates, requirements=["C", "W"])).to(device).float()
+    raw, shifts = _consistency_counts(_best_cells(q, c), gh, gw)
     raw_np = raw.cpu().numpy()
     return SpatialResult((raw_np / max_raw_score(gh, gw)).astype(np.float32), raw_np, shifts.cpu().numpy())
 
@@ -50,8 +44,6 @@ def spatial_scores_torch_many(groups: list[tuple[np.ndarray, np.ndarray]], devic
     not the arithmetic, made sequence matching the slowest stage II work of a keyframe. Each
     group's product has the shape its own call has, so the scores are that call's, exactly."""
     import torch
-
-    from loopclosure.device_search import full_float32
 
     if not groups:
         return []
@@ -66,18 +58,23 @@ def spatial_scores_torch_many(groups: list[tuple[np.ndarray, np.ndarray]], devic
     stored = np.concatenate([candidates for _, candidates in groups])  # as stored (float16: half the bytes)
     q_all = torch.from_numpy(queries).to(device)
     c_all = torch.from_numpy(np.require(stored, requirements=["C", "W"])).to(device).float()
-    bests, start = [], 0
-    with full_float32():
-        for g, n in enumerate(sizes):
-            if n:
-                q, c = q_all[g], c_all[start : start + n].reshape(-1, d)
-                affinity = c @ (2.0 * q.T)
-                affinity -= (q * q).sum(1)[None, :]
-                bests.append(affinity.argmax(1).reshape(n, gh, gw))
-            start += n
+    starts = np.cumsum([0, *sizes]).tolist()
+    bests = [_best_cells(q_all[g], c_all[starts[g] : starts[g + 1]]) for g, n in enumerate(sizes) if n]
     raw, _ = _consistency_counts(torch.cat(bests), gh, gw)
     scores = (raw.cpu().numpy() / max_raw_score(gh, gw)).astype(np.float32)
-    return np.split(scores, np.cumsum(sizes)[:-1].tolist())
+    return np.split(scores, starts[1:-1])
+
+
+def _best_cells(q: Any, c: Any) -> Any:
+    """For each cell of the (n, gh, gw, d) candidate grids `c`, the query cell of `q` (gh*gw, d)
+    nearest to it (`spatial.best_query_cells`), on their device: the product in full float32."""
+    from loopclosure.device_search import full_float32
+
+    n, gh, gw, d = c.shape
+    with full_float32():
+        affinity = c.reshape(-1, d) @ (2.0 * q.T)
+    affinity -= (q * q).sum(1)[None, :]
+    return affinity.argmax(1).reshape(n, gh, gw)
 
 
 def _consistency_counts(best: Any, gh: int, gw: int) -> tuple[Any, Any]:

@@ -23,9 +23,7 @@ def keep_keyframe(frame: Frame, pose: np.ndarray, keyframe_id: int, config: Slam
     assert frame.image is not None
     pipeline = config.pipeline
     scan = None
-    if pipeline.use_lidar_for_loops:
-        voxel = kept_voxel(config)
-        assert voxel is not None
+    if (voxel := kept_voxel(config)) is not None:
         scan = keep_scan(scan_of(frame, odometry), voxel, voxelised=getattr(odometry, "last_scan_voxel", None) == voxel)
     image = rear = None
     if scan is None:

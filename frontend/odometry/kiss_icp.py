@@ -68,9 +68,12 @@ class KissIcpOdometry:
         kiss = kiss_config(self.config)
         self._kiss = KissICP(kiss)
         map_voxel = kiss.mapping.voxel_size * 0.5  # KissICP.voxelize: the map gets the scan at this size
-        self._reuse = kept_voxel is not None and math.isclose(kept_voxel, map_voxel, rel_tol=1e-12)
+        self._reused_voxel = (
+            kept_voxel if kept_voxel is not None and math.isclose(kept_voxel, map_voxel, rel_tol=1e-12) else None
+        )
         self._map_points: np.ndarray | None = None
-        if self._reuse:
+        if self._reused_voxel is not None:
+            self._kiss_voxelize = self._kiss.voxelize  # kiss-icp's own, wrapped to keep what it computes
             self._kiss.voxelize = self._voxelize  # type: ignore[method-assign]
         self.last_scan: np.ndarray | None = None
         """The last registered scan, motion-compensated (deskewed) by kiss-icp; loop closure
@@ -95,17 +98,15 @@ class KissIcpOdometry:
             self.stats.skip("registration_failed", f"frame {frame.index}: kiss-icp returned a non-finite pose")
             self._kiss.last_pose, self._kiss.last_delta = previous_pose, previous_delta
             return self._predict()
-        if self._reuse and self._map_points is not None:
-            self.last_scan, self.last_scan_voxel = self._map_points, self._kiss.config.mapping.voxel_size * 0.5
+        if self._map_points is not None:  # kiss-icp's voxelised scan, at the caller's size
+            self.last_scan, self.last_scan_voxel = self._map_points, self._reused_voxel
         else:
             self.last_scan = np.asarray(deskewed)
         return self._kiss.last_pose.copy()
 
     def _voxelize(self, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """kiss-icp's own `voxelize`, keeping the map's voxelised scan it computes anyway."""
-        from kiss_icp.kiss_icp import KissICP
-
-        source, self._map_points = KissICP.voxelize(self._kiss, frame)
+        source, self._map_points = self._kiss_voxelize(frame)
         return source, self._map_points
 
     def _predict(self) -> np.ndarray:
