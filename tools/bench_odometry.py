@@ -9,9 +9,14 @@ whether ATE grows with route length), drift per 100 m, and the KITTI devkit's re
 
     python tools/bench_odometry.py [--frames N] [--config SIM_YAML] [--route POSES_FILE]
                                    [--poses-frame auto|camera|body] [--slam-config fast|FILE]
+                                   [--no-kept-reuse]
 
 `--slam-config` takes kiss-icp's settings from a SLAM config or preset
-(`frontend.odometry.kiss_icp`; e.g. `fast`); without it, kiss-icp's defaults as `run` uses them.
+(`frontend.odometry.kiss_icp`; e.g. `fast`); without it, kiss-icp's defaults as `run` uses them
+(SSMVPR_ variables apply, e.g. SSMVPR_FRONTEND__ODOMETRY__KISS_ICP__MAX_NUM_THREADS=8).
+`keep_scan_ms_per_frame` is what keeping each scan for loop registration costs after it, as a
+run keeps it: kiss-icp's own voxelised scan where its size is the kept one, or with
+`--no-kept-reuse` the deskewed scan filtered again.
 """
 
 from __future__ import annotations
@@ -29,8 +34,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from frontend.odometry import KissIcpOdometry  # noqa: E402
 from frontend.simulation import TraverseSimulator  # noqa: E402
+from ssmvpr_slam.backend.kept_scan import keep_scan  # noqa: E402
 from ssmvpr_slam.config.slam import ConfigError, load_config  # noqa: E402
 from ssmvpr_slam.evaluation.metrics import ate, drift_per_100m, kitti_relative_error, path_lengths  # noqa: E402
+from ssmvpr_slam.kept_keyframe import kept_voxel  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _sim_options import add_simulation_options, simulation_config  # noqa: E402
@@ -56,22 +63,30 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--slam-config", default=None, help="SLAM preset or YAML whose frontend.odometry.kiss_icp to use"
     )
+    parser.add_argument(
+        "--no-kept-reuse", action="store_true", help="filter the deskewed scan again to keep it (as before reuse)"
+    )
     args = parser.parse_args(argv)
     try:
-        kiss_icp = load_config(args.slam_config).frontend.odometry.kiss_icp
+        slam_config = load_config(args.slam_config)
     except ConfigError as exc:
         parser.error(f"--slam-config: {exc}")
+    kiss_icp, voxel = slam_config.frontend.odometry.kiss_icp, kept_voxel(slam_config)
     if args.frames is not None and args.frames < 3:
         parser.error("--frames must be at least 3")
     simulator = TraverseSimulator(simulation_config(parser, args, camera={"enabled": False}))
     frames = list(simulator.frames())
-    odometry = KissIcpOdometry(kiss_icp)
-    estimates, seconds = [], []
+    odometry = KissIcpOdometry(kiss_icp, None if args.no_kept_reuse else voxel)
+    estimates, seconds, keeping = [], [], []
     cpu_start = time.process_time()
     for frame in frames:
         start = time.perf_counter()
         estimates.append(odometry.update(frame))
         seconds.append(time.perf_counter() - start)
+        if voxel is not None:
+            start = time.perf_counter()
+            keep_scan(odometry.last_scan, voxel, voxelised=odometry.last_scan_voxel == voxel)
+            keeping.append(time.perf_counter() - start)
     cpu_seconds = time.process_time() - cpu_start
     gt = np.array([f.gt_pose for f in frames])
     est = np.array(estimates)
@@ -88,6 +103,8 @@ def main(argv: list[str] | None = None) -> int:
         },
         # all threads (kiss-icp's TBB workers too): what a frame costs a CPU shared with the backbone
         "cpu_ms_per_frame": 1000 * cpu_seconds / len(frames),
+        "keep_scan_ms_per_frame": 1000 * float(np.median(keeping)) if keeping else None,
+        "kept_scan_reused": odometry.last_scan_voxel is not None,
         "path_m": float(path_lengths(gt)[-1]),
         "ate_rmse_m": ate(gt, est).stats.rmse,
         "ate_by_prefix": ate_by_prefix(gt, est),

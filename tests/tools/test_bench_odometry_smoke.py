@@ -26,6 +26,16 @@ def test_kiss_icp_settings_come_from_the_slam_preset() -> None:
     kiss = out["kiss_icp"]
     assert (kiss["convergence_criterion"], kiss["voxel_size"], kiss["max_points_per_voxel"]) == (1e-3, 1.5, 5)
     assert out["frames"] == 4 and out["ms_per_frame"]["mean"] > 0 and out["cpu_ms_per_frame"] > 0
+    # fast's map voxel (0.75 m) is not the kept size (0.5 m): the deskewed scan is filtered again
+    assert out["kept_scan_reused"] is False and out["keep_scan_ms_per_frame"] > 0
+
+
+@pytest.mark.slow
+def test_the_default_keeps_kiss_icp_s_own_voxelised_scan_unless_told_not_to() -> None:
+    reused, filtered = _run("--frames", "4"), _run("--frames", "4", "--no-kept-reuse")
+    assert reused.returncode == 0 and filtered.returncode == 0, reused.stderr[-2000:] + filtered.stderr[-2000:]
+    assert json.loads(reused.stdout)["kept_scan_reused"] is True
+    assert json.loads(filtered.stdout)["kept_scan_reused"] is False
 
 
 def test_an_unknown_preset_is_one_line_naming_the_option() -> None:
