@@ -249,16 +249,23 @@ class Backbone:
     def __call__(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Feature maps (B, C, H, W) as float32 C-contiguous numpy for stage I and stage II,
         whatever the precision."""
+        maps1, maps2 = self.maps(images)
+        return maps1.cpu().numpy(), maps2.cpu().numpy()
+
+    @torch.inference_mode()
+    def maps(self, images: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+        """The stage-I and stage-II maps as float32 C-contiguous (B, C, H, W) tensors where the
+        network left them (the GPU's memory on CUDA; int8's on the CPU), for work that can stay
+        there (loopclosure.torch_projection)."""
         self._check_images(images)
         x = self._to_tensor(images)
         if self._int8 is not None:
-            return self._int8(x.cpu().numpy())
+            maps1, maps2 = self._int8(x.cpu().numpy())
+            return torch.from_numpy(maps1), torch.from_numpy(maps2)
         maps = self.net(x.contiguous(memory_format=torch.channels_last), self._taps)
         if self._calibrating is not None:
             self._calibrate_on(images)
-        return tuple(  # type: ignore[return-value]
-            maps[i].to(torch.float32).contiguous().cpu().numpy() for i in (self._i1, self._i2)
-        )
+        return maps[self._i1].to(torch.float32).contiguous(), maps[self._i2].to(torch.float32).contiguous()
 
     @torch.inference_mode()
     def feature_map(self, image: np.ndarray, layer: str, pre_relu: bool = False) -> np.ndarray:

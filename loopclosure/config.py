@@ -46,6 +46,13 @@ class BackboneConfig(SettingsModel):
         default=8, ge=1, description="Images per VGG16 forward pass when encoding or fitting PCA on many images."
     )
     num_threads: int | None = Field(default=None, ge=1, description="torch CPU threads; None keeps torch's default.")
+    projection: Literal["auto", "numpy", "torch"] = Field(
+        default="auto",
+        description="Where a stream's maps become codes (cubes, then PCA): numpy on the host, the reference, or "
+        "torch on the backbone's device, so that only the codes leave a GPU (the same codes to float rounding, "
+        "docs/streaming.md). auto: torch where the backbone runs on CUDA, numpy elsewhere (on a CPU torch was "
+        "no faster). PCA is fitted on the host either way.",
+    )
     # fp32 stays the default: bf16 moved Corridor's single-frame PR-AUC by 0.010 (one query of 111),
     # more than the 0.005 allowed, though its sequence (L=3) PR-AUC moved by 0.0002 (docs/benchmarks.md, "Speed").
     precision: Literal["auto", "fp32", "bf16", "int8"] = Field(

@@ -331,13 +331,13 @@ class LoopDetector:
         use_rear = rear_image is not None and self.config.rear.enabled and self.database is not None
         if use_rear and rear_image is not None:
             images.append(self.encoder.prepare(rear_image, f"keyframe {keyframe_id} rear image"))
-        raw = self.encoder.raw_cubes(images)
         info = PlaceInfo(frame_id=keyframe_id, timestamp=timestamp, extra={"session": "current"})
         if self.database is None:
+            raw = self.encoder.raw_cubes(images)  # PCA is fitted on these
             self.timings.backbone = time.perf_counter() - start
             self._warm_up(RawCubes(raw.stage1[:1], raw.stage2[:1]), info)
             return None
-        codes = self.encoder.project(raw)
+        codes = self.encoder.codes(images)
         self.timings.backbone = time.perf_counter() - start
         rear_codes = codes[1] if use_rear else None
         if rear_codes is not None and self.config.rear.keep_codes:

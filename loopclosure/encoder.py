@@ -15,6 +15,7 @@ from loopclosure.config import VPRConfig
 from loopclosure.cubes import extract_cubes
 from loopclosure.errors import LoopClosureInputError
 from loopclosure.pca import Codebooks, fit_pca
+from loopclosure.torch_projection import TorchProjection, uses_torch_projection
 
 log = logging.getLogger(__name__)
 
@@ -58,6 +59,7 @@ class Encoder:
         self.config = config
         self.backbone = backbone
         self.codebooks = codebooks
+        self._torch_projection: TorchProjection | None = None  # the codebooks' copy on the device
 
     def prepare(self, image: np.ndarray, name: str = "image", strict: bool = False) -> np.ndarray:
         """Square RGB input for the backbone. A tiny image is refused when `strict` (a benchmark
@@ -86,17 +88,27 @@ class Encoder:
         with one_blas_thread():
             return PlaceCodes(self.codebooks.stage1.transform(raw.stage1), self.codebooks.stage2.transform(raw.stage2))
 
+    def codes(self, images: Sequence[np.ndarray]) -> PlaceCodes:
+        """Codes of one batch of prepared images: `project(raw_cubes(images))`, or, where
+        `vpr.backbone.projection` resolves to torch, the same computed where the maps are."""
+        if self.codebooks is None or not uses_torch_projection(self.config, self.backbone.device):
+            return self.project(self.raw_cubes(images))
+        if self._torch_projection is None or self._torch_projection.codebooks is not self.codebooks:
+            self._torch_projection = TorchProjection(self.config, self.codebooks, self.backbone.device)
+        return PlaceCodes(*self._torch_projection(*self.backbone.maps(np.stack(images))))
+
     def encode(self, images: Sequence[np.ndarray]) -> PlaceCodes:
         """Codes of already-prepared images, batched as configured."""
-        parts = [self.project(self.raw_cubes(batch)) for batch in _batches(images, self.config.backbone.batch_size)]
-        return PlaceCodes.concatenate(parts)
+        return PlaceCodes.concatenate(
+            [self.codes(batch) for batch in _batches(images, self.config.backbone.batch_size)]
+        )
 
     def encode_stream(
         self, images: Iterable[np.ndarray], on_batch: Callable[[int], None] | None = None
     ) -> Iterator[PlaceCodes]:
         """Codes batch by batch, for folders too big to hold as images."""
         for batch in _batches(images, self.config.backbone.batch_size):
-            yield self.project(self.raw_cubes(batch))
+            yield self.codes(batch)
             if on_batch is not None:
                 on_batch(len(batch))
 

@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -59,6 +60,7 @@ class MemoBackbone:
     def __init__(self, backbone: Any) -> None:
         self.backbone = backbone
         self.config = backbone.config
+        self.device = torch.device("cpu")  # the remembered maps are numpy: codes by numpy wherever the net ran
         self._memo: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
 
     def stream_calibration(self) -> None:

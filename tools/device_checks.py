@@ -25,7 +25,9 @@ Steps:
             build seconds, and whether its votes equal numpy brute force on 3 queries; then
             where a 1M query's time goes (tools/bench_device_search.py).
   backbone  VGG16 to conv5_2 on the GPU at fp32 and auto (bf16 on a card that has it):
-            ms per image at batch 1 and 8, agreement with fp32 (tools/bench_backbone.py).
+            ms per image at batch 1 and 8, agreement with fp32 (tools/bench_backbone.py); then a
+            keyframe's two images to codes with the cubes and PCA on the host against on the GPU
+            (tools/bench_projection.py: ms and agreement).
 
 The wheels and weights of the slam measurement together are too large for one call's carry
 (64 MiB: gtsam alone is 35 MB, the weights 29 MB), so the first call simulates with what it
@@ -78,7 +80,7 @@ NEEDS = {"stage1": ["core", "faiss"], "backbone": ["core", "weights", "images"],
          "slam": ["core", "slam", "faiss", "weights", "log"]}  # fmt: skip
 # Each command's limit, inside the device's 600 s a call (call 2: slam's 530 s). On an H200
 # simulating took 80-92 s, one default bench_slam 52-80 s before the pipelined schedule.
-TIMEOUT_S = {"stage1_100000": 100, "stage1_1000000": 240, "stage1_2000": 60, "stage1_breakdown": 90, "backbone": 140,
+TIMEOUT_S = {"stage1_100000": 100, "stage1_1000000": 240, "stage1_2000": 60, "stage1_breakdown": 90, "backbone": 140, "projection": 90,
              "simulate": 200, "bench_slam": 330, "bench_slam_fast": 200}  # fmt: skip
 PLATFORMS = ["manylinux_2_17_x86_64", "manylinux2014_x86_64", "manylinux_2_24_x86_64", "manylinux_2_27_x86_64",
              "manylinux_2_28_x86_64", "manylinux_2_31_x86_64", "manylinux_2_34_x86_64", "manylinux_2_35_x86_64"]  # fmt: skip
@@ -206,7 +208,9 @@ def _step_commands(step: str, args: argparse.Namespace) -> list[tuple[str, list[
         return [("backbone", [py, str(tools / "bench_backbone.py"), "--device", device, "--precisions", "fp32,auto",
                   "--batch-sizes", "1" if quick else "1,8", "--repeats", "2" if quick else "9",
                   "--weights", weights, "--images", images,
-                  *(["--quick", "--no-gemm", "--input-size", "112"] if quick else [])], True)]  # fmt: skip
+                  *(["--quick", "--no-gemm", "--input-size", "112"] if quick else [])], True),
+                ("projection", [py, str(tools / "bench_projection.py"), "--device", device, "--precision", "auto",
+                  "--weights", weights, "--images", images, *(["--quick"] if quick else [])], True)]  # fmt: skip
     log_path = _log_path(quick)
     if step == "simulate":
         simulate = [py, "-c", "from ssmvpr_slam.cli import app; app()", "simulate", "--out", str(log_path)]

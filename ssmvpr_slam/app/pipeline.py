@@ -9,12 +9,14 @@ it too, and the caller re-raises once the frames so far are saved. Either way th
 With `pipeline.overlap` the source, the odometry and keyframe selection (`SlamSystem.front`)
 run in a producer thread that hands keyframes to this thread (`SlamSystem.back`: backbone,
 recognition, registration, iSAM2) through a queue of `pipeline.overlap_queue_keyframes`, so
-decoding and kiss-icp proceed while the backbone runs. kiss-icp keeps the GIL while it
+decoding and kiss-icp proceed while the backbone runs; the source itself reads
+`pipeline.read_ahead_frames` frames ahead in a thread of its own (`ReadAhead`), so decoding a frame
+overlaps kiss-icp's registration of the one before. kiss-icp keeps the GIL while it
 registers a scan, so the runner then builds the odometry in a process of its own
 (`OdometryProcess`) and the producer thread only waits on it. Signals, progress and checkpoints stay
-in the calling thread. On a stop request the producer reads no further frame and the keyframes
-already queued are still processed (at most the queue's length), so the result covers exactly
-the frames read; the back half sees the same keyframes in the same order as without overlap.
+in the calling thread. On a stop request the producer takes no further frame (those read ahead
+are dropped) and the keyframes already queued are still processed (at most the queue's length),
+so the result covers exactly the frames taken; the back half sees the same keyframes in the same order as without overlap.
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ import signal
 import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, replace
 
 from frontend.errors import FrontendInputError
@@ -34,6 +36,7 @@ from frontend.odometry.base import Odometry
 from loopclosure.backbone import Backbone
 from ssmvpr_common.errors import SsmvprError
 from ssmvpr_slam.app.heap import HeapTrimmer
+from ssmvpr_slam.app.read_ahead import ReadAhead
 from ssmvpr_slam.app.realtime import SensorClock
 from ssmvpr_slam.backend.pose_graph import PoseGraph
 from ssmvpr_slam.config.slam import SlamConfig
@@ -127,9 +130,12 @@ class SlamPipeline:
         on_frame is called after each frame (with overlap: after each keyframe, and once at the
         end), in the calling thread."""
         start = time.perf_counter()
-        iterator = iter(frames) if self.clock is None else self.clock.paced(frames)
-        with self.stop.installed():
-            if self.config.pipeline.overlapped:
+        settings = self.config.pipeline
+        with self.stop.installed(), ExitStack() as stack:
+            if settings.overlapped and settings.read_ahead_frames:  # decoding beside the odometry
+                frames = stack.enter_context(ReadAhead(frames, settings.read_ahead_frames))
+            iterator = iter(frames) if self.clock is None else self.clock.paced(frames)
+            if settings.overlapped:
                 source_error = self._run_overlapped(iterator, on_frame)
             else:
                 source_error = self._run_sequential(iterator, on_frame)

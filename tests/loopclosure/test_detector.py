@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 from threadpoolctl import threadpool_limits
 
 from loopclosure.config import (
@@ -53,6 +54,7 @@ class FakeBackbone:
     """(B, 224, 224, 3) uint8 -> (B, 512, 14, 14) conv5_2-like and (B, 512, 28, 28) conv4_2-like maps."""
 
     calibrates_on_stream = False
+    device = torch.device("cpu")  # codes by numpy (vpr.backbone.projection: auto)
 
     def __init__(self) -> None:
         self.images = 0

@@ -33,6 +33,7 @@ class _MemoBackbone:
 
     def __init__(self, backbone) -> None:
         self.backbone = backbone
+        self.device = backbone.device  # a CPU here: codes by numpy
         self.calls = 0
         self._memo: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
 

@@ -12,6 +12,7 @@ dimensions, PCA fitted on 15 keyframes.
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from frontend.errors import FrontendInputError
 from frontend.frame import Frame
 from frontend.odometry import make_odometry
 from frontend.simulation import SimulationConfig, TraverseSimulator
@@ -207,4 +209,29 @@ def test_a_back_end_failure_stops_the_producer(weights_path: Path, frames: list[
     state = pipeline.run(source())
     assert isinstance(pipeline.step_error, ValueError) and len(state.keyframes) == 6  # 0..5, the last failed
     assert state.frames_seen == 11  # the counts of the failed keyframe's frame, not the producer's
-    assert len(read) <= 11 + 2 * (cfg.pipeline.overlap_queue_keyframes + 2)  # it stopped reading soon after
+    # it stopped reading soon after: two frames a keyframe queued or in the producer's hand, and the
+    # frames the source read ahead (those queued and one in the reader's hand)
+    ahead = cfg.pipeline.read_ahead_frames + 1
+    assert len(read) <= 11 + 2 * (cfg.pipeline.overlap_queue_keyframes + 2) + ahead
+
+
+@pytest.mark.parametrize("read_ahead", [0, 2])
+def test_a_source_failure_keeps_the_frames_before_it_read_ahead_or_not(
+    weights_path: Path, frames: list[Frame], backbone: object, read_ahead: int
+) -> None:
+    """A log cut short ends an overlapped run after the frames before the cut, whether its frames
+    were read ahead in a thread of their own or in the front end's."""
+    cfg = _config(weights_path, overlap=True, read_ahead_frames=read_ahead)
+    pipeline = SlamPipeline.build(cfg, make_odometry(cfg.frontend.odometry), backbone)  # type: ignore[arg-type]
+    readers: set[str] = set()
+
+    def source() -> Iterator[Frame]:
+        for frame in frames[:21]:
+            readers.add(threading.current_thread().name)
+            yield frame
+        raise FrontendInputError("cut.mcap: truncated after 21 frames")
+
+    state = pipeline.run(source())
+    assert readers == {"slam-read-ahead" if read_ahead else "slam-front-end"}
+    assert pipeline.step_error is None and pipeline.ending.source_error == "cut.mcap: truncated after 21 frames"
+    assert state.frames_seen == 21 and len(state.keyframes) == 11  # frames 0, 2, ..., 20

@@ -516,14 +516,19 @@ def test_the_runs_final_robust_pass_is_optimizes_solve(
 # ------------------------------------------------------------------------------- interrupt
 
 
-@pytest.mark.parametrize("overlap", [False, True])
+@pytest.mark.parametrize(("overlap", "read_ahead"), [(False, 0), (True, 0), (True, 2)])
 def test_sigint_mid_run_stops_cleanly_and_results_are_consistent(
-    tmp_path: Path, weights_path: Path, backbone: MemoBackbone, camera_frames: list[Frame], overlap: bool
-) -> None:
-    """With overlap the source is read in the producer thread while the handler runs in the
-    main one: the frame source waits until the handler has run, as a Ctrl-C between frames."""
+    tmp_path: Path, weights_path: Path, backbone: MemoBackbone, camera_frames: list[Frame], overlap: bool,
+    read_ahead: int,
+) -> None:  # fmt: skip
+    """With overlap the source is read in the producer thread (or, reading ahead, in a thread of
+    its own) while the handler runs in the main one: the frame source waits until the handler has
+    run, as a Ctrl-C between frames. Read ahead, the front end is up to `read_ahead` + 1 frames
+    behind the source when the request comes; it stops after its current frame and the frames
+    read ahead are dropped, so the results cover exactly the frames it took."""
     cfg = slam_config(weights_path, "logged")
     cfg.pipeline.overlap = overlap
+    cfg.pipeline.read_ahead_frames = read_ahead
     pipeline = SlamPipeline.build(cfg, make_odometry(cfg.frontend.odometry), backbone)  # type: ignore[arg-type]
 
     def frames() -> Iterator[Frame]:
@@ -539,8 +544,9 @@ def test_sigint_mid_run_stops_cleanly_and_results_are_consistent(
     state = pipeline.run(frames())
     assert signal.getsignal(signal.SIGINT) is previous  # the handler is handed back
     assert pipeline.ending.interrupted
-    assert state.frames_seen == INTERRUPT_AFTER  # the frame after the request is not processed
-    assert len(state.keyframes) == INTERRUPT_AFTER // 2
+    taken = state.frames_seen  # the frame after the request is not processed
+    assert INTERRUPT_AFTER - (read_ahead + 1 if read_ahead else 0) <= taken <= INTERRUPT_AFTER
+    assert len(state.keyframes) == (taken + 1) // 2  # frames 0, 2, 4, ...
     assert any(r.in_graph for r in state.loops)  # it got into the second lap
 
     metrics = _finish_and_write(pipeline, cfg, tmp_path).metrics
@@ -554,7 +560,7 @@ def test_sigint_mid_run_stops_cleanly_and_results_are_consistent(
     assert len(rows) == len(state.loops) and all(int(r["query_kf"]) < n for r in rows)
     written = json.loads((tmp_path / "metrics.json").read_text())
     assert written["interrupted"] is True and metrics["interrupted"] is True
-    assert written["frames"] == INTERRUPT_AFTER and written["keyframes"] == n
+    assert written["frames"] == taken and written["keyframes"] == n
     assert written["loops"]["precision"] == 1.0
 
 

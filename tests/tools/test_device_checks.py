@@ -37,11 +37,16 @@ def test_every_step_runs_and_leaves_its_measurements(tmp_path: Path, weights_pat
     breakdown = stage1_results["stage1_breakdown"]  # where a query's time goes
     assert breakdown["vectors"] == 20000 and breakdown["selection_equals_topk"] is True
 
-    backbone = json.loads((out / "backbone.json").read_text())["results"]["backbone"]
+    backbone_results = json.loads((out / "backbone.json").read_text())["results"]
+    backbone = backbone_results["backbone"]
     assert backbone["machine"]["device"] == "cpu" and backbone["weights"]["random_weights"] is False
     for precision in ("fp32", "auto"):
         assert backbone["precisions"][precision]["batch_1"]["ms_per_image"] > 0
     assert backbone["precisions"]["auto"]["agreement_with_fp32"]["stage1"]["cosine_min"] > 0.999
+    projection = backbone_results["projection"]  # the cubes and PCA on the device against the host
+    assert projection["device"] == "cpu" and projection["weights"]["random_weights"] is False
+    assert projection["numpy_ms"]["median"] > 0 and projection["torch_ms"]["median"] > 0
+    assert max(projection["agreement"].values()) < 1e-4
 
     simulate = json.loads((out / "simulate.json").read_text())
     assert [(c["name"], c["returncode"]) for c in simulate["commands"]] == [("simulate", 0)]
