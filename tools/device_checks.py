@@ -10,7 +10,7 @@ timeout each, writing one JSON per step:
     device run, call 1 (carry .device/core .device/slam):
         python3 tools/device_checks.py run simulate --out $OUT
     device run, call 2, at once on the same warm machine (carry .device/faiss .device/weights):
-        python3 tools/device_checks.py run slam --out $OUT
+        python3 tools/device_checks.py run slam threads --out $OUT
     (stage1 and backbone, measured in earlier sessions, can follow slam in call 2; backbone also
     carries .device/images)
 
@@ -20,6 +20,9 @@ Steps:
             --device cuda --precision auto): by default pipelined against --serial (keyframes
             per second, the stages' latency, speedup and same_loops), then -c fast with
             --omp-wait-policy PASSIVE.
+  threads   the default preset pipelined with kiss-icp on 16 threads (the odometry's and the loop
+            registration's max_num_threads; 8 by default): after slam in call 2, which writes its
+            JSON first, or in a call of its own carrying what slam carries.
   stage1    stage I exact search as torch matrix products on the GPU at 100k and 1M places
             (tools/bench_vpr.py --only-index --exact-backend torch --torch-device cuda): query ms,
             build seconds, and whether its votes equal numpy brute force on 3 queries; then
@@ -77,11 +80,13 @@ WHEELS = {
 }  # fmt: skip
 # "log": the simulate step's output, left on the machine for the slam step of the next call.
 NEEDS = {"stage1": ["core", "faiss"], "backbone": ["core", "weights", "images"], "simulate": ["core", "slam"],
-         "slam": ["core", "slam", "faiss", "weights", "log"]}  # fmt: skip
-# Each command's limit, inside the device's 600 s a call (call 2: slam's 530 s). On an H200
-# simulating took 80-92 s, one default bench_slam 52-80 s before the pipelined schedule.
+         "slam": ["core", "slam", "faiss", "weights", "log"], "threads": ["core", "slam", "faiss", "weights", "log"]}  # fmt: skip
+# Each command's limit, inside the device's 600 s a call (call 2: slam's 530 s, then threads'
+# 150 s; slam took 339 s on the H200, and its JSON is written before threads starts, so a call cut
+# short keeps it). On an H200 simulating took 80-92 s, one default bench_slam 52-80 s before the
+# pipelined schedule.
 TIMEOUT_S = {"stage1_100000": 100, "stage1_1000000": 240, "stage1_2000": 60, "stage1_breakdown": 90, "backbone": 140, "projection": 90,
-             "simulate": 200, "bench_slam": 330, "bench_slam_fast": 200}  # fmt: skip
+             "simulate": 200, "bench_slam": 330, "bench_slam_fast": 200, "bench_slam_threads16": 150}  # fmt: skip
 PLATFORMS = ["manylinux_2_17_x86_64", "manylinux2014_x86_64", "manylinux_2_24_x86_64", "manylinux_2_27_x86_64",
              "manylinux_2_28_x86_64", "manylinux_2_31_x86_64", "manylinux_2_34_x86_64", "manylinux_2_35_x86_64"]  # fmt: skip
 
@@ -222,6 +227,11 @@ def _step_commands(step: str, args: argparse.Namespace) -> list[tuple[str, list[
         # then -c fast with idle threads asleep: the H200 run's odometry child spun 16 cores
         fast = [*bench, "--config", "fast", "--omp-wait-policy", "PASSIVE"]
         return [("bench_slam", [*bench, "--serial"], True), ("bench_slam_fast", fast, True)]
+    if step == "threads":  # the default preset with kiss-icp on 16 threads, odometry and loop registration alike
+        threads = [f"SSMVPR_{key}__MAX_NUM_THREADS=16" for key in ("FRONTEND__ODOMETRY__KISS_ICP",
+                                                                   "BACKEND__REGISTRATION__LIDAR")]  # fmt: skip
+        return [("bench_slam_threads16", ["env", *threads, py, str(tools / "bench_slam.py"), "--log", str(log_path),
+                 "--device", device, "--precision", "auto", "--overlap", "--weights", weights], True)]  # fmt: skip
     raise AssertionError(step)  # argparse allows only the steps of NEEDS
 
 

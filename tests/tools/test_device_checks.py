@@ -22,7 +22,7 @@ def _run(*args: str, timeout: float = 600) -> subprocess.CompletedProcess[str]:
 @pytest.mark.slow
 def test_every_step_runs_and_leaves_its_measurements(tmp_path: Path, weights_path: Path, corridor_dir: Path) -> None:
     out = tmp_path / "out"
-    proc = _run("--kit", str(tmp_path / "kit"), "run", "stage1", "backbone", "simulate", "slam", "--device", "cpu",
+    proc = _run("--kit", str(tmp_path / "kit"), "run", "stage1", "backbone", "simulate", "slam", "threads", "--device", "cpu",
                 "--quick",
                 "--weights", str(weights_path), "--images", str(corridor_dir / "ref"), "--out", str(out))  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -61,6 +61,9 @@ def test_every_step_runs_and_leaves_its_measurements(tmp_path: Path, weights_pat
     # the default preset also ran one stage after another, in the same process
     assert bench["serial"]["keyframes"] == bench["keyframes"] and bench["serial"]["settings"]["overlap"] is False
     assert bench["same_loops"] is True and bench["speedup"] > 0
+    assert bench["settings"]["kiss_icp_max_num_threads"] == 8 and bench["settings"]["read_ahead_frames"] == 2
+    threads = json.loads((out / "threads.json").read_text())["results"]["bench_slam_threads16"]
+    assert threads["settings"]["kiss_icp_max_num_threads"] == 16 and threads["keyframes"] == bench["keyframes"]
 
 
 def test_a_kit_folder_the_call_did_not_carry_is_named(tmp_path: Path) -> None:
