@@ -93,9 +93,14 @@ class Encoder:
         `vpr.backbone.projection` resolves to torch, the same computed where the maps are."""
         if self.codebooks is None or not uses_torch_projection(self.config, self.backbone.device):
             return self.project(self.raw_cubes(images))
-        if self._torch_projection is None or self._torch_projection.codebooks is not self.codebooks:
-            self._torch_projection = TorchProjection(self.config, self.codebooks, self.backbone.device)
-        return PlaceCodes(*self._torch_projection(*self.backbone.maps(np.stack(images))))
+        projection = self._torch_projection
+        if (
+            projection is None
+            or projection.codebooks is not self.codebooks
+            or projection.device != self.backbone.device
+        ):
+            projection = self._torch_projection = TorchProjection(self.config, self.codebooks, self.backbone.device)
+        return PlaceCodes(*projection(*self.backbone.maps(np.stack(images))))
 
     def encode(self, images: Sequence[np.ndarray]) -> PlaceCodes:
         """Codes of already-prepared images, batched as configured."""

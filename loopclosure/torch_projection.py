@@ -8,14 +8,12 @@ column, which is `loopclosure.cubes.extract_cubes`'s order, so the PCA rows appl
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-from contextlib import contextmanager
-
 import numpy as np
 import torch
 import torch.nn.functional as F
 
 from loopclosure.config import CubeConfig, VPRConfig
+from loopclosure.device_search import full_float32
 from loopclosure.errors import LoopClosureInputError
 from loopclosure.pca import Codebooks, PCAProjection
 
@@ -48,7 +46,7 @@ class _DeviceProjection:
         """(B, D, G) cube columns -> (B, G, d) codes; the host's (x - mean) @ C.T, in that order."""
         if cubes.shape[1] != self.components.shape[1]:
             raise LoopClosureInputError(f"PCA expects vectors of {self.components.shape[1]} dims, got {cubes.shape[1]}")
-        codes = torch.matmul(self.components, cubes - self.mean).transpose(1, 2)
+        codes = torch.matmul(self.components, cubes - self.mean).transpose(1, 2).contiguous()
         if self.scale is not None:
             codes = codes / self.scale
         if self.l2_normalize:
@@ -70,8 +68,8 @@ class TorchProjection:
     def __call__(self, maps1: torch.Tensor, maps2: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
         """float32 (B, C, H, W) maps of stage I and II -> float32 numpy codes (B, n1, d1) and
         (B, gh, gw, d2), as `Encoder.project` gives them."""
-        # fp32 products as the host computes them, whatever the process allows elsewhere
-        with _no_tf32():
+        # fp32 products as the host computes them, whatever TF32 setting the process has elsewhere
+        with full_float32():
             stage1 = self._stage1(_cube_columns(maps1.to(self.device), self.config.filtering.cubes))
             grid = _grid_side(maps2, self.config.spatial.cubes)
             stage2 = self._stage2(_cube_columns(maps2.to(self.device), self.config.spatial.cubes))
@@ -90,14 +88,3 @@ def _cube_columns(maps: torch.Tensor, cubes: CubeConfig) -> torch.Tensor:
 
 def _grid_side(maps: torch.Tensor, cubes: CubeConfig) -> tuple[int, int]:
     return tuple((side - cubes.cube_size) // cubes.stride + 1 for side in maps.shape[2:])  # type: ignore[return-value]
-
-
-@contextmanager
-def _no_tf32() -> Iterator[None]:
-    """TF32 off for the products inside: a process that enabled it would get 10-bit mantissas."""
-    saved = torch.backends.cuda.matmul.allow_tf32
-    torch.backends.cuda.matmul.allow_tf32 = False
-    try:
-        yield
-    finally:
-        torch.backends.cuda.matmul.allow_tf32 = saved

@@ -158,6 +158,7 @@ def _run(config: Any, frames: Any, backbone: Any, args: argparse.Namespace) -> t
     import numpy as np
     import torch
 
+    from loopclosure.torch_projection import uses_torch_projection
     from ssmvpr_slam.app.pipeline import SlamPipeline
     from ssmvpr_slam.app.runner import build_odometry
     from ssmvpr_slam.evaluation.metrics import ate
@@ -223,7 +224,7 @@ def _run(config: Any, frames: Any, backbone: Any, args: argparse.Namespace) -> t
             "release_heap_every_keyframes": config.pipeline.release_heap_every_keyframes,
             "read_ahead_frames": config.pipeline.read_ahead_frames if config.pipeline.overlapped else 0,
             "kiss_icp_max_num_threads": config.frontend.odometry.kiss_icp.max_num_threads,
-            "backbone_projection": config.vpr.backbone.projection,
+            "codes_projected_by": "torch" if uses_torch_projection(config.vpr, backbone.device) else "numpy",
             **_stage1_search(pipeline.detector.database),
         },
         "heap_trims": {"calls": pipeline.heap.calls, "seconds": round(pipeline.heap.seconds, 3)},

@@ -11,8 +11,8 @@ timeout each, writing one JSON per step:
         python3 tools/device_checks.py run simulate --out $OUT
     device run, call 2, at once on the same warm machine (carry .device/faiss .device/weights):
         python3 tools/device_checks.py run slam threads --out $OUT
-    (stage1 and backbone, measured in earlier sessions, can follow slam in call 2; backbone also
-    carries .device/images)
+    (stage1 and backbone, measured in earlier sessions, take a call of their own: stage1 carries
+    .device/core .device/faiss, backbone .device/core .device/weights .device/images)
 
 Steps:
   simulate  the demo traverse simulated into a log (.device/demo.mcap), for `slam`.
@@ -81,9 +81,9 @@ WHEELS = {
 # "log": the simulate step's output, left on the machine for the slam step of the next call.
 NEEDS = {"stage1": ["core", "faiss"], "backbone": ["core", "weights", "images"], "simulate": ["core", "slam"],
          "slam": ["core", "slam", "faiss", "weights", "log"], "threads": ["core", "slam", "faiss", "weights", "log"]}  # fmt: skip
-# Each command's limit, inside the device's 600 s a call (call 2: slam's 530 s, then threads'
-# 150 s; slam took 339 s on the H200, and its JSON is written before threads starts, so a call cut
-# short keeps it). On an H200 simulating took 80-92 s, one default bench_slam 52-80 s before the
+# Each command's limit. A call has 600 s; call 2's limits add up to more (slam's 530 s, then
+# threads' 150 s), but slam took 339 s on the H200, and its JSON is written before threads starts,
+# so a call cut short by the device loses only threads. On an H200 simulating took 80-92 s, one default bench_slam 52-80 s before the
 # pipelined schedule.
 TIMEOUT_S = {"stage1_100000": 100, "stage1_1000000": 240, "stage1_2000": 60, "stage1_breakdown": 90, "backbone": 140, "projection": 90,
              "simulate": 200, "bench_slam": 330, "bench_slam_fast": 200, "bench_slam_threads16": 150}  # fmt: skip

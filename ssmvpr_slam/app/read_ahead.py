@@ -26,10 +26,11 @@ class _End:
 
 
 class ReadAhead(Generic[T]):
-    """Iterate `items` in a reader thread, at most `depth` items ahead of the consumer.
+    """Iterate `items` in a reader thread: `depth` items queued for the consumer and one more in
+    the reader's hand at most.
 
     A context manager: leaving it (a stop request, an error downstream) stops the reader, which
-    then closes the source's generator in its own thread (a log file is released there)."""
+    then closes the iterator in its own thread when it can be closed (a generator)."""
 
     def __init__(self, items: Iterable[T], depth: int) -> None:
         if depth < 1:
@@ -55,7 +56,14 @@ class ReadAhead(Generic[T]):
     def __next__(self) -> T:
         if self._done:
             raise StopIteration
-        item = self._queue.get()
+        while True:
+            try:
+                item = self._queue.get(timeout=_POLL_S)
+                break
+            except queue.Empty:
+                if not self._thread.is_alive() and self._queue.empty():  # it cannot send its end any more
+                    self._done = True
+                    raise RuntimeError("the read-ahead thread ended without a word") from None
         if isinstance(item, _End):
             self._done = True
             if item.error is not None:
@@ -64,9 +72,10 @@ class ReadAhead(Generic[T]):
         return item
 
     def _read(self) -> None:
-        iterator = iter(self._items)
+        iterator: Iterator[T] | None = None
         end = _End()
         try:
+            iterator = iter(self._items)
             for item in iterator:
                 if not self._put(item):
                     return

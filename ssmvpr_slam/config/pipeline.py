@@ -34,9 +34,9 @@ class PipelineConfig(SettingsModel):
         default=2, ge=1, description="With overlap: keyframes the front end may run ahead of the back end."
     )
     read_ahead_frames: int = Field(
-        default=2, ge=0, description="With overlap: frames the source reads and decodes ahead, in a thread of its "
-        "own, while kiss-icp registers the frame before (ssmvpr_slam/app/read_ahead.py); 0: the front end's thread "
-        "reads each frame after the last one's odometry."
+        default=2, ge=0, description="With overlap: frames the source reads and decodes ahead (queued, plus one in "
+        "the reader's hand), in a thread of its own, while kiss-icp registers the frame before "
+        "(ssmvpr_slam/app/read_ahead.py); 0: the front end's thread reads each frame after the last one's odometry."
     )  # fmt: skip
     registration_lag_keyframes: int = Field(
         default=3, ge=0, description="A loop accepted at keyframe k enters the graph at keyframe k + this, "

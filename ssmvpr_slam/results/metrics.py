@@ -168,7 +168,9 @@ class RunInputs(_Part):
 
     log: str
     source: str
-    source_stats: dict[str, Any]  # frames yielded, skips and notes by reason: each source has its own
+    # frames yielded, skips and notes by reason, each source its own: what the source read, which after a
+    # stop includes the frames it had read ahead (pipeline.read_ahead_frames) beyond `frames`
+    source_stats: dict[str, Any]
     odometry_kind: str
     prior_map: str | None
     resumed_from: ResumedFrom | None

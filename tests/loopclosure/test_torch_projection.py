@@ -52,6 +52,7 @@ def test_small_maps_give_the_hosts_codes(whiten, normalise_locations):
     want1, want2 = _host_codes(config, codebooks, maps1, maps2)
     assert stage1.shape == want1.shape == (3, 9, 6) and stage2.shape == want2.shape == (3, 4, 3, 5)
     assert stage1.dtype == stage2.dtype == np.float32
+    assert stage1.flags.c_contiguous and stage2.flags.c_contiguous  # laid out as the host's, for the products after
     np.testing.assert_allclose(stage1, want1, rtol=1e-5, atol=1e-5)
     np.testing.assert_allclose(stage2, want2, rtol=1e-5, atol=1e-5)
 

@@ -75,3 +75,18 @@ def test_leaving_at_once_does_not_hang_on_a_full_queue() -> None:
 def test_depth_zero_is_refused() -> None:
     with pytest.raises(ValueError, match="depth must be 1 or more"):
         ReadAhead([], 0)
+
+
+def test_a_source_that_cannot_even_start_is_raised_not_waited_on() -> None:
+    class Broken:
+        def __iter__(self) -> Iterator[int]:
+            raise FrontendInputError("demo.mcap: not an MCAP file")
+
+    with ReadAhead(Broken(), depth=2) as ahead, pytest.raises(FrontendInputError, match="not an MCAP file"):
+        next(ahead)
+
+
+def test_a_reader_gone_without_its_end_is_an_error_not_a_hang(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(ReadAhead, "_read", lambda self: None)  # a reader killed before it could say why
+    with ReadAhead(iter(range(3)), depth=2) as ahead, pytest.raises(RuntimeError, match="ended without a word"):
+        next(ahead)
