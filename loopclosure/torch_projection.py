@@ -12,7 +12,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from loopclosure.config import CubeConfig, VPRConfig
+from loopclosure.config import CubeConfig, VPRConfig, grid_side
 from loopclosure.device_search import full_float32
 from loopclosure.errors import LoopClosureInputError
 from loopclosure.pca import Codebooks, PCAProjection
@@ -71,10 +71,10 @@ class TorchProjection:
         # fp32 products as the host computes them, whatever TF32 setting the process has elsewhere
         with full_float32():
             stage1 = self._stage1(_cube_columns(maps1.to(self.device), self.config.filtering.cubes))
-            grid = _grid_side(maps2, self.config.spatial.cubes)
             stage2 = self._stage2(_cube_columns(maps2.to(self.device), self.config.spatial.cubes))
-        batch = maps2.shape[0]
-        return stage1.cpu().numpy(), stage2.reshape(batch, grid[0], grid[1], self._stage2.dim).cpu().numpy()
+        batch, _, height, width = maps2.shape
+        rows, columns = (grid_side(side, self.config.spatial.cubes) for side in (height, width))
+        return stage1.cpu().numpy(), stage2.reshape(batch, rows, columns, self._stage2.dim).cpu().numpy()
 
 
 def _cube_columns(maps: torch.Tensor, cubes: CubeConfig) -> torch.Tensor:
@@ -84,7 +84,3 @@ def _cube_columns(maps: torch.Tensor, cubes: CubeConfig) -> torch.Tensor:
     if cubes.l2_normalize_locations:
         maps = maps / torch.linalg.vector_norm(maps, dim=1, keepdim=True).clamp_min(_TINY)
     return F.unfold(maps, kernel_size=cubes.cube_size, stride=cubes.stride)
-
-
-def _grid_side(maps: torch.Tensor, cubes: CubeConfig) -> tuple[int, int]:
-    return tuple((side - cubes.cube_size) // cubes.stride + 1 for side in maps.shape[2:])  # type: ignore[return-value]
