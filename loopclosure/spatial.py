@@ -81,10 +81,15 @@ def max_raw_score(gh: int, gw: int) -> int:
     return gh * gw * gw + gw * gh * gh
 
 
+def check_grids(query: np.ndarray, candidates: np.ndarray, grid: tuple[int, ...] | None = None) -> None:
+    """(n, gh, gw, d) candidate grids of the query's shape (and of `grid`, when a batch shares one)."""
+    if candidates.ndim != 4 or candidates.shape[1:] != query.shape or (grid is not None and query.shape != grid):
+        raise ValueError(f"candidate grids {candidates.shape} do not match the query grid {query.shape}")
+
+
 def spatial_scores(query: np.ndarray, candidates: np.ndarray, chunk: int = 64) -> SpatialResult:
     """Score all candidates against one query, `chunk` candidates per matrix product."""
-    if candidates.ndim != 4 or candidates.shape[1:] != query.shape:
-        raise ValueError(f"candidate grids {candidates.shape} do not match the query grid {query.shape}")
+    check_grids(query, candidates)
     gh, gw, _ = query.shape
     raws, shifts = [], []
     for start in range(0, candidates.shape[0], chunk):

@@ -18,15 +18,14 @@ import numpy as np
 
 from loopclosure.config import VPRConfig
 from loopclosure.errors import LoopClosureInputError
-from loopclosure.spatial import SpatialResult, max_raw_score, spatial_scores
+from loopclosure.spatial import SpatialResult, check_grids, max_raw_score, spatial_scores
 
 
 def spatial_scores_torch(query: np.ndarray, candidates: np.ndarray, device: str) -> SpatialResult:
     """`spatial.spatial_scores` on `device` (cuda, or cpu for the tests), in one batch."""
     import torch
 
-    if candidates.ndim != 4 or candidates.shape[1:] != query.shape:
-        raise ValueError(f"candidate grids {candidates.shape} do not match the query grid {query.shape}")
+    check_grids(query, candidates)
     n, gh, gw, d = candidates.shape
     if n == 0:
         return SpatialResult(np.empty(0, np.float32), np.empty(0, np.int64), np.empty((0, 2), np.int64))
@@ -49,8 +48,7 @@ def spatial_scores_torch_many(groups: list[tuple[np.ndarray, np.ndarray]], devic
         return []
     gh, gw, d = groups[0][0].shape
     for query, candidates in groups:
-        if query.shape != (gh, gw, d) or candidates.ndim != 4 or candidates.shape[1:] != query.shape:
-            raise ValueError(f"candidate grids {candidates.shape} do not match the query grid {query.shape}")
+        check_grids(query, candidates, (gh, gw, d))
     sizes = [len(candidates) for _, candidates in groups]
     if not sum(sizes):
         return [np.empty(0, np.float32) for _ in groups]
