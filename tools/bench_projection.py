@@ -9,7 +9,7 @@ Usage:
 
 What is measured, per batch of `--batch` prepared images (2: a keyframe's front and rear):
   backbone_ms     `Backbone.maps` alone, the device synchronised (the maps left where they are).
-  numpy_ms        `Encoder.project(Encoder.raw_cubes(batch))`: the pass, the maps to the host,
+  numpy_ms        `Encoder.codes(batch)` with projection numpy: the pass, the maps to the host,
                   cubes and PCA there (the reference).
   torch_ms        `Encoder.codes(batch)` with projection torch: the pass, cubes and PCA on the
                   device, the codes to the host.
@@ -82,9 +82,7 @@ def main(argv: list[str] | None = None) -> dict:
     codebooks = encoders["numpy"].fit_codebooks(fit)
     encoders["torch"].codebooks = codebooks
 
-    def synchronise() -> None:
-        if backbone.device.type == "cuda":
-            torch.cuda.synchronize()
+    synchronise = torch.cuda.synchronize if backbone.device.type == "cuda" else (lambda: None)
 
     def maps_only(batch: list[np.ndarray]) -> None:
         backbone.maps(np.stack(batch))
@@ -97,7 +95,7 @@ def main(argv: list[str] | None = None) -> dict:
         batch = batches[0 if step == "warm-up" else step]
         runs = {
             "backbone_ms": lambda b=batch: maps_only(b),
-            "numpy_ms": lambda b=batch: encoders["numpy"].project(encoders["numpy"].raw_cubes(b)),
+            "numpy_ms": lambda b=batch: encoders["numpy"].codes(b),
             "torch_ms": lambda b=batch: encoders["torch"].codes(b),
         }
         got = {}
