@@ -8,9 +8,9 @@ it too, and the caller re-raises once the frames so far are saved. Either way th
 
 With `pipeline.overlap` the source, the odometry and keyframe selection (`SlamSystem.front`)
 run in a producer thread that hands keyframes to this thread (`SlamSystem.back`: backbone,
-recognition, registration, iSAM2) through a queue of `pipeline.overlap_queue_keyframes`, so
-decoding and kiss-icp proceed while the backbone runs; the source itself reads
-`pipeline.read_ahead_frames` frames ahead in a thread of its own (`ReadAhead`), so decoding a frame
+recognition, registration, iSAM2) through a queue of `pipeline.overlap_queue_keyframes`
+(`ReadAhead`), so decoding and kiss-icp proceed while the backbone runs; the source itself reads
+`pipeline.read_ahead_frames` frames ahead in a thread of its own the same way, so decoding a frame
 overlaps kiss-icp's registration of the one before. kiss-icp keeps the GIL while it
 registers a scan, so the runner then builds the odometry in a process of its own
 (`OdometryProcess`) and the producer thread only waits on it. Signals, progress and checkpoints stay
@@ -22,9 +22,7 @@ so the result covers exactly the frames taken; the back half sees the same keyfr
 from __future__ import annotations
 
 import logging
-import queue
 import signal
-import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import ExitStack, contextmanager
@@ -47,12 +45,11 @@ from ssmvpr_slam.stop_signals import stop_signals_handled
 from ssmvpr_slam.system import SlamSystem
 
 log = logging.getLogger(__name__)
-_POLL_S = 0.1  # how often a waiting thread looks at the other side's state (stop, cancel)
 
 
 @dataclass
 class _ProducerEnd:
-    """The producer's last message: why it stopped reading."""
+    """Why the producer stopped reading (filled in its thread, read here once it has ended)."""
 
     source_error: str | None = None
     error: Exception | None = None
@@ -172,71 +169,53 @@ class SlamPipeline:
 
     def _run_overlapped(self, iterator: Iterator[Frame], on_frame: Callable[[RunState], None] | None) -> str | None:
         """The front half in a producer thread, the back half here (see the module docstring)."""
-        handoff: queue.Queue[KeyframeInput | _ProducerEnd] = queue.Queue(self.config.pipeline.overlap_queue_keyframes)
-        cancel = threading.Event()  # the consumer gave up (an error): the producer stops too
-
-        def put(message: KeyframeInput | _ProducerEnd) -> None:
-            while not cancel.is_set():
+        end = _ProducerEnd()
+        depth = self.config.pipeline.overlap_queue_keyframes
+        keyframes = ReadAhead(self._front_half(iterator, end, lambda: keyframes.cancelled), depth, "slam-front-end")
+        with keyframes:  # leaving it (a back-end failure) stops the producer
+            while True:
                 try:
-                    handoff.put(message, timeout=_POLL_S)
-                    return
-                except queue.Full:
-                    continue
-
-        def produce() -> None:
-            end = _ProducerEnd()
-            try:
-                while not (self.stop.requested or cancel.is_set()):
-                    frame, end.source_error = self._next_frame(iterator)
-                    if frame is None or self.stop.requested:
-                        break
-                    try:
-                        item = self.system.front(frame)
-                    except Exception as exc:  # the consumer re-raises it once the rest is processed
-                        end.error = exc
-                        _log_failure(f"frame {frame.index}", exc)
-                        break
-                    if item is not None:
-                        put(item)
-            except Exception as exc:  # the source itself failed unexpectedly: ends the run like a frame failing
-                end.error = exc
-                log.exception("the frame source failed")
-            finally:
-                put(end)
-
-        producer = threading.Thread(target=produce, name="slam-front-end", daemon=True)
-        producer.start()
-        end: _ProducerEnd | None = None
-        try:
-            while end is None:
-                try:
-                    message = handoff.get(timeout=_POLL_S)
-                except queue.Empty:
-                    if not producer.is_alive() and handoff.empty():  # it cannot send its end any more
-                        end = _ProducerEnd(error=RuntimeError("the front-end thread ended without a word"))
-                    continue
-                if isinstance(message, _ProducerEnd):
-                    end = message
+                    item = next(keyframes)
+                except StopIteration:
+                    break
+                except RuntimeError as exc:  # the producer's thread gone without its end
+                    end.error = exc
                     break
                 try:
-                    self._back(message)
+                    self._back(item)
                 except Exception as exc:  # keep everything processed so far; the caller re-raises
                     self.step_error = exc
-                    _log_failure(f"keyframe {message.keyframe.id} (frame {message.keyframe.frame_index})", exc)
-                    break
+                    _log_failure(f"keyframe {item.keyframe.id} (frame {item.keyframe.frame_index})", exc)
+                    return None
                 self._after_step(on_frame)
-        finally:
-            if end is None:  # the consumer stopped first: release a producer waiting on a full queue
-                cancel.set()
-            producer.join()
-        if end is None:
-            return None
         if end.error is not None and self.step_error is None:
             self.step_error = end.error
         self.system.sync_front_counts()  # the frames after the last keyframe (all processed)
         if on_frame is not None:
             on_frame(self.state)
         return end.source_error
+
+    def _front_half(
+        self, iterator: Iterator[Frame], end: _ProducerEnd, cancelled: Callable[[], bool]
+    ) -> Iterator[KeyframeInput]:
+        """The keyframes `SlamSystem.front` makes of the frames, in the producer's thread, until the
+        source ends, a stop is requested or the consumer has gone; `end` says why it stopped."""
+        try:
+            while not (self.stop.requested or cancelled()):
+                frame, end.source_error = self._next_frame(iterator)
+                if frame is None or self.stop.requested:
+                    return
+                try:
+                    item = self.system.front(frame)
+                except Exception as exc:  # the consumer re-raises it once the rest is processed
+                    end.error = exc
+                    _log_failure(f"frame {frame.index}", exc)
+                    return
+                if item is not None:
+                    yield item
+        except Exception as exc:  # the source itself failed unexpectedly: ends the run like a frame failing
+            end.error = exc
+            log.exception("the frame source failed")
 
     def _process(self, frame: Frame) -> None:
         """One frame through both halves (`SlamSystem.process`, with the real-time rule)."""

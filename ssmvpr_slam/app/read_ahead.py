@@ -1,10 +1,13 @@
-"""Frames decoded ahead in a thread of their own, so reading the log overlaps the odometry.
+"""An iterator run ahead in a thread of its own, through a bounded queue: the pipeline's one
+hand-off between threads.
 
-Why: with `pipeline.overlap` the front end's thread read a frame (parsing the log, decoding the
-image and the cloud: 4.6 ms a demo frame on 2 cores, 6 ms on the H200's), then waited on
-kiss-icp, then read the next: every frame's reading sat on the front end's critical path.
-Here the source runs up to `depth` frames ahead. The frames, and a source's failure, reach the
-consumer in the order the source gave them, so a run sees exactly what it saw without this.
+Why: with `pipeline.overlap` the front half of a run (source, odometry, keyframe selection)
+runs ahead of the back half this way, and the source itself runs ahead of the front half: the
+front end's thread used to read a frame (parsing the log, decoding the image and the cloud:
+4.6 ms a demo frame on 2 cores, 6 ms on the H200's), then wait on kiss-icp, then read the next,
+so every frame's reading sat on the front end's critical path. The items, and the iterator's
+failure, reach the consumer in the order it gave them, so a run sees exactly what it saw without
+the thread.
 """
 
 from __future__ import annotations
@@ -32,14 +35,19 @@ class ReadAhead(Generic[T]):
     A context manager: leaving it (a stop request, an error downstream) stops the reader, which
     then closes the iterator in its own thread when it can be closed (a generator)."""
 
-    def __init__(self, items: Iterable[T], depth: int) -> None:
+    def __init__(self, items: Iterable[T], depth: int, name: str = "slam-read-ahead") -> None:
         if depth < 1:
             raise ValueError(f"read-ahead depth must be 1 or more, got {depth}")
         self._items = items
         self._queue: queue.Queue[T | _End] = queue.Queue(depth)
         self._gone = threading.Event()  # the consumer left: the reader stops
         self._done = False
-        self._thread = threading.Thread(target=self._read, name="slam-read-ahead", daemon=True)
+        self._thread = threading.Thread(target=self._read, name=name, daemon=True)
+
+    @property
+    def cancelled(self) -> bool:
+        """The consumer has left: an iterator that works long between items may stop early."""
+        return self._gone.is_set()
 
     def __enter__(self) -> ReadAhead[T]:
         self._thread.start()
@@ -63,7 +71,7 @@ class ReadAhead(Generic[T]):
             except queue.Empty:
                 if not self._thread.is_alive() and self._queue.empty():  # it cannot send its end any more
                     self._done = True
-                    raise RuntimeError("the read-ahead thread ended without a word") from None
+                    raise RuntimeError(f"the {self._thread.name} thread ended without a word") from None
         if isinstance(item, _End):
             self._done = True
             if item.error is not None:
