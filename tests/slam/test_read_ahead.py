@@ -90,3 +90,22 @@ def test_a_reader_gone_without_its_end_is_an_error_not_a_hang(monkeypatch: pytes
     monkeypatch.setattr(ReadAhead, "_read", lambda self: None)  # a reader killed before it could say why
     with ReadAhead(iter(range(3)), depth=2) as ahead, pytest.raises(RuntimeError, match="ended without a word"):
         next(ahead)
+
+
+def test_an_iterator_working_long_between_items_sees_the_consumer_leave() -> None:
+    """The overlapped producer reads frames that make no keyframe between items: it stops on
+    `cancelled` instead of reading the rest of the log after the consumer has gone."""
+    read: list[int] = []
+
+    def source() -> Iterator[int]:
+        yield 0
+        for i in range(1, 10_000):
+            if ahead.cancelled:
+                return
+            read.append(i)
+            time.sleep(0.001)
+
+    ahead = ReadAhead(source(), depth=1, name="slam-front-end")
+    with ahead:
+        assert not ahead.cancelled and next(ahead) == 0
+    assert ahead.cancelled and len(read) < 9_000
