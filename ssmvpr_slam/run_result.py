@@ -92,10 +92,11 @@ class StageTimes:
 
 def latency_summary(rows: Sequence[Mapping[str, float]]) -> dict[str, dict[str, float]]:
     """Median, 90th percentile and mean of each stage over the keyframes (the mean is what a stage
-    that runs for some keyframes only, such as loop registration, costs the run)."""
-    if not rows:
-        return {}
-    columns = {k: np.array([r[k] for r in rows], dtype=np.float64) for k in rows[0]}
+    that runs for some keyframes only, such as loop registration, costs the run). A stage is
+    summarised over the rows that have it (a run resumed from an older checkpoint lacks the
+    stages added since)."""
+    names = dict.fromkeys(k for r in rows for k in r)
+    columns = {k: np.array([r[k] for r in rows if k in r], dtype=np.float64) for k in names}
     return {
         k: {"median_s": float(np.median(v)), "p90_s": float(np.percentile(v, 90)), "mean_s": float(np.mean(v))}
         for k, v in columns.items()

@@ -4,7 +4,8 @@ plain records the core, the pipeline and the progress display share."""
 
 from __future__ import annotations
 
-from collections import Counter
+from collections import Counter, defaultdict
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -29,6 +30,14 @@ class RunState:
     recognition_skipped: list[int] = field(default_factory=list)  # keyframes a live run handled by odometry alone
 
 
+FRONT_PARTS = ("odometry", "odometry_wait", "keyframe_keeping")
+"""Where the front end's time goes, as the back end's timing rows record it: the odometry's own
+update (in its process where it has one), the front end's wait for the pose (one frame at a time,
+that update and the frame's way there and back; with frames handed ahead, what is left of the
+update when the front end asks), and keeping the keyframe (its scan, reduced images,
+thumbnail). What front_end has beyond the wait and the keeping is selection and checks."""
+
+
 @dataclass
 class FrontCounts:
     """The front half's own counters (frames read, skipped, keyframes selected)."""
@@ -37,6 +46,20 @@ class FrontCounts:
     frames_skipped: Counter[str] = field(default_factory=Counter)
     keyframes: int = 0
     seconds: float = 0.0  # front-end time since the last keyframe (odometry, selection, keeping)
+    parts: defaultdict[str, float] = field(default_factory=lambda: defaultdict(float))  # by part (FRONT_PARTS)
+
+    def odometry_done(self, waited: float, odometry: object) -> None:
+        """The front end waited `waited` s for a pose; the odometry's own time is its `last_update_s`
+        where it runs in a process of its own, else the wait."""
+        own = getattr(odometry, "last_update_s", None)
+        self.parts["odometry"] += waited if own is None else own
+        self.parts["odometry_wait"] += waited
+
+    def take_parts(self) -> dict[str, float]:
+        """The seconds by part since the last keyframe, counted afresh from here."""
+        parts = {name: self.parts[name] for name in FRONT_PARTS}
+        self.parts.clear()
+        return parts
 
 
 @dataclass(frozen=True)
@@ -51,3 +74,4 @@ class KeyframeInput:
     frames_seen: int
     frames_skipped: dict[str, int]
     front_seconds: float
+    front_parts: Mapping[str, float] = field(default_factory=dict)  # FRONT_PARTS: where front_seconds went

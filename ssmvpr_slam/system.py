@@ -113,6 +113,7 @@ class SlamSystem:
         counts.frames_seen += 1
         try:
             pose = self.odometry.update(frame)  # every scan feeds the odometry, camera or not
+            counts.odometry_done(time.perf_counter() - start, self.odometry)
             if pose is None or not np.all(np.isfinite(pose)):
                 counts.frames_skipped["odometry gave no pose"] += 1
                 return None
@@ -126,14 +127,16 @@ class SlamSystem:
                 frame = replace(frame, rear_image=None)  # the forward image still recognises the place
             if not self.selector.select(pose, frame.timestamp):
                 return None
+            kept = time.perf_counter()
             keyframe = keep_keyframe(frame, pose, counts.keyframes, self.config, self.odometry)
+            counts.parts["keyframe_keeping"] += time.perf_counter() - kept
             counts.keyframes += 1
         finally:
             counts.seconds += time.perf_counter() - start
         seconds, counts.seconds = counts.seconds, 0.0
         assert frame.image is not None  # checked above
         return KeyframeInput(keyframe, frame.image, frame.rear_image, counts.frames_seen,
-                             dict(counts.frames_skipped), seconds)  # fmt: skip
+                             dict(counts.frames_skipped), seconds, counts.take_parts())  # fmt: skip
 
     def sync_front_counts(self) -> None:
         """Bring the state's frame counters up to the front's (frames after the last keyframe)."""
@@ -182,7 +185,7 @@ class SlamSystem:
             "spatial_matching": timings.spatial_matching, "sequence_matching": timings.sequence_matching,
             "gate": timings.gate,
             "registration": t_reg, "registration_work": worked, "isam2_update": t_graph,
-            "total": time.perf_counter() - t0, "front_end": item.front_seconds,
+            "total": time.perf_counter() - t0, "front_end": item.front_seconds, **item.front_parts,
         })  # fmt: skip
 
     def _apply(self, done: AppliedRegistration) -> float:

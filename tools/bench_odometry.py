@@ -9,7 +9,7 @@ whether ATE grows with route length), drift per 100 m, and the KITTI devkit's re
 
     python tools/bench_odometry.py [--frames N] [--config SIM_YAML] [--route POSES_FILE]
                                    [--poses-frame auto|camera|body] [--slam-config fast|FILE]
-                                   [--no-kept-reuse]
+                                   [--no-kept-reuse] [--own-process [--ahead N]]
 
 `--slam-config` takes kiss-icp's settings from a SLAM config or preset
 (`frontend.odometry.kiss_icp`; e.g. `fast`); without it, kiss-icp's defaults as `run` uses them
@@ -17,6 +17,11 @@ whether ATE grows with route length), drift per 100 m, and the KITTI devkit's re
 `keep_scan_ms_per_frame` is what keeping each scan for loop registration costs after it, as a
 run keeps it: kiss-icp's own voxelised scan where its size is the kept one, or with
 `--no-kept-reuse` the deskewed scan filtered again.
+
+`--own-process` runs kiss-icp in a process of its own, as an overlapped `run` does, and hands it
+each frame `--ahead` frames before its pose is taken (`pipeline.odometry_ahead_frames`; 0: one at
+a time). `front_end_ms_per_frame` is then the pace of the loop that takes the poses and keeps the
+scans: what the front end's thread sees, against `ms_per_frame`, the odometry's own update.
 """
 
 from __future__ import annotations
@@ -24,6 +29,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import sys
 import time
 from pathlib import Path
@@ -32,7 +38,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from frontend.odometry import KissIcpOdometry  # noqa: E402
+from frontend.config import OdometryConfig  # noqa: E402
+from frontend.odometry import KissIcpOdometry, OdometryProcess  # noqa: E402
+from frontend.odometry.own_process import submitted_ahead  # noqa: E402
 from frontend.simulation import TraverseSimulator  # noqa: E402
 from ssmvpr_slam.backend.kept_scan import keep_scan  # noqa: E402
 from ssmvpr_slam.config.slam import ConfigError, load_config  # noqa: E402
@@ -57,6 +65,12 @@ def ate_by_prefix(gt: np.ndarray, est: np.ndarray) -> list[dict[str, float | int
     return out
 
 
+def _children_cpu_s() -> float:
+    """CPU seconds of the child processes reaped so far (the odometry's own, once closed)."""
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     add_simulation_options(parser, ("--config", "--sim-config"))
@@ -66,7 +80,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--no-kept-reuse", action="store_true", help="filter the deskewed scan again to keep it (as before reuse)"
     )
+    parser.add_argument("--own-process", action="store_true", help="kiss-icp in a process of its own")
+    parser.add_argument("--ahead", type=int, default=1, help="with --own-process: frames handed over ahead")
     args = parser.parse_args(argv)
+    if args.ahead < 0:
+        parser.error("--ahead must be 0 or more")
     try:
         slam_config = load_config(args.slam_config)
     except ConfigError as exc:
@@ -76,18 +94,32 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--frames must be at least 3")
     simulator = TraverseSimulator(simulation_config(parser, args, camera={"enabled": False}))
     frames = list(simulator.frames())
-    odometry = KissIcpOdometry(kiss_icp, None if args.no_kept_reuse else voxel)
+    kept = None if args.no_kept_reuse else voxel
+    if args.own_process:
+        odometry: KissIcpOdometry | OdometryProcess = OdometryProcess(OdometryConfig(kind="kiss_icp", kiss_icp=kiss_icp),
+                                                                      kept_voxel=kept)  # fmt: skip
+        stream = submitted_ahead(iter(frames), odometry, args.ahead)
+    else:
+        odometry, stream = KissIcpOdometry(kiss_icp, kept), iter(frames)
     estimates, seconds, keeping = [], [], []
-    cpu_start = time.process_time()
-    for frame in frames:
+    cpu_start, children_start = time.process_time(), _children_cpu_s()
+    loop_start = time.perf_counter()
+    for frame in stream:
         start = time.perf_counter()
         estimates.append(odometry.update(frame))
         seconds.append(time.perf_counter() - start)
+        if args.own_process:
+            seconds[-1] = odometry.last_update_s  # the odometry's own time, in its process
         if voxel is not None:
             start = time.perf_counter()
             keep_scan(odometry.last_scan, voxel, voxelised=odometry.last_scan_voxel == voxel)
             keeping.append(time.perf_counter() - start)
+    front_end = (time.perf_counter() - loop_start) / len(frames)
+    if args.own_process:
+        odometry.close()  # its CPU time counts once it is reaped
     cpu_seconds = time.process_time() - cpu_start
+    if args.own_process:
+        cpu_seconds += _children_cpu_s() - children_start
     gt = np.array([f.gt_pose for f in frames])
     est = np.array(estimates)
     result = {
@@ -104,6 +136,9 @@ def main(argv: list[str] | None = None) -> int:
         # all threads (kiss-icp's TBB workers too): what a frame costs a CPU shared with the backbone
         "cpu_ms_per_frame": 1000 * cpu_seconds / len(frames),
         "keep_scan_ms_per_frame": 1000 * float(np.median(keeping)) if keeping else None,
+        "own_process": args.own_process,
+        "ahead": args.ahead if args.own_process else None,
+        "front_end_ms_per_frame": 1000 * front_end,
         "kept_scan_reused": odometry.last_scan_voxel is not None,
         "path_m": float(path_lengths(gt)[-1]),
         "ate_rmse_m": ate(gt, est).stats.rmse,

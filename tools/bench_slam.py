@@ -158,6 +158,7 @@ def _run(config: Any, frames: Any, backbone: Any, args: argparse.Namespace) -> t
     import numpy as np
     import torch
 
+    from frontend.odometry import OdometryProcess
     from loopclosure.torch_projection import uses_torch_projection
     from ssmvpr_slam.app.pipeline import SlamPipeline
     from ssmvpr_slam.app.runner import build_odometry
@@ -223,6 +224,9 @@ def _run(config: Any, frames: Any, backbone: Any, args: argparse.Namespace) -> t
             "keyframe_image_pixels": config.pipeline.keyframe_image_pixels,
             "release_heap_every_keyframes": config.pipeline.release_heap_every_keyframes,
             "read_ahead_frames": config.pipeline.read_ahead_frames if config.pipeline.overlapped else 0,
+            "odometry_ahead_frames": config.pipeline.odometry_ahead_frames
+            if isinstance(pipeline.odometry, OdometryProcess)
+            else 0,
             "kiss_icp_max_num_threads": config.frontend.odometry.kiss_icp.max_num_threads,
             "codes_projected_by": "torch" if uses_torch_projection(config.vpr, backbone.device) else "numpy",
             **_stage1_search(pipeline.detector.database),

@@ -8,7 +8,7 @@ timeout each, writing one JSON per step:
     python tools/device_checks.py prepare            # here: wheels for its Python, fp16 weights, images
 
     device run, call 1 (carry .device/core .device/slam):
-        python3 tools/device_checks.py run simulate --out $OUT
+        python3 tools/device_checks.py run simulate odometry --out $OUT
     device run, call 2, at once on the same warm machine (carry .device/faiss .device/weights):
         python3 tools/device_checks.py run slam threads --out $OUT
     (stage1 and backbone, measured in earlier sessions, take a call of their own: stage1 carries
@@ -20,6 +20,9 @@ Steps:
             --device cuda --precision auto): by default pipelined against --serial (keyframes
             per second, the stages' latency, speedup and same_loops), then -c fast with
             --omp-wait-policy PASSIVE.
+  odometry  the front end's pace with kiss-icp in its own process (tools/bench_odometry.py
+            --own-process, 200 demo frames): on 8 and 16 threads, frames handed over one at a
+            time against one ahead (pipeline.odometry_ahead_frames), the default preset.
   threads   the default preset pipelined with kiss-icp on 16 threads (the odometry's and the loop
             registration's max_num_threads; 8 by default): after slam in call 2, which writes its
             JSON first, or in a call of its own carrying what slam carries.
@@ -80,13 +83,14 @@ WHEELS = {
 }  # fmt: skip
 # "log": the simulate step's output, left on the machine for the slam step of the next call.
 NEEDS = {"stage1": ["core", "faiss"], "backbone": ["core", "weights", "images"], "simulate": ["core", "slam"],
-         "slam": ["core", "slam", "faiss", "weights", "log"], "threads": ["core", "slam", "faiss", "weights", "log"]}  # fmt: skip
+         "odometry": ["core", "slam"], "slam": ["core", "slam", "faiss", "weights", "log"], "threads": ["core", "slam", "faiss", "weights", "log"]}  # fmt: skip
 # Each command's limit. A call has 600 s; call 2's limits add up to more (slam's 530 s, then
 # threads' 150 s), but slam took 339 s on the H200, and its JSON is written before threads starts,
 # so a call cut short by the device loses only threads. On an H200 simulating took 80-92 s, one default bench_slam 52-80 s before the
 # pipelined schedule.
 TIMEOUT_S = {"stage1_100000": 100, "stage1_1000000": 240, "stage1_2000": 60, "stage1_breakdown": 90, "backbone": 140, "projection": 90,
-             "simulate": 200, "bench_slam": 330, "bench_slam_fast": 200, "bench_slam_threads16": 150}  # fmt: skip
+             "simulate": 200, "bench_slam": 330, "bench_slam_fast": 200, "bench_slam_threads16": 150,
+             "odometry_t8_ahead0": 60, "odometry_t8_ahead1": 60, "odometry_t16_ahead0": 60, "odometry_t16_ahead1": 60}  # fmt: skip
 PLATFORMS = ["manylinux_2_17_x86_64", "manylinux2014_x86_64", "manylinux_2_24_x86_64", "manylinux_2_27_x86_64",
              "manylinux_2_28_x86_64", "manylinux_2_31_x86_64", "manylinux_2_34_x86_64", "manylinux_2_35_x86_64"]  # fmt: skip
 
@@ -227,6 +231,12 @@ def _step_commands(step: str, args: argparse.Namespace) -> list[tuple[str, list[
         # then -c fast with idle threads asleep: the H200 run's odometry child spun 16 cores
         fast = [*bench, "--config", "fast", "--omp-wait-policy", "PASSIVE"]
         return [("bench_slam", [*bench, "--serial"], True), ("bench_slam_fast", fast, True)]
+    if step == "odometry":  # the front end's pace: kiss-icp in its process, frames handed over ahead or not
+        return [(f"odometry_t{threads}_ahead{ahead}",
+                 ["env", f"SSMVPR_FRONTEND__ODOMETRY__KISS_ICP__MAX_NUM_THREADS={threads}", py,
+                  str(tools / "bench_odometry.py"), "--frames", "8" if quick else "200", "--own-process",
+                  "--ahead", str(ahead)], True)
+                for threads in (8, 16) for ahead in (0, 1)]  # fmt: skip
     if step == "threads":  # the default preset with kiss-icp on 16 threads, odometry and loop registration alike
         threads = [f"SSMVPR_{key}__MAX_NUM_THREADS=16" for key in ("FRONTEND__ODOMETRY__KISS_ICP",
                                                                    "BACKEND__REGISTRATION__LIDAR")]  # fmt: skip

@@ -15,6 +15,12 @@ keeps what it processed so far instead of the whole run going down. The child ha
 its own, so a Ctrl-C in the terminal reaches only the parent, which stops after the current
 frame as it does without the child; the child ends when the parent closes the socket or exits.
 POSIX only (the socket is handed over as an inherited file descriptor).
+
+Frames go to the child from a sender thread, so a caller may hand it the next frames
+(`submit`, or `submitted_ahead` over a stream of frames) before it has taken the pose of this
+one: the child registers frame k+1 while the caller keeps frame k, and the poses come back in
+the order the frames went. The child's reply and the next frame then cross the socket at once;
+from one thread both sends could block on each other, hence the thread.
 """
 
 from __future__ import annotations
@@ -22,10 +28,15 @@ from __future__ import annotations
 import logging
 import os
 import pickle
+import queue
 import socket
 import subprocess
 import sys
+import threading
+import time
 import weakref
+from collections import deque
+from collections.abc import Iterator
 from dataclasses import replace
 from multiprocessing.connection import Connection
 from typing import Any
@@ -41,6 +52,7 @@ _POLL_S = 0.5  # how often a wait checks that the child is still alive
 _START_TIMEOUT_S = 120.0
 # run by `python -c` (not -m, which would import this module twice, nor multiprocessing's spawn)
 _CHILD = "import sys; from frontend.odometry.own_process import serve; serve(int(sys.argv[1]))"
+_STOP = object()  # the sender's last message: tell the child to stop, then end
 
 
 class OdometryProcessError(FrontendError, RuntimeError):
@@ -84,12 +96,17 @@ def serve(fd: int) -> None:
         if frame is None:
             return
         try:
+            start = time.perf_counter()
             pose = odometry.update(frame)
+            seconds = time.perf_counter() - start
             scan = (getattr(odometry, "last_scan", None), getattr(odometry, "last_scan_voxel", None))
-            reply: tuple[str, Any, Any] = ("pose", (pose, *scan, odometry.stats), records.take())
+            reply: tuple[str, Any, Any] = ("pose", (pose, *scan, odometry.stats, seconds), records.take())
         except Exception as exc:
             reply = ("error", _portable(exc), records.take())
-        connection.send(reply)
+        try:
+            connection.send(reply)
+        except OSError:  # the parent closed the socket with frames still in flight: it wants none of them
+            return
 
 
 def _portable(exc: Exception) -> Exception:
@@ -101,9 +118,44 @@ def _portable(exc: Exception) -> Exception:
         return RuntimeError(f"{type(exc).__name__}: {exc}")
 
 
+class _Sender:
+    """The thread that writes frames to the child, in the order given; it holds no reference to
+    the `OdometryProcess`, so that garbage collection still ends the child."""
+
+    def __init__(self, connection: Connection) -> None:
+        self.outbox: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self.failure: BaseException | None = None  # why it stopped sending (a frame that would not pickle, ...)
+        self.thread = threading.Thread(target=self._send_all, args=(connection,), name="odometry-sender", daemon=True)
+        self.thread.start()
+
+    def _send_all(self, connection: Connection) -> None:
+        while (message := self.outbox.get()) is not _STOP:
+            try:
+                connection.send(message)
+            except BaseException as exc:  # the receiving side reports it (or the child's death) for the frame
+                self.failure = exc
+                return
+        try:
+            connection.send(None)  # the child's signal to stop
+        except OSError:
+            pass
+
+    def stop(self, timeout: float) -> None:
+        """Drop the frames not yet sent (nobody will take their poses), send the child's stop and
+        wait for that at most `timeout` seconds (a frame being sent waits for the child to read it)."""
+        try:
+            while True:
+                self.outbox.get_nowait()
+        except queue.Empty:
+            pass
+        self.outbox.put(_STOP)
+        self.thread.join(timeout)
+
+
 class OdometryProcess:
     """``make_odometry(config, pose_config)`` run in a child process; the same ``update``,
-    ``stats`` and ``last_scan``. ``close()`` (or garbage collection) ends the process."""
+    ``stats`` and ``last_scan``, and ``submit`` to hand it frames ahead. ``close()`` (or garbage
+    collection) ends the process."""
 
     def __init__(
         self, config: OdometryConfig, pose_config: PoseFileConfig | None = None, kept_voxel: float | None = None
@@ -111,6 +163,10 @@ class OdometryProcess:
         self.stats = OdometryStats()
         self.last_scan: np.ndarray | None = None
         self.last_scan_voxel: float | None = None
+        self.last_update_s: float | None = None
+        """Seconds the child spent in the last `update` itself; the rest of the caller's wait was
+        the frame's way there and back (pickling, the socket, getting the GIL back)."""
+        self._pending: deque[tuple[int, float, str]] = deque()  # frames submitted, their poses not yet taken
         ours, theirs = socket.socketpair()
         env = dict(os.environ)  # the child imports what this process can (tools put the repo on sys.path)
         env["PYTHONPATH"] = os.pathsep.join(p for p in [*sys.path, env.get("PYTHONPATH", "")] if p)
@@ -124,29 +180,50 @@ class OdometryProcess:
                 start_new_session=True,  # a Ctrl-C in the terminal is the parent's to handle, not the child's
             )  # fmt: skip
         self._connection = Connection(ours.detach())
-        self._closer = weakref.finalize(self, _stop, self._connection, self._process)
         what = f"starting {config.kind} odometry"
-        self._send((config, pose_config, kept_voxel), what)
+        try:
+            self._connection.send((config, pose_config, kept_voxel))
+        except OSError:
+            pass  # the child is already gone: the wait below says so
+        self._sender = _Sender(self._connection)
+        self._closer = weakref.finalize(self, _stop, self._connection, self._process, self._sender)
         kind, payload = self._receive(what, _START_TIMEOUT_S)
         if kind == "error":
             self.close()
             raise payload
 
+    def submit(self, frame: Frame) -> None:
+        """Hand `frame` to the child now (without its images, which odometry never reads); it is
+        registered while this thread goes on, and `update(frame)` takes its pose. Frames must be
+        taken in the order they were submitted."""
+        what = _what(frame)
+        if not self._closer.alive:
+            raise OdometryProcessError(f"{what}: the odometry process was closed")
+        self._pending.append((frame.index, frame.timestamp, what))
+        self._sender.outbox.put(replace(frame, image=None, rear_image=None))
+
     def update(self, frame: Frame) -> np.ndarray:
-        what = f"frame {frame.index} (t={frame.timestamp})"
+        """The pose of `frame`: the oldest frame submitted and not yet taken, or, with none
+        pending, `frame` submitted now."""
+        if not self._pending:
+            self.submit(frame)
+        index, timestamp, what = self._pending[0]
+        if (index, timestamp) != (frame.index, frame.timestamp):
+            raise RuntimeError(f"OdometryProcess.update: {_what(frame)} taken before {what}, submitted earlier")
         try:
-            self._send(replace(frame, image=None, rear_image=None), what)
             kind, payload = self._receive(what, None)
         except BaseException:  # e.g. a KeyboardInterrupt mid-wait: a reply left unread would answer the next frame
             self.close()
             raise
+        self._pending.popleft()
         if kind == "error":
             raise payload
-        pose, self.last_scan, self.last_scan_voxel, self.stats = payload
+        pose, self.last_scan, self.last_scan_voxel, self.stats, self.last_update_s = payload
         return np.asarray(pose)
 
     def close(self) -> None:
-        """End the child process (idempotent)."""
+        """End the child process (idempotent); frames still in flight are dropped."""
+        self._pending.clear()
         self._closer()
 
     def __enter__(self) -> OdometryProcess:
@@ -155,20 +232,16 @@ class OdometryProcess:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def _send(self, message: Any, what: str) -> None:
-        if not self._closer.alive:
-            raise OdometryProcessError(f"{what}: the odometry process was closed")
-        try:
-            self._connection.send(message)
-        except OSError as exc:
-            raise self._died(what) from exc
-
     def _receive(self, what: str, timeout: float | None) -> tuple[str, Any]:
         waited = 0.0
         while not self._connection.poll(_POLL_S):
             waited += _POLL_S
             if self._process.poll() is not None and not self._connection.poll(0):
                 raise self._died(what)
+            if self._sender.failure is not None and not self._connection.poll(0):
+                failure = self._sender.failure
+                self.close()
+                raise OdometryProcessError(f"{what}: could not be sent to the odometry process ({failure})")
             if timeout is not None and waited >= timeout:
                 self.close()
                 raise OdometryProcessError(f"{what}: the odometry process did not answer in {timeout:.0f} s")
@@ -189,10 +262,53 @@ class OdometryProcess:
         return OdometryProcessError(f"{what}: the odometry process ended (exit code {code})")
 
 
-def _stop(connection: Connection, process: subprocess.Popen[bytes]) -> None:
-    """Ask the child to stop, then make sure it has."""
+def submitted_ahead(frames: Iterator[Frame], odometry: OdometryProcess, depth: int) -> Iterator[Frame]:
+    """`frames` as they come, each handed to the odometry's process `depth` frames before it is
+    yielded, so that the child registers the next frames while the caller handles this one.
+
+    The caller must take each frame's pose (`update`) in order. A source that fails midway still
+    yields the frames it gave before its fault, then raises it; frames handed over but never
+    yielded (the caller stopped early) are the child's to drop when it is closed."""
+    window: deque[Frame] = deque()
+    fault: BaseException | None = None
+    ended = False
+    while True:
+        while not ended and len(window) <= depth:
+            try:
+                frame = next(frames)
+            except StopIteration:
+                ended = True
+            except Exception as exc:  # e.g. a log cut short: raised after the frames before it
+                fault, ended = exc, True
+            else:
+                odometry.submit(frame)
+                window.append(frame)
+        if window:
+            yield window.popleft()
+        elif fault is not None:
+            raise fault
+        else:
+            return
+
+
+def _shut(connection: Connection) -> None:
+    """Shut the socket down both ways, which close() alone does not do to a send blocked in another thread."""
+    sock = socket.socket(fileno=connection.fileno())  # the same descriptor, not a copy
     try:
-        connection.send(None)
+        sock.shutdown(socket.SHUT_RDWR)
+    finally:
+        sock.detach()  # the Connection still owns it and closes it
+
+
+def _what(frame: Frame) -> str:
+    return f"frame {frame.index} (t={frame.timestamp})"
+
+
+def _stop(connection: Connection, process: subprocess.Popen[bytes], sender: _Sender) -> None:
+    """Ask the child to stop, then make sure it has."""
+    sender.stop(timeout=1.0)
+    try:  # wakes a send still blocked on a child busy registering; the child's next read or reply then fails
+        _shut(connection)
     except OSError:
         pass
     connection.close()  # a child still writing a reply gets EPIPE, one waiting for a frame EOF: both end

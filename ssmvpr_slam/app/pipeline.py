@@ -13,7 +13,9 @@ recognition, registration, iSAM2) through a queue of `pipeline.overlap_queue_key
 `pipeline.read_ahead_frames` frames ahead in a thread of its own the same way, so decoding a frame
 overlaps kiss-icp's registration of the one before. kiss-icp keeps the GIL while it
 registers a scan, so the runner then builds the odometry in a process of its own
-(`OdometryProcess`) and the producer thread only waits on it. Signals, progress and checkpoints stay
+(`OdometryProcess`) and the producer thread only waits on it; that process gets each frame
+`pipeline.odometry_ahead_frames` frames early (`submitted_ahead`), so it registers the next scan
+while the producer keeps this keyframe. Signals, progress and checkpoints stay
 in the calling thread. On a stop request the producer takes no further frame (those read ahead
 are dropped) and the keyframes already queued are still processed (at most the queue's length),
 so the result covers exactly the frames taken; the back half sees the same keyframes in the same order as without overlap.
@@ -31,6 +33,7 @@ from dataclasses import dataclass, replace
 from frontend.errors import FrontendInputError
 from frontend.frame import Frame
 from frontend.odometry.base import Odometry
+from frontend.odometry.own_process import OdometryProcess, submitted_ahead
 from loopclosure.backbone import Backbone
 from ssmvpr_common.errors import SsmvprError
 from ssmvpr_slam.app.heap import HeapTrimmer
@@ -170,6 +173,9 @@ class SlamPipeline:
     def _run_overlapped(self, iterator: Iterator[Frame], on_frame: Callable[[RunState], None] | None) -> str | None:
         """The front half in a producer thread, the back half here (see the module docstring)."""
         end = _ProducerEnd()
+        ahead = self.config.pipeline.odometry_ahead_frames
+        if ahead and self.clock is None and isinstance(self.odometry, OdometryProcess):
+            iterator = submitted_ahead(iterator, self.odometry, ahead)
         depth = self.config.pipeline.overlap_queue_keyframes
         keyframes = ReadAhead(self._front_half(iterator, end, lambda: keyframes.cancelled), depth, "slam-front-end")
         with keyframes:  # leaving it (a back-end failure) stops the producer

@@ -38,6 +38,12 @@ class PipelineConfig(SettingsModel):
         "the reader's hand), in a thread of its own, while kiss-icp registers the frame before "
         "(ssmvpr_slam/app/read_ahead.py); 0: the front end's thread reads each frame after the last one's odometry."
     )  # fmt: skip
+    odometry_ahead_frames: int = Field(
+        default=1, ge=0, le=8, description="With overlap and kiss-icp in its own process: frames handed to that "
+        "process before the front end takes their pose, so it registers the next scan while the front end keeps "
+        "this keyframe (the same poses in the same order; frontend/odometry/own_process.py). Not in real time, "
+        "where a frame is not handed over before it is due. 0: one frame at a time."
+    )  # fmt: skip
     registration_lag_keyframes: int = Field(
         default=3, ge=0, description="A loop accepted at keyframe k enters the graph at keyframe k + this, "
         "registered meanwhile (ssmvpr_slam/loop_registrations.py): fixed in keyframes, so the result does not "

@@ -19,7 +19,7 @@ from frontend.config import KissIcpConfig, OdometryConfig
 from frontend.errors import FrontendInputError
 from frontend.frame import Frame
 from frontend.odometry import OdometryProcess, OdometryProcessError, make_odometry
-from frontend.odometry.own_process import _POLL_S
+from frontend.odometry.own_process import _POLL_S, submitted_ahead
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = OdometryConfig(kind="kiss_icp", kiss_icp=KissIcpConfig(max_num_threads=1))
@@ -43,7 +43,11 @@ def test_real_scans_give_the_same_poses_scans_and_counts_as_in_process(kitti_fra
         assert isinstance(there, OdometryProcess)
         poses = []
         for frame in frames:
+            start = time.perf_counter()
             poses.append(there.update(frame))  # kiss-icp's sums are not bit-reproducible: to 1e-9
+            waited = time.perf_counter() - start
+            # the child's own time in update, part of the wait here (the rest: the way there and back)
+            assert there.last_update_s is not None and 0.0 < there.last_update_s < waited
             np.testing.assert_allclose(poses[-1], here.update(frame), rtol=0, atol=1e-9)
             expected = getattr(here, "last_scan", None)
             if expected is None:
@@ -142,3 +146,79 @@ def test_a_script_without_a_main_guard_can_use_it(tmp_path: Path) -> None:
     done = subprocess.run([sys.executable, str(path)], capture_output=True, text=True, timeout=120, cwd=ROOT)
     assert done.returncode == 0, done.stderr
     assert done.stdout.split() == ["script", "ran", "1.0"]
+
+
+# ------------------------------------------------------------------ frames handed over ahead
+
+
+def test_frames_handed_over_ahead_give_the_poses_of_one_at_a_time(kitti_frames: list[Frame]) -> None:
+    frames = [*kitti_frames, Frame(2, 0.2, points=None), Frame(3, 0.3, points=kitti_frames[1].points)]
+    with make_odometry(CONFIG, own_process=True) as one, make_odometry(CONFIG, own_process=True) as ahead:
+        assert isinstance(ahead, OdometryProcess)
+        expected = [one.update(frame) for frame in frames]
+        got = []
+        for frame in submitted_ahead(iter(frames), ahead, 2):
+            assert len(ahead._pending) == min(3, len(frames) - frame.index)  # this frame and two more in flight
+            got.append(ahead.update(frame))
+        np.testing.assert_allclose(np.array(got), np.array(expected), rtol=0, atol=1e-9)
+        assert ahead.stats.updates == len(frames) and ahead.stats.skipped == {"no_points": 1}
+
+
+def test_poses_are_taken_in_the_order_the_frames_went(kitti_frames: list[Frame]) -> None:
+    with OdometryProcess(CONFIG) as odometry:
+        odometry.submit(kitti_frames[0])
+        odometry.submit(kitti_frames[1])
+        with pytest.raises(RuntimeError, match="frame 1 .*taken before frame 0"):
+            odometry.update(kitti_frames[1])
+        odometry.update(kitti_frames[0])
+        odometry.update(kitti_frames[1])
+
+
+def test_a_bad_frame_handed_ahead_fails_at_its_own_turn_and_the_next_still_registers(
+    kitti_frames: list[Frame],
+) -> None:
+    bad = Frame(1, 0.1, points=np.zeros((5, 2)))
+    good = Frame(2, 0.2, points=kitti_frames[1].points)
+    with OdometryProcess(CONFIG) as odometry:
+        frames = submitted_ahead(iter([kitti_frames[0], bad, good]), odometry, 2)
+        assert np.allclose(odometry.update(next(frames)), np.eye(4))  # the first scan is the origin
+        with pytest.raises(FrontendInputError, match=r"frame 1 .*shape \(5, 2\)"):
+            odometry.update(next(frames))
+        assert np.linalg.norm(odometry.update(next(frames))[:3, 3]) > 0.3
+        assert odometry.stats.updates == 3
+
+
+def test_closing_with_frames_in_flight_ends_the_child_cleanly(kitti_frames: list[Frame]) -> None:
+    odometry = OdometryProcess(CONFIG)
+    for k in range(4):
+        odometry.submit(Frame(k, 0.1 * k, points=kitti_frames[k % 2].points))
+    started = time.monotonic()
+    odometry.close()
+    assert odometry._process.poll() == 0 and time.monotonic() - started < 10.0
+    with pytest.raises(OdometryProcessError, match="closed"):
+        odometry.update(kitti_frames[0])
+
+
+class _Submitted:
+    """What `submitted_ahead` hands over, in order."""
+
+    def __init__(self) -> None:
+        self.indices: list[int] = []
+
+    def submit(self, frame: Frame) -> None:
+        self.indices.append(frame.index)
+
+
+def test_submitted_ahead_keeps_depth_frames_in_flight_and_a_fault_after_the_frames_before_it() -> None:
+    def source():
+        yield from (Frame(k, 0.1 * k) for k in range(5))
+        raise FrontendInputError("cut.mcap: truncated after 5 frames")
+
+    odometry = _Submitted()
+    frames = submitted_ahead(source(), odometry, 2)  # type: ignore[arg-type]
+    taken = []
+    with pytest.raises(FrontendInputError, match="truncated after 5 frames"):
+        for frame in frames:
+            assert odometry.indices[-1] == min(frame.index + 2, 4)  # handed over two frames early
+            taken.append(frame.index)
+    assert taken == [0, 1, 2, 3, 4] and odometry.indices == taken

@@ -29,6 +29,7 @@ from ssmvpr_slam.app.pipeline import SlamPipeline
 from ssmvpr_slam.backend.two_view import ReducedImage
 from ssmvpr_slam.config.slam import SlamConfig, load_config
 from ssmvpr_slam.run_result import RunResult
+from ssmvpr_slam.run_state import FRONT_PARTS
 
 pytestmark = pytest.mark.slow
 
@@ -112,6 +113,9 @@ def test_overlap_gives_the_sequential_keyframes_loops_and_trajectory(sequential:
     np.testing.assert_array_equal(a.optimised, b.optimised)
     # the front end's own time is recorded per keyframe beside the back end's stages
     assert all(row["front_end"] > 0 for row in b.timings) and len(b.timings) == len(b.keyframes)
+    for row in b.timings:  # and where it went: the odometry (here in this thread) and keeping the keyframe
+        assert min(row[name] for name in FRONT_PARTS) >= 0.0 and row["odometry"] == row["odometry_wait"] > 0.0
+        assert row["odometry_wait"] + row["keyframe_keeping"] <= row["front_end"]
 
 
 @pytest.fixture(scope="module")

@@ -35,6 +35,9 @@ def test_bench_slam_reports_stages_and_the_pace_per_keyframe(weights_path: Path)
     assert 2 <= n <= 12
     stages = out["latency_per_keyframe_s"]
     assert stages["backbone"]["median_s"] > 0 and stages["front_end"]["median_s"] > 0
+    # the front end by part: kiss-icp in its process, the front end's wait for it, keeping the keyframe
+    assert stages["odometry"]["median_s"] > 0 and stages["keyframe_keeping"]["median_s"] > 0
+    assert 0 <= stages["odometry_wait"]["mean_s"] <= stages["front_end"]["mean_s"]
     pace = out["keyframe_interval_s"]
     assert 0 < pace["median_s"] <= pace["p90_s"] and pace["mean_s"] > 0
     assert pace["mean_s"] * (n - 1) <= out["wall_s"]  # the intervals lie within the run
@@ -50,6 +53,8 @@ def test_bench_slam_reports_stages_and_the_pace_per_keyframe(weights_path: Path)
     serial = out["serial"]
     assert serial["settings"]["overlap"] is False and serial["settings"]["registration_worker"] is False
     assert serial["keyframes"] == n and serial["error"] is None
+    serial_stages = serial["latency_per_keyframe_s"]  # kiss-icp in this process: the wait is its update
+    assert serial_stages["odometry_wait"]["mean_s"] == pytest.approx(serial_stages["odometry"]["mean_s"])
     assert out["same_loops"] is True and out["loops_accepted"] == serial["loops_accepted"]
     assert out["speedup"] == pytest.approx(out["keyframes_per_second"] / serial["keyframes_per_second"])
     assert out["keyframe_interval_p99_s"] >= pace["median_s"]

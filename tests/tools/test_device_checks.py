@@ -22,7 +22,8 @@ def _run(*args: str, timeout: float = 600) -> subprocess.CompletedProcess[str]:
 @pytest.mark.slow
 def test_every_step_runs_and_leaves_its_measurements(tmp_path: Path, weights_path: Path, corridor_dir: Path) -> None:
     out = tmp_path / "out"
-    proc = _run("--kit", str(tmp_path / "kit"), "run", "stage1", "backbone", "simulate", "slam", "threads", "--device", "cpu",
+    proc = _run("--kit", str(tmp_path / "kit"), "run", "stage1", "backbone", "simulate", "odometry", "slam", "threads",
+                "--device", "cpu",
                 "--quick",
                 "--weights", str(weights_path), "--images", str(corridor_dir / "ref"), "--out", str(out))  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -50,6 +51,12 @@ def test_every_step_runs_and_leaves_its_measurements(tmp_path: Path, weights_pat
 
     simulate = json.loads((out / "simulate.json").read_text())
     assert [(c["name"], c["returncode"]) for c in simulate["commands"]] == [("simulate", 0)]
+    odometry = json.loads((out / "odometry.json").read_text())["results"]  # the front end's pace, 4 ways
+    for threads in (8, 16):
+        for ahead in (0, 1):
+            run = odometry[f"odometry_t{threads}_ahead{ahead}"]
+            assert run["frames"] == 8 and run["own_process"] is True and run["ahead"] == ahead
+            assert run["kiss_icp"]["max_num_threads"] == threads and run["front_end_ms_per_frame"] > 0
     slam = json.loads((out / "slam.json").read_text())
     names = [(c["name"], c["returncode"]) for c in slam["commands"]]
     assert names == [("bench_slam", 0), ("bench_slam_fast", 0)]
