@@ -169,7 +169,8 @@ class RunInputs(_Part):
     log: str
     source: str
     # frames yielded, skips and notes by reason, each source its own: what the source read, which after a
-    # stop includes the frames it had read ahead (pipeline.read_ahead_frames) beyond `frames`
+    # stop includes the frames it had read ahead (pipeline.read_ahead_frames, and those handed to kiss-icp's
+    # process early, pipeline.odometry_ahead_frames) beyond `frames`
     source_stats: dict[str, Any]
     odometry_kind: str
     prior_map: str | None
