@@ -35,7 +35,9 @@ FRONT_PARTS = ("odometry", "odometry_wait", "keyframe_keeping")
 update (in its process where it has one), the front end's wait for the pose (one frame at a time,
 that update and the frame's way there and back; with frames handed ahead, what is left of the
 update when the front end asks), and keeping the keyframe (its scan, reduced images,
-thumbnail). What front_end has beyond the wait and the keeping is selection and checks."""
+thumbnail). What front_end has beyond the wait and the keeping is selection and checks. With
+frames handed ahead the odometry's update overlaps the rest, so the parts need not add up to
+less than front_end."""
 
 
 @dataclass

@@ -91,7 +91,7 @@ def serve(fd: int) -> None:
     while True:
         try:
             frame = connection.recv()
-        except EOFError:  # the parent went away
+        except (EOFError, OSError):  # the parent went away, perhaps in the middle of a frame
             return
         if frame is None:
             return
@@ -124,7 +124,9 @@ class _Sender:
 
     def __init__(self, connection: Connection) -> None:
         self.outbox: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self.sent = 0  # frames written to the child
         self.failure: BaseException | None = None  # why it stopped sending (a frame that would not pickle, ...)
+        self.hurry = False  # replies are left unread: the child may be blocked writing one, so do not wait on it
         self.thread = threading.Thread(target=self._send_all, args=(connection,), name="odometry-sender", daemon=True)
         self.thread.start()
 
@@ -135,6 +137,7 @@ class _Sender:
             except BaseException as exc:  # the receiving side reports it (or the child's death) for the frame
                 self.failure = exc
                 return
+            self.sent += 1
         try:
             connection.send(None)  # the child's signal to stop
         except OSError:
@@ -149,7 +152,8 @@ class _Sender:
         except queue.Empty:
             pass
         self.outbox.put(_STOP)
-        self.thread.join(timeout)
+        if threading.current_thread() is not self.thread:  # a finalizer may run in any thread, this one too
+            self.thread.join(0.0 if self.hurry else timeout)
 
 
 class OdometryProcess:
@@ -166,7 +170,8 @@ class OdometryProcess:
         self.last_update_s: float | None = None
         """Seconds the child spent in the last `update` itself; the rest of the caller's wait was
         the frame's way there and back (pickling, the socket, getting the GIL back)."""
-        self._pending: deque[tuple[int, float, str]] = deque()  # frames submitted, their poses not yet taken
+        self._pending: deque[tuple[int, float, str, int]] = deque()  # frames submitted, poses not yet taken
+        self._submitted = 0  # frames handed to the sender so far
         ours, theirs = socket.socketpair()
         env = dict(os.environ)  # the child imports what this process can (tools put the repo on sys.path)
         env["PYTHONPATH"] = os.pathsep.join(p for p in [*sys.path, env.get("PYTHONPATH", "")] if p)
@@ -199,23 +204,25 @@ class OdometryProcess:
         what = _what(frame)
         if not self._closer.alive:
             raise OdometryProcessError(f"{what}: the odometry process was closed")
-        self._pending.append((frame.index, frame.timestamp, what))
-        self._sender.outbox.put(replace(frame, image=None, rear_image=None))
+        message = replace(frame, image=None, rear_image=None)
+        self._sender.outbox.put(message)
+        self._pending.append((frame.index, frame.timestamp, what, self._submitted))
+        self._submitted += 1
 
     def update(self, frame: Frame) -> np.ndarray:
         """The pose of `frame`: the oldest frame submitted and not yet taken, or, with none
         pending, `frame` submitted now."""
         if not self._pending:
             self.submit(frame)
-        index, timestamp, what = self._pending[0]
+        index, timestamp, what, number = self._pending[0]
         if (index, timestamp) != (frame.index, frame.timestamp):
             raise RuntimeError(f"OdometryProcess.update: {_what(frame)} taken before {what}, submitted earlier")
         try:
-            kind, payload = self._receive(what, None)
+            kind, payload = self._receive(what, None, number)
+            self._pending.popleft()
         except BaseException:  # e.g. a KeyboardInterrupt mid-wait: a reply left unread would answer the next frame
             self.close()
             raise
-        self._pending.popleft()
         if kind == "error":
             raise payload
         pose, self.last_scan, self.last_scan_voxel, self.stats, self.last_update_s = payload
@@ -223,6 +230,7 @@ class OdometryProcess:
 
     def close(self) -> None:
         """End the child process (idempotent); frames still in flight are dropped."""
+        self._sender.hurry = bool(self._pending)
         self._pending.clear()
         self._closer()
 
@@ -232,13 +240,16 @@ class OdometryProcess:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def _receive(self, what: str, timeout: float | None) -> tuple[str, Any]:
+    def _receive(self, what: str, timeout: float | None, number: int | None = None) -> tuple[str, Any]:
+        """The next reply (`what` names it in errors); `number`: the submitted frame it answers,
+        which a sender that failed on a later frame has still sent."""
         waited = 0.0
         while not self._connection.poll(_POLL_S):
             waited += _POLL_S
             if self._process.poll() is not None and not self._connection.poll(0):
                 raise self._died(what)
-            if self._sender.failure is not None and not self._connection.poll(0):
+            unsent = number is None or self._sender.sent <= number
+            if self._sender.failure is not None and unsent and not self._connection.poll(0):
                 failure = self._sender.failure
                 self.close()
                 raise OdometryProcessError(f"{what}: could not be sent to the odometry process ({failure})")
@@ -268,7 +279,8 @@ def submitted_ahead(frames: Iterator[Frame], odometry: OdometryProcess, depth: i
 
     The caller must take each frame's pose (`update`) in order. A source that fails midway still
     yields the frames it gave before its fault, then raises it; frames handed over but never
-    yielded (the caller stopped early) are the child's to drop when it is closed."""
+    yielded (the caller stopped early, or a KeyboardInterrupt from the source, which is raised at
+    once) are dropped when the odometry is closed, as it must be then."""
     window: deque[Frame] = deque()
     fault: BaseException | None = None
     ended = False
@@ -311,6 +323,8 @@ def _stop(connection: Connection, process: subprocess.Popen[bytes], sender: _Sen
         _shut(connection)
     except OSError:
         pass
+    if threading.current_thread() is not sender.thread:
+        sender.thread.join(1.0)  # its send has failed by now: the socket is not closed under it
     connection.close()  # a child still writing a reply gets EPIPE, one waiting for a frame EOF: both end
     try:
         process.wait(timeout=5.0)

@@ -43,7 +43,9 @@ class CheckpointRecord(BaseModel):
     rear_keyframes: NonNegativeInt
     seconds: Annotated[float, Field(ge=0, allow_inf_nan=False)]
     keyframes: NonNegativeInt
-    timings: list[StageSeconds]  # one row of seconds per stage a keyframe, the same stages in each
+    # one row of seconds per stage a keyframe, each with the stages of the first at least (a run
+    # resumed from an older build's checkpoint adds rows with the stages added since)
+    timings: list[StageSeconds]
     loops: list[dict[str, Any]]  # LoopRecord fields, checked against the keyframes by the reader
     # loops[i] registered but not applied yet (pipeline.registration_lag_keyframes): a resume applies them
     unapplied_loops: list[NonNegativeInt] = []
@@ -72,8 +74,8 @@ def read_record(path: Path, data: dict[str, Any]) -> CheckpointRecord:
         raise CheckpointError(f"{path}: rear_keyframes must be at most keyframes ({record.keyframes}), "
                               f"got {record.rear_keyframes}")  # fmt: skip
     for i, row in enumerate(record.timings):
-        if row.keys() != record.timings[0].keys():
-            raise CheckpointError(f"{path}: timings[{i}] has other stages than timings[0]")
+        if missing := sorted(record.timings[0].keys() - row.keys()):
+            raise CheckpointError(f"{path}: timings[{i}] lacks stages timings[0] has ({', '.join(missing)})")
     return record
 
 

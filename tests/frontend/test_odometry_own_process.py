@@ -199,6 +199,16 @@ def test_closing_with_frames_in_flight_ends_the_child_cleanly(kitti_frames: list
         odometry.update(kitti_frames[0])
 
 
+def test_a_frame_that_cannot_be_sent_fails_at_its_turn_not_the_frame_before(kitti_frames: list[Frame]) -> None:
+    unsendable = Frame(1, 0.1, points=np.array([lambda: None], dtype=object))  # a lambda does not pickle
+    with OdometryProcess(CONFIG) as odometry:
+        odometry.submit(kitti_frames[0])
+        odometry.submit(unsendable)
+        assert np.allclose(odometry.update(kitti_frames[0]), np.eye(4))  # sent before the failure: its pose comes
+        with pytest.raises(OdometryProcessError, match="frame 1 .*could not be sent"):
+            odometry.update(unsendable)
+
+
 class _Submitted:
     """What `submitted_ahead` hands over, in order."""
 

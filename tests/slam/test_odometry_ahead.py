@@ -87,7 +87,7 @@ def test_frames_handed_ahead_give_the_run_of_one_at_a_time(
     np.testing.assert_allclose(a.odometry, b.odometry, rtol=0, atol=1e-9)  # kiss-icp on one thread
     assert all(k.scan is not None for k in b.keyframes)
     assert [k.scan.count for k in a.keyframes] == [k.scan.count for k in b.keyframes]  # type: ignore[union-attr]
-    assert b.odometry_stats is not None and b.odometry_stats["updates"] == FRAMES
+    assert b.odometry_stats["updates"] == FRAMES
     assert ahead.odometry._process.poll() == 0  # type: ignore[attr-defined]  # finish ended the child
 
 
@@ -101,3 +101,27 @@ def test_a_log_cut_short_keeps_the_frames_before_it_when_handed_ahead(
     pipeline, state = _run(_config(weights_path, 2), cut(), backbone)
     assert pipeline.step_error is None and pipeline.ending.source_error == "cut.mcap: truncated after 15 frames"
     assert state.frames_seen == 15 and pipeline.finish().odometry_stats["updates"] == 15  # type: ignore[index]
+
+
+def test_a_stop_with_frames_in_flight_ends_the_child_and_counts_the_frames_taken(
+    weights_path: Path, frames: list[Frame], backbone: object
+) -> None:
+    pipeline: SlamPipeline | None = None
+
+    def interrupted() -> Iterator[Frame]:
+        for frame in frames:
+            if frame.index == 12:
+                assert pipeline is not None
+                pipeline.stop.requested = True  # as SIGINT's handler does, with frames 10 and 11 handed over
+            yield frame
+
+    cfg = _config(weights_path, 2)
+    odometry = make_odometry(cfg.frontend.odometry, own_process=True, kept_voxel=kept_voxel(cfg))
+    pipeline = SlamPipeline.build(cfg, odometry, backbone)  # type: ignore[arg-type]
+    state = pipeline.run(interrupted())
+    assert pipeline.ending.interrupted and pipeline.step_error is None
+    taken = state.frames_seen
+    assert 8 <= taken <= 12  # the front end stops after its current frame; those handed ahead are dropped
+    result = pipeline.finish()
+    assert result.odometry_stats["updates"] == taken  # the odometry's counts cover the frames taken
+    assert isinstance(odometry, OdometryProcess) and odometry._process.poll() == 0

@@ -35,9 +35,10 @@ def test_bench_slam_reports_stages_and_the_pace_per_keyframe(weights_path: Path)
     assert 2 <= n <= 12
     stages = out["latency_per_keyframe_s"]
     assert stages["backbone"]["median_s"] > 0 and stages["front_end"]["median_s"] > 0
-    # the front end by part: kiss-icp in its process, the front end's wait for it, keeping the keyframe
+    # the front end by part: kiss-icp in its process (handed a frame ahead), the wait for it, keeping
+    assert out["settings"]["odometry_ahead_frames"] == 1
     assert stages["odometry"]["median_s"] > 0 and stages["keyframe_keeping"]["median_s"] > 0
-    assert 0 <= stages["odometry_wait"]["mean_s"] <= stages["front_end"]["mean_s"]
+    assert stages["odometry_wait"]["mean_s"] >= 0
     pace = out["keyframe_interval_s"]
     assert 0 < pace["median_s"] <= pace["p90_s"] and pace["mean_s"] > 0
     assert pace["mean_s"] * (n - 1) <= out["wall_s"]  # the intervals lie within the run

@@ -45,7 +45,7 @@ from ssmvpr_slam.checkpoint.loading import load_checkpoint
 from ssmvpr_slam.checkpoint.saving import CheckpointError, CheckpointMeta, write_checkpoint
 from ssmvpr_slam.config.slam import load_config
 from ssmvpr_slam.prior_map import PriorMap, save_map
-from ssmvpr_slam.run_result import Keyframe, LoopRecord, RunResult, StreamEnd
+from ssmvpr_slam.run_result import Keyframe, LoopRecord, RunResult, StreamEnd, latency_summary
 
 N = 5  # keyframes of the made-up run
 FRAMES_SEEN = 12
@@ -250,7 +250,7 @@ CHECKPOINT_CASES: dict[str, tuple[Callable[[Path], str], str]] = {
     "frames_skipped_negative": (_field("frames_skipped", {"x": -1}), "frames_skipped must be an object"),
     "timings_text": (_field("timings", "x"), "timings must be a list of objects"),
     "timings_row_text": (_record(lambda r: r["timings"].__setitem__(1, {"total": "slow"})), "timings[1] must be"),
-    "timings_row_other_stages": (_record(lambda r: r["timings"].__setitem__(2, {"gate": 0.1})), "timings[2] has other"),
+    "timings_row_other_stages": (_record(lambda r: r["timings"].__setitem__(2, {"gate": 0.1})), "timings[2] lacks stages timings[0] has"),
     "loops_an_object": (_field("loops", {"0": 1}), "loops must be a list of objects"),
     "log_a_number": (_field("log", 7), "log must be a string"),
     "prior_map_a_list": (_field("prior_map", []), "prior_map must be a path or null"),
@@ -277,6 +277,21 @@ def test_the_unbroken_checkpoint_loads(valid_checkpoint: Path) -> None:
     assert len(result.keyframes) == N and result.frames_seen == FRAMES_SEEN and result.frames_skipped
     assert [r.factor_handle for r in result.loops] == [None, 0] and result.keyframes[0].thumbnail
     assert result.in_map_frame is not None and len(result.timings) == N
+
+
+def test_a_checkpoint_of_a_run_resumed_from_an_older_build_loads(valid_checkpoint: Path, tmp_path: Path) -> None:
+    """Its first rows lack the stages added since (the front end's parts); the later rows have them."""
+    copy = _copy(valid_checkpoint, tmp_path)
+
+    def older_first_rows(record: dict) -> None:  # type: ignore[type-arg]
+        for row in record["timings"][2:]:
+            row.update(odometry=0.05, odometry_wait=0.06, keyframe_keeping=0.01)
+
+    _record(older_first_rows)(copy.folder)
+    timings = load_checkpoint(copy.run).result.timings
+    assert "odometry" not in timings[0] and timings[-1]["odometry"] == 0.05
+    assert latency_summary(timings)["odometry"]["median_s"] == pytest.approx(0.05)  # over the rows that have it
+    assert latency_summary(timings)["total"]["median_s"] > 0  # the rest over every row
 
 
 @pytest.mark.parametrize("case", sorted(CHECKPOINT_CASES))
