@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import subprocess
 import sys
 import textwrap
@@ -155,3 +156,18 @@ def test_config_validation() -> None:
         KissIcpConfig(min_range=50.0, max_range=10.0)
     with pytest.raises(ValueError):
         KissIcpConfig(unknown_field=1)
+
+
+def test_the_points_kept_are_the_finite_nonzero_ones_within_range() -> None:
+    """The one-pass filter against the rule written out point by point: non-finite coordinates,
+    (0, 0, 0), and ranges outside [min_range, max_range] (bounds kept) are dropped."""
+    config = KissIcpConfig(min_range=0.5, max_range=100.0)
+    rng = np.random.default_rng(3)
+    points = rng.normal(scale=40.0, size=(3000, 3))
+    points[:40] = [[np.nan, 1, 1], [np.inf, 0, 0], [-np.inf, 1, 2], [0, 0, 0], [1e200, 0, 0], [100.0, 0, 0],
+                   [0, 0.5, 0], [0, 0, 0.4999], [60, 80, 0.001], [0, 0, -100.0]] * 4  # fmt: skip
+    expected = [p for p in points if np.all(np.isfinite(p)) and np.any(p != 0) and 0.5 <= math.hypot(*p) <= 100.0]
+    kept, _ = KissIcpOdometry(config)._clean(Frame(0, 0.0, points=points))
+    assert kept is not None
+    np.testing.assert_array_equal(kept, np.array(expected))
+    assert [100.0, 0, 0] in kept.tolist() and [0, 0.5, 0] in kept.tolist() and [0, 0, -100.0] in kept.tolist()
