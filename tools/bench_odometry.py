@@ -14,6 +14,8 @@ whether ATE grows with route length), drift per 100 m, and the KITTI devkit's re
 `--slam-config` takes kiss-icp's settings from a SLAM config or preset
 (`frontend.odometry.kiss_icp`; e.g. `fast`); without it, kiss-icp's defaults as `run` uses them
 (SSMVPR_ variables apply, e.g. SSMVPR_FRONTEND__ODOMETRY__KISS_ICP__MAX_NUM_THREADS=8).
+`input_checks_ms_per_frame` is the checks every scan passes before kiss-icp (non-finite,
+placeholder and out-of-range points dropped), part of the odometry's update.
 `keep_scan_ms_per_frame` is what keeping each scan for loop registration costs after it, as a
 run keeps it: kiss-icp's own voxelised scan where its size is the kept one, or with
 `--no-kept-reuse` the deskewed scan filtered again.
@@ -115,6 +117,11 @@ def main(argv: list[str] | None = None) -> int:
             keep_scan(odometry.last_scan, voxel, voxelised=odometry.last_scan_voxel == voxel)
             keeping.append(time.perf_counter() - start)
     front_end = (time.perf_counter() - loop_start) / len(frames)
+    checker, checks = KissIcpOdometry(kiss_icp), []  # the input checks before kiss-icp, part of every update
+    for frame in frames:
+        start = time.perf_counter()
+        checker.clean(frame)
+        checks.append(time.perf_counter() - start)
     if args.own_process:
         odometry.close()  # its CPU time counts once it is reaped
     cpu_seconds = time.process_time() - cpu_start
@@ -136,6 +143,7 @@ def main(argv: list[str] | None = None) -> int:
         # all threads (kiss-icp's TBB workers too): what a frame costs a CPU shared with the backbone
         "cpu_ms_per_frame": 1000 * cpu_seconds / len(frames),
         "keep_scan_ms_per_frame": 1000 * float(np.median(keeping)) if keeping else None,
+        "input_checks_ms_per_frame": 1000 * float(np.median(checks)),
         "own_process": args.own_process,
         "ahead": args.ahead if args.own_process else None,
         "front_end_ms_per_frame": 1000 * front_end,

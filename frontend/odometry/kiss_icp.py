@@ -88,7 +88,7 @@ class KissIcpOdometry:
 
     def update(self, frame: Frame) -> np.ndarray:
         self.stats.updates += 1
-        points, times = self._clean(frame)
+        points, times = self.clean(frame)
         self.last_scan = self.last_scan_voxel = self._map_points = None
         if points is None:
             return self._predict()
@@ -115,8 +115,9 @@ class KissIcpOdometry:
             self._kiss.last_pose = self._kiss.last_pose @ self._kiss.last_delta
         return self._kiss.last_pose.copy()
 
-    def _clean(self, frame: Frame) -> tuple[np.ndarray | None, np.ndarray]:
-        """Finite, in-range float64 points and usable per-point times (or None to skip)."""
+    def clean(self, frame: Frame) -> tuple[np.ndarray | None, np.ndarray]:
+        """Finite, in-range float64 points and usable per-point times (or None to skip), as
+        `update` hands them to kiss-icp; a skip or a degraded scan is counted in `stats`."""
         where = f"frame {frame.index} (t={frame.timestamp})"
         if frame.points is None:
             self.stats.skip("no_points", f"{where}: no LiDAR scan; pose predicted")

@@ -167,7 +167,7 @@ def test_the_points_kept_are_the_finite_nonzero_ones_within_range() -> None:
     points[:40] = [[np.nan, 1, 1], [np.inf, 0, 0], [-np.inf, 1, 2], [0, 0, 0], [1e200, 0, 0], [100.0, 0, 0],
                    [0, 0.5, 0], [0, 0, 0.4999], [60, 80, 0.001], [0, 0, -100.0]] * 4  # fmt: skip
     expected = [p for p in points if np.all(np.isfinite(p)) and np.any(p != 0) and 0.5 <= math.hypot(*p) <= 100.0]
-    kept, _ = KissIcpOdometry(config)._clean(Frame(0, 0.0, points=points))
+    kept, _ = KissIcpOdometry(config).clean(Frame(0, 0.0, points=points))
     assert kept is not None
     np.testing.assert_array_equal(kept, np.array(expected))
     assert [100.0, 0, 0] in kept.tolist() and [0, 0.5, 0] in kept.tolist() and [0, 0, -100.0] in kept.tolist()
