@@ -26,3 +26,8 @@ class Frame:
     point_times: np.ndarray | None = None
     logged_pose: np.ndarray | None = None
     gt_pose: np.ndarray | None = None
+
+    @property
+    def label(self) -> str:
+        """How errors and warnings name this frame: its index and its time."""
+        return f"frame {self.index} (t={self.timestamp})"

@@ -118,7 +118,7 @@ class KissIcpOdometry:
     def clean(self, frame: Frame) -> tuple[np.ndarray | None, np.ndarray]:
         """Finite, in-range float64 points and usable per-point times (or None to skip), as
         `update` hands them to kiss-icp; a skip or a degraded scan is counted in `stats`."""
-        where = f"frame {frame.index} (t={frame.timestamp})"
+        where = frame.label
         if frame.points is None:
             self.stats.skip("no_points", f"{where}: no LiDAR scan; pose predicted")
             return None, NO_TIMES

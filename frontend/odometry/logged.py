@@ -73,7 +73,7 @@ class LoggedPoseOdometry:
         self.stats.updates += 1
         name = "logged_pose" if self.config.pose_source == "logged" else "gt_pose"
         logged = getattr(frame, name)
-        where = f"frame {frame.index} (t={frame.timestamp})"
+        where = frame.label
         if logged is None:
             self.stats.skip(f"no_{name}", f"{where}: no {name}; previous pose held")
             return self.pose

@@ -170,7 +170,7 @@ class OdometryProcess:
         self.last_update_s: float | None = None
         """Seconds the child spent in the last `update` itself; the rest of the caller's wait was
         the frame's way there and back (pickling, the socket, getting the GIL back)."""
-        self._pending: deque[tuple[int, float, str, int]] = deque()  # frames submitted, poses not yet taken
+        self._pending: deque[tuple[str, int]] = deque()  # frames submitted (label, number), poses not yet taken
         self._submitted = 0  # frames handed to the sender so far
         ours, theirs = socket.socketpair()
         env = dict(os.environ)  # the child imports what this process can (tools put the repo on sys.path)
@@ -201,12 +201,11 @@ class OdometryProcess:
         """Hand `frame` to the child now (without its images, which odometry never reads); it is
         registered while this thread goes on, and `update(frame)` takes its pose. Frames must be
         taken in the order they were submitted."""
-        what = _what(frame)
         if not self._closer.alive:
-            raise OdometryProcessError(f"{what}: the odometry process was closed")
+            raise OdometryProcessError(f"{frame.label}: the odometry process was closed")
         message = replace(frame, image=None, rear_image=None)
         self._sender.outbox.put(message)
-        self._pending.append((frame.index, frame.timestamp, what, self._submitted))
+        self._pending.append((frame.label, self._submitted))
         self._submitted += 1
 
     def update(self, frame: Frame) -> np.ndarray:
@@ -214,9 +213,9 @@ class OdometryProcess:
         pending, `frame` submitted now."""
         if not self._pending:
             self.submit(frame)
-        index, timestamp, what, number = self._pending[0]
-        if (index, timestamp) != (frame.index, frame.timestamp):
-            raise RuntimeError(f"OdometryProcess.update: {_what(frame)} taken before {what}, submitted earlier")
+        what, number = self._pending[0]
+        if frame.label != what:
+            raise RuntimeError(f"OdometryProcess.update: {frame.label} taken before {what}, submitted earlier")
         try:
             kind, payload = self._receive(what, None, number)
             self._pending.popleft()
@@ -310,10 +309,6 @@ def _shut(connection: Connection) -> None:
         sock.shutdown(socket.SHUT_RDWR)
     finally:
         sock.detach()  # the Connection still owns it and closes it
-
-
-def _what(frame: Frame) -> str:
-    return f"frame {frame.index} (t={frame.timestamp})"
 
 
 def _stop(connection: Connection, process: subprocess.Popen[bytes], sender: _Sender) -> None:
