@@ -31,7 +31,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import sys
 import time
 from pathlib import Path
@@ -50,6 +49,7 @@ from ssmvpr_slam.evaluation.metrics import ate, drift_per_100m, kitti_relative_e
 from ssmvpr_slam.kept_keyframe import kept_voxel  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _cpu import cpu_seconds  # noqa: E402
 from _sim_options import add_simulation_options, simulation_config  # noqa: E402
 
 PREFIXES = (0.25, 0.5, 0.75, 1.0)
@@ -65,12 +65,6 @@ def ate_by_prefix(gt: np.ndarray, est: np.ndarray) -> list[dict[str, float | int
         out.append({"fraction": fraction, "frames": n, "path_m": round(float(lengths[n - 1]), 1),
                     "ate_rmse_m": ate(gt[:n], est[:n]).stats.rmse})  # fmt: skip
     return out
-
-
-def _children_cpu_s() -> float:
-    """CPU seconds of the child processes reaped so far (the odometry's own, once closed)."""
-    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return usage.ru_utime + usage.ru_stime
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -104,29 +98,26 @@ def main(argv: list[str] | None = None) -> int:
     else:
         odometry, stream = KissIcpOdometry(kiss_icp, kept), iter(frames)
     estimates, seconds, keeping = [], [], []
-    cpu_start, children_start = time.process_time(), _children_cpu_s()
+    cpu_start = cpu_seconds()
     loop_start = time.perf_counter()
     for frame in stream:
         start = time.perf_counter()
         estimates.append(odometry.update(frame))
-        seconds.append(time.perf_counter() - start)
-        if args.own_process:
-            seconds[-1] = odometry.last_update_s  # the odometry's own time, in its process
+        waited = time.perf_counter() - start
+        seconds.append(odometry.last_update_s if args.own_process else waited)  # the odometry's own time
         if voxel is not None:
             start = time.perf_counter()
             keep_scan(odometry.last_scan, voxel, voxelised=odometry.last_scan_voxel == voxel)
             keeping.append(time.perf_counter() - start)
     front_end = (time.perf_counter() - loop_start) / len(frames)
+    if args.own_process:
+        odometry.close()  # its CPU time counts once it is reaped
+    cpu_seconds_used = sum(cpu_seconds()) - sum(cpu_start)
     checker, checks = KissIcpOdometry(kiss_icp), []  # the input checks before kiss-icp, part of every update
     for frame in frames:
         start = time.perf_counter()
         checker.clean(frame)
         checks.append(time.perf_counter() - start)
-    if args.own_process:
-        odometry.close()  # its CPU time counts once it is reaped
-    cpu_seconds = time.process_time() - cpu_start
-    if args.own_process:
-        cpu_seconds += _children_cpu_s() - children_start
     gt = np.array([f.gt_pose for f in frames])
     est = np.array(estimates)
     result = {
@@ -141,7 +132,7 @@ def main(argv: list[str] | None = None) -> int:
             "mean": 1000 * float(np.mean(seconds)),
         },
         # all threads (kiss-icp's TBB workers too): what a frame costs a CPU shared with the backbone
-        "cpu_ms_per_frame": 1000 * cpu_seconds / len(frames),
+        "cpu_ms_per_frame": 1000 * cpu_seconds_used / len(frames),
         "keep_scan_ms_per_frame": 1000 * float(np.median(keeping)) if keeping else None,
         "input_checks_ms_per_frame": 1000 * float(np.median(checks)),
         "own_process": args.own_process,

@@ -48,6 +48,7 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
+from _cpu import cpu_seconds  # noqa: E402
 from _memory import peak_rss_mb, rss_mb  # noqa: E402
 
 
@@ -187,7 +188,7 @@ def _run(config: Any, frames: Any, backbone: Any, args: argparse.Namespace) -> t
             })  # fmt: skip
             print(json.dumps(samples[-1]), file=sys.stderr, flush=True)  # a run cut short keeps its samples
 
-    start, cpu_start = time.perf_counter(), _cpu_seconds()
+    start, cpu_start = time.perf_counter(), cpu_seconds()
     state = pipeline.run(frames, sample)
     wall = time.perf_counter() - start
     summary = state.times.summary()
@@ -196,7 +197,7 @@ def _run(config: Any, frames: Any, backbone: Any, args: argparse.Namespace) -> t
     interval = latency_summary([{"keyframe": float(t)} for t in intervals]).get("keyframe")
     pace = None if interval is None else interval["median_s"]
     run = pipeline.finish()  # ends an odometry process too (its CPU time counts once it is reaped)
-    cpu = _cpu_use(cpu_start, _cpu_seconds(), wall, n_kf, np.diff(cpu_at), latency_summary)
+    cpu = _cpu_use(cpu_start, cpu_seconds(), wall, n_kf, np.diff(cpu_at), latency_summary)
     error = pipeline.step_error
     failure = f"{type(error).__name__}: {error}" if error is not None else pipeline.ending.source_error
     stages = ("front_end", "backbone", "database_query", "spatial_matching", "sequence_matching", "gate",
@@ -273,14 +274,6 @@ def _stage1_search(database: Any) -> dict[str, str | None]:
     index = database.search_index()  # the index the run searched, already up to date
     return {"stage1_index": index.kind, "stage1_torch_device": index.search_device,
             "stage1_torch_storage": index.search_storage}  # fmt: skip
-
-
-def _cpu_seconds() -> tuple[float, float]:
-    """CPU seconds used so far by this process and by its reaped children (an odometry process)."""
-    import resource
-
-    own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
-    return own.ru_utime + own.ru_stime, children.ru_utime + children.ru_stime
 
 
 def _cpu_use(start: tuple[float, float], end: tuple[float, float], wall: float, n_kf: int, intervals: Any,
