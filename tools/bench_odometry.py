@@ -12,7 +12,7 @@ whether ATE grows with route length), drift per 100 m, and the KITTI devkit's re
                                    [--no-kept-reuse] [--own-process [--ahead N]]
 
 `--slam-config` takes kiss-icp's settings from a SLAM config or preset
-(`frontend.odometry.kiss_icp`; e.g. `fast`); without it, kiss-icp's defaults as `run` uses them
+(`frontend.odometry.kiss_icp`; e.g. `fast`); without it, the default preset's as `run` uses them
 (SSMVPR_ variables apply, e.g. SSMVPR_FRONTEND__ODOMETRY__KISS_ICP__MAX_NUM_THREADS=8).
 `input_checks_ms_per_frame` is the checks every scan passes before kiss-icp (non-finite,
 placeholder and out-of-range points dropped), part of the odometry's update.
