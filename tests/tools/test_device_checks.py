@@ -51,12 +51,16 @@ def test_every_step_runs_and_leaves_its_measurements(tmp_path: Path, weights_pat
 
     simulate = json.loads((out / "simulate.json").read_text())
     assert [(c["name"], c["returncode"]) for c in simulate["commands"]] == [("simulate", 0)]
-    odometry = json.loads((out / "odometry.json").read_text())["results"]  # the front end's pace, 4 ways
+    odometry = json.loads((out / "odometry.json").read_text())["results"]  # the front end's pace, 5 ways
     for threads in (8, 16):
         for ahead in (0, 1):
             run = odometry[f"odometry_t{threads}_ahead{ahead}"]
             assert run["frames"] == 8 and run["own_process"] is True and run["ahead"] == ahead
             assert run["kiss_icp"]["max_num_threads"] == threads and run["front_end_ms_per_frame"] > 0
+            assert (run["kiss_icp"]["max_points_per_voxel"], run["kiss_icp"]["convergence_criterion"]) == (10, 1e-3)
+    own = odometry["odometry_t8_ahead1_kiss_own"]  # the same, with kiss-icp's own settings
+    assert (own["kiss_icp"]["max_points_per_voxel"], own["kiss_icp"]["convergence_criterion"]) == (20, 1e-4)
+    assert own["kiss_icp"]["max_num_threads"] == 8 and own["ahead"] == 1 and own["front_end_ms_per_frame"] > 0
     slam = json.loads((out / "slam.json").read_text())
     names = [(c["name"], c["returncode"]) for c in slam["commands"]]
     assert names == [("bench_slam", 0), ("bench_slam_fast", 0)]
