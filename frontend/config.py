@@ -167,8 +167,9 @@ class KissIcpConfig(SettingsModel):
         8,
         ge=0,
         description="Threads of its registration, at most the cores (0 = all cores). On a 16-core GPU machine one "
-        "demo scan took 82 / 55 / 39 ms on 4 / 8 / 16 threads (kiss-icp's own 20 points and 1e-4), and a whole run went from 6.3 to 8.1 keyframes/s "
-        "at 8 (docs/streaming.md). kiss-icp fixes one cap per process at its first registration "
+        "demo scan took 82 / 55 / 39 ms on 4 / 8 / 16 threads (kiss-icp's own 20 points and 1e-4), and a whole "
+        "run went from 6.3 to 8.1 keyframes/s at 8 (docs/streaming.md). kiss-icp fixes one cap per process at its "
+        "first registration "
         "(frontend/odometry/kiss_threads.py): where the odometry runs in the main process (pipeline.overlap "
         "off), the first built of this and backend.registration.lidar.max_num_threads counts for both",
     )

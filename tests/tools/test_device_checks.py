@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 
 import pytest
+from kiss_icp.config import KISSConfig
 
 SCRIPT = Path(__file__).resolve().parents[2] / "tools" / "device_checks.py"
 
@@ -60,6 +61,8 @@ def test_every_step_runs_and_leaves_its_measurements(tmp_path: Path, weights_pat
             assert (run["kiss_icp"]["max_points_per_voxel"], run["kiss_icp"]["convergence_criterion"]) == (10, 1e-3)
     own = odometry["odometry_t8_ahead1_kiss_own"]  # the same, with kiss-icp's own settings
     assert (own["kiss_icp"]["max_points_per_voxel"], own["kiss_icp"]["convergence_criterion"]) == (20, 1e-4)
+    kiss = KISSConfig()  # which are kiss-icp's defaults, not a copy that could drift from them
+    assert (kiss.mapping.max_points_per_voxel, kiss.registration.convergence_criterion) == (20, 1e-4)
     assert own["kiss_icp"]["max_num_threads"] == 8 and own["ahead"] == 1 and own["front_end_ms_per_frame"] > 0
     slam = json.loads((out / "slam.json").read_text())
     names = [(c["name"], c["returncode"]) for c in slam["commands"]]
