@@ -302,6 +302,12 @@ class Backbone:
         """int8 whose calibration images come from the images it is given (no folder, none passed)."""
         return self._stream_calibration is not None or self._calibrating is not None
 
+    @property
+    def calibrating_on_stream(self) -> bool:
+        """int8 still taking its calibration images from the images it is given: the order they
+        come in shapes the model, so they must come in the stream's order."""
+        return self._calibrating is not None
+
     def stream_calibration(self) -> tuple[np.ndarray, bool] | None:
         """(the stream images int8 calibration has taken, whether it has calibrated on them), or
         None when it does not calibrate on the stream. Once calibrated these are the

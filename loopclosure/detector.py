@@ -15,6 +15,7 @@ from __future__ import annotations
 import bisect
 import logging
 import math
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -82,6 +83,18 @@ class DetectorTimings:
     spatial_matching: float = 0.0
     sequence_matching: float = 0.0  # the earlier keyframes' spatial scores and the aggregation
     gate: float = 0.0
+    backbone_ahead: float = 0.0  # the backbone's seconds for codes encoded ahead (`encode_ahead`), off this path
+
+
+@dataclass(frozen=True)
+class EncodedKeyframe:
+    """A keyframe's codes computed before its turn (`LoopDetector.encode_ahead`), so the backbone
+    of keyframe k+1 runs while keyframe k is recognised. The same codes `process` would compute."""
+
+    keyframe_id: int
+    codes: PlaceCodes  # the forward image's, then the rear image's where `with_rear`
+    with_rear: bool
+    seconds: float  # the backbone pass and the projection, in the thread that ran them
 
 
 class LoopDetector:
@@ -130,6 +143,7 @@ class LoopDetector:
             self._seed_models(database.extra.get(RUNNER_UPS_KEY))
             self._seed_links(database.extra.get(PLACE_LINKS_KEY), len(database))
         self.timings = DetectorTimings()
+        self._encoding = threading.Lock()  # one backbone pass at a time: ahead (`encode_ahead`) or inline
         # distance travelled when each session place was added, in order; it never decreases,
         # so the places too near to the query are always a suffix of the session
         self._session_travelled: list[float] = []
@@ -318,26 +332,35 @@ class LoopDetector:
         position: np.ndarray | None = None,
         timestamp: float = float("nan"),
         rear_image: np.ndarray | None = None,
+        encoded: EncodedKeyframe | None = None,
     ) -> LoopProposal | None:
         """Recognise keyframe `keyframe_id` against earlier places, then add it as a place.
 
         A rear image (optional) is matched against the same places, never added: it is what
-        recognises a street driven the other way. Both images go through one backbone pass."""
+        recognises a street driven the other way. Both images go through one backbone pass.
+        encoded: this keyframe's codes from `encode_ahead` (then no backbone pass here)."""
         self.timings = DetectorTimings()
+        use_rear = self._uses_rear(rear_image)
+        if encoded is not None and (
+            encoded.keyframe_id != keyframe_id or encoded.with_rear != use_rear or self.database is None
+        ):
+            raise ValueError(f"keyframe {keyframe_id}: codes encoded ahead for keyframe {encoded.keyframe_id} "
+                             f"({'with' if encoded.with_rear else 'without'} its rear image) do not belong to it")  # fmt: skip
         self._advance(position)
         start = time.perf_counter()
-        images = [self.encoder.prepare(image, f"keyframe {keyframe_id} image")]
-        # the rear image has nothing to match until the places exist (PCA warm-up)
-        use_rear = rear_image is not None and self.config.rear.enabled and self.database is not None
-        if use_rear and rear_image is not None:
-            images.append(self.encoder.prepare(rear_image, f"keyframe {keyframe_id} rear image"))
         info = PlaceInfo(frame_id=keyframe_id, timestamp=timestamp, extra={"session": "current"})
         if self.database is None:
-            raw = self.encoder.raw_cubes(images)  # PCA is fitted on these
+            with self._encoding:
+                raw = self.encoder.raw_cubes(
+                    self._prepared(image, keyframe_id, rear_image=None)
+                )  # PCA is fitted on these
             self.timings.backbone = time.perf_counter() - start
             self._warm_up(RawCubes(raw.stage1[:1], raw.stage2[:1]), info)
             return None
-        codes = self.encoder.codes(images)
+        if encoded is None:
+            codes = self._codes(image, keyframe_id, rear_image if use_rear else None)
+        else:
+            codes, self.timings.backbone_ahead = encoded.codes, encoded.seconds
         self.timings.backbone = time.perf_counter() - start
         rear_codes = codes[1] if use_rear else None
         if rear_codes is not None and self.config.rear.keep_codes:
@@ -347,6 +370,43 @@ class LoopDetector:
         proposal = self._recognise(codes[0], keyframe_id, rear_codes)
         self._add(codes[0], info)
         return proposal
+
+    def encode_ahead(
+        self, image: np.ndarray, keyframe_id: int, rear_image: np.ndarray | None = None
+    ) -> EncodedKeyframe | None:
+        """The codes `process` would compute for this keyframe, computed now, in any thread, while
+        earlier keyframes are still being recognised; None during the PCA warm-up, whose codebooks
+        do not exist yet, and while an int8 backbone still calibrates on the stream's images
+        (`process` then runs the backbone itself, in the stream's order).
+
+        The codes depend only on the image and the codebooks, which never change once the warm-up
+        has ended, so a keyframe gets the same codes ahead or inline: a run's results do not depend
+        on which thread got there first."""
+        if self.database is None:  # set after the codebooks: once it is, they are final
+            return None
+        if getattr(self.encoder.backbone, "calibrating_on_stream", False):  # its images in the stream's order
+            return None
+        start = time.perf_counter()
+        use_rear = self._uses_rear(rear_image)
+        codes = self._codes(image, keyframe_id, rear_image if use_rear else None)
+        return EncodedKeyframe(keyframe_id, codes, use_rear, time.perf_counter() - start)
+
+    def _uses_rear(self, rear_image: np.ndarray | None) -> bool:
+        """Whether a keyframe's rear image is encoded and matched (it has nothing to match during
+        the PCA warm-up, and is never needed where the rear camera is off)."""
+        return rear_image is not None and self.config.rear.enabled and self.database is not None
+
+    def _prepared(self, image: np.ndarray, keyframe_id: int, rear_image: np.ndarray | None) -> list[np.ndarray]:
+        images = [self.encoder.prepare(image, f"keyframe {keyframe_id} image")]
+        if rear_image is not None:
+            images.append(self.encoder.prepare(rear_image, f"keyframe {keyframe_id} rear image"))
+        return images
+
+    def _codes(self, image: np.ndarray, keyframe_id: int, rear_image: np.ndarray | None) -> PlaceCodes:
+        """Both images' codes in one backbone pass (the rear one's where given)."""
+        images = self._prepared(image, keyframe_id, rear_image)
+        with self._encoding:
+            return self.encoder.codes(images)
 
     # ---- state, for checkpoints: the database is saved on its own, the rest as plain arrays --
     def state_arrays(self) -> dict[str, np.ndarray]:

@@ -10,6 +10,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from loopclosure.detector import EncodedKeyframe
 from ssmvpr_slam.run_result import Keyframe, LoopRecord, StageTimes
 
 
@@ -67,8 +68,8 @@ class FrontCounts:
 @dataclass(frozen=True)
 class KeyframeInput:
     """A keyframe as the front half hands it to the back half: what the run keeps of it, the
-    full images the detector encodes once (dropped after that), and the front's counts up to
-    and including its frame."""
+    full images the detector encodes once (dropped after that), the front's counts up to and
+    including its frame, and its codes where they were encoded ahead (`pipeline.encode_ahead`)."""
 
     keyframe: Keyframe
     image: np.ndarray
@@ -77,3 +78,4 @@ class KeyframeInput:
     frames_skipped: dict[str, int]
     front_seconds: float
     front_parts: Mapping[str, float] = field(default_factory=dict)  # FRONT_PARTS: where front_seconds went
+    encoded: EncodedKeyframe | None = None

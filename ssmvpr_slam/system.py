@@ -21,7 +21,7 @@ import time
 from collections import Counter
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import replace
+from dataclasses import asdict, replace
 
 import numpy as np
 
@@ -163,7 +163,8 @@ class SlamSystem:
         self.graph.add_keyframe(kf.id, kf.odom_pose)
         proposal = None
         if recognise:
-            proposal = self.detector.process(item.image, kf.id, kf.odom_pose[:3, 3], kf.timestamp, item.rear_image)
+            at = kf.odom_pose[:3, 3]
+            proposal = self.detector.process(item.image, kf.id, at, kf.timestamp, item.rear_image, item.encoded)
         else:
             self.detector.skip(kf.odom_pose[:3, 3])
             self.state.recognition_skipped.append(kf.id)
@@ -179,11 +180,8 @@ class SlamSystem:
         t2 = time.perf_counter()
         self._update_graph(kf)
         t_graph = time.perf_counter() - t2
-        timings = self.detector.timings
         self.state.times.rows.append({
-            "backbone": timings.backbone, "database_query": timings.database_query,
-            "spatial_matching": timings.spatial_matching, "sequence_matching": timings.sequence_matching,
-            "gate": timings.gate,
+            **asdict(self.detector.timings),  # backbone, stage I, stage II, sequences, gate, backbone_ahead
             "registration": t_reg, "registration_work": worked, "isam2_update": t_graph,
             "total": time.perf_counter() - t0, "front_end": item.front_seconds, **item.front_parts,
         })  # fmt: skip

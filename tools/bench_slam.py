@@ -1,7 +1,9 @@
 #!/usr/bin/env python3
 """Per-keyframe latency of the SLAM pipeline by stage, and its memory per keyframe; prints JSON.
 
-Stages (metrics.json's `latency_per_keyframe`): backbone (CNN + cubes + PCA), database_query
+Stages (metrics.json's `latency_per_keyframe`): backbone (CNN + cubes + PCA; with
+`pipeline.encode_ahead`, the back end's wait for the codes the encoder's thread computes, whose
+own time is backbone_ahead), database_query
 (stage I), spatial_matching (stage II), sequence_matching, gate, registration (the back end's
 wait for loop registrations due at the keyframe: their whole computation when inline, only what
 the worker had not finished otherwise), registration_work (the computation of the registrations
@@ -27,7 +29,7 @@ per keyframe over the second half of the run; the place database's own bytes per
 reported beside it, so the growth besides the database is the difference.
 
 `--serial` runs the same frames a second time in this process one stage after another (no
-overlap, loop registrations inline; the same registration lag, so the same loops and
+overlap, no encoding ahead, loop registrations inline; the same registration lag, so the same loops and
 trajectory): its figures under `serial`, `speedup` (keyframes per second over the serial ones)
 and `same_loops` (both accepted the same loops).
 
@@ -112,6 +114,7 @@ def main(argv: list[str] | None = None) -> int:
         serial_config = config.model_copy(deep=True)
         serial_config.pipeline.overlap = False
         serial_config.pipeline.registration_worker = False
+        serial_config.pipeline.encode_ahead = False
         serial, serial_run = _run(serial_config, frames(), backbone, args)
         result["serial"] = serial
         result["speedup"] = (
@@ -200,8 +203,8 @@ def _run(config: Any, frames: Any, backbone: Any, args: argparse.Namespace) -> t
     cpu = _cpu_use(cpu_start, cpu_seconds(), wall, n_kf, np.diff(cpu_at), latency_summary)
     error = pipeline.step_error
     failure = f"{type(error).__name__}: {error}" if error is not None else pipeline.ending.source_error
-    stages = ("front_end", "backbone", "database_query", "spatial_matching", "sequence_matching", "gate",
-              "registration_work", "isam2_update")  # fmt: skip
+    stages = ("front_end", "backbone", "backbone_ahead", "database_query", "spatial_matching", "sequence_matching",
+              "gate", "registration_work", "isam2_update")  # fmt: skip
     work = [sum(row.get(k, 0.0) for k in stages) for row in state.times.rows]
     gt = [k.gt_pose for k in run.keyframes]
     result: dict[str, Any] = {
@@ -219,6 +222,7 @@ def _run(config: Any, frames: Any, backbone: Any, args: argparse.Namespace) -> t
             "odometry": args.odometry,
             "overlap": config.pipeline.overlapped,
             "registration_worker": config.pipeline.registers_in_worker,
+            "encode_ahead": config.pipeline.encodes_ahead,
             "registration_lag_keyframes": config.pipeline.registration_lag_keyframes,
             "precision": config.vpr.backbone.precision,
             "lidar_loops": config.pipeline.use_lidar_for_loops,

@@ -15,7 +15,9 @@ overlaps kiss-icp's registration of the one before. kiss-icp keeps the GIL while
 registers a scan, so the runner then builds the odometry in a process of its own
 (`OdometryProcess`) and the producer thread only waits on it; that process gets each frame
 `pipeline.odometry_ahead_frames` frames early (`submitted_ahead`), so it registers the next scan
-while the producer keeps this keyframe. Signals, progress and checkpoints stay
+while the producer keeps this keyframe. With `pipeline.encode_ahead` the keyframes pass through
+an encoder thread on their way (`_encoded_ahead`), so the backbone encodes the next keyframe while
+this one is recognised. Signals, progress and checkpoints stay
 in the calling thread. On a stop request the producer takes no further frame (those read ahead
 are dropped) and the keyframes already queued are still processed (at most the queue's length),
 so the result covers exactly the frames taken; the back half sees the same keyframes in the same order as without overlap.
@@ -177,11 +179,18 @@ class SlamPipeline:
         if ahead and self.clock is None and isinstance(self.odometry, OdometryProcess):
             iterator = submitted_ahead(iterator, self.odometry, ahead)
         depth = self.config.pipeline.overlap_queue_keyframes
-        keyframes = ReadAhead(self._front_half(iterator, end, lambda: keyframes.cancelled), depth, "slam-front-end")
-        with keyframes:  # leaving it (a back-end failure) stops the producer
+        encoded: ReadAhead[KeyframeInput] | None = None
+        front = self._front_half(
+            iterator, end, lambda: keyframes.cancelled or (encoded is not None and encoded.cancelled)
+        )
+        keyframes = ReadAhead(front, depth, "slam-front-end")
+        with ExitStack() as stages:  # leaving it (a back-end failure) stops the encoder, then the producer
+            stages.enter_context(keyframes)
+            if self.config.pipeline.encodes_ahead:
+                encoded = stages.enter_context(ReadAhead(self._encoded_ahead(keyframes), 1, "slam-encoder"))
             while True:
                 try:
-                    item = next(keyframes)
+                    item = next(keyframes if encoded is None else encoded)
                 except StopIteration:
                     break
                 except RuntimeError as exc:  # the producer's thread gone without its end
@@ -222,6 +231,20 @@ class SlamPipeline:
         except Exception as exc:  # the source itself failed unexpectedly: ends the run like a frame failing
             end.error = exc
             log.exception("the frame source failed")
+
+    def _encoded_ahead(self, keyframes: Iterator[KeyframeInput]) -> Iterator[KeyframeInput]:
+        """The keyframes with their codes, encoded in the encoder's thread while the back half
+        recognises the ones before (`LoopDetector.encode_ahead`: the same codes it would compute
+        itself, so the same results). One that could not be encoded ahead (the PCA warm-up, a
+        failure) goes on without codes: the back half encodes it, and fails on it, in order."""
+        detector = self.system.detector
+        for item in keyframes:
+            try:
+                codes = detector.encode_ahead(item.image, item.keyframe.id, item.rear_image)
+            except Exception:  # noqa: BLE001  # raised again by the back half, naming the keyframe
+                log.debug("keyframe %d: not encoded ahead", item.keyframe.id, exc_info=True)
+                codes = None
+            yield item if codes is None else replace(item, encoded=codes)
 
     def _process(self, frame: Frame) -> None:
         """One frame through both halves (`SlamSystem.process`, with the real-time rule)."""

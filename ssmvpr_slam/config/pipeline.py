@@ -44,6 +44,12 @@ class PipelineConfig(SettingsModel):
         "this keyframe (the same poses in the same order; frontend/odometry/own_process.py). Not in real time, "
         "where a frame is not handed over before it is due. 0: one frame at a time."
     )  # fmt: skip
+    encode_ahead: Literal["auto"] | bool = Field(
+        default="auto", description="With overlap: the backbone encodes the next keyframe in a thread of its own "
+        "while this one is recognised (the same codes, so the same results as false; during the PCA warm-up, and "
+        "while int8 calibrates on the stream, the back end encodes its keyframes itself, in order). auto: where "
+        "the process may use 4 cores or more."
+    )  # fmt: skip
     registration_lag_keyframes: int = Field(
         default=3, ge=0, description="A loop accepted at keyframe k enters the graph at keyframe k + this, "
         "registered meanwhile (ssmvpr_slam/loop_registrations.py): fixed in keyframes, so the result does not "
@@ -70,6 +76,13 @@ class PipelineConfig(SettingsModel):
     def overlapped(self) -> bool:
         """`overlap`, with auto resolved on this machine."""
         return self.overlap if isinstance(self.overlap, bool) else _cores() >= _CORES_FOR_STAGES_IN_FLIGHT
+
+    @property
+    def encodes_ahead(self) -> bool:
+        """`encode_ahead`, with auto resolved on this machine; only with overlap (it needs the
+        front end's keyframes queued ahead of the back end)."""
+        ahead = self.encode_ahead
+        return self.overlapped and (ahead if isinstance(ahead, bool) else _cores() >= _CORES_FOR_STAGES_IN_FLIGHT)
 
     @property
     def registers_in_worker(self) -> bool:

@@ -24,3 +24,32 @@ def test_every_blas_library_runs_one_thread_inside_and_is_restored_after() -> No
     with one_blas_thread():
         assert set(_blas().values()) == {1}
     assert _blas() == after
+
+
+def test_another_thread_leaves_the_main_threads_limit_alone() -> None:
+    """A keyframe encoded ahead projects its codes in a thread of its own while the main thread
+    recognises another inside the limit: that thread leaving its block must not lift the main
+    thread's limit, and the limits are as they were once the main thread leaves."""
+    import threading
+
+    with one_blas_thread():  # every library it limits loaded before `before` is read
+        pass
+    before = _blas()
+    other_in, main_in, other_out = threading.Event(), threading.Event(), threading.Event()
+
+    def other() -> None:
+        with one_blas_thread():
+            other_in.set()
+            main_in.wait(10)
+        other_out.set()
+
+    thread = threading.Thread(target=other)
+    thread.start()
+    other_in.wait(10)
+    with one_blas_thread():
+        main_in.set()
+        other_out.wait(10)
+        inside = _blas()
+    thread.join(10)
+    assert set(inside.values()) == {1}  # the main thread's limit, still on after the other left
+    assert _blas() == before

@@ -563,6 +563,37 @@ def test_rear_images_are_not_encoded_during_the_pca_warmup() -> None:
     assert det.encoder.backbone.images == WARMUP + 2
 
 
+def test_codes_encoded_ahead_give_what_process_would_have_computed() -> None:
+    """`encode_ahead` (another thread's backbone pass for a later keyframe) gives nothing during
+    the PCA warm-up, then the very codes `process` computes itself: fed them, a detector makes
+    the same proposals, places and codes as one that encodes inline, with no backbone pass of
+    its own; codes of another keyframe are refused."""
+    fronts = [0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 3, 4, 5, 6, 20, 21, 8, 9]
+    rears = [None, 500, None, 501, 502, None, 503, 504, 505, 506, 507, 508, None, 7, 6, 5, 4, 3]
+    inline, ahead = detector(keyframes=3), detector(keyframes=3)
+    expected, got = [], []
+    for k, (f, r) in enumerate(zip(fronts, rears)):
+        rear = None if r is None else scene(r)
+        expected.append(inline.process(scene(f), k, at(float(k)), float(k), rear))
+        encoded = ahead.encode_ahead(scene(f), k, rear)
+        assert (encoded is None) == (k < WARMUP)
+        images = ahead.encoder.backbone.images
+        got.append(ahead.process(scene(f), k, at(float(k)), float(k), rear, encoded=encoded))
+        if encoded is not None:
+            assert ahead.encoder.backbone.images == images  # no pass of its own
+            assert encoded.with_rear == (r is not None) and ahead.timings.backbone_ahead == encoded.seconds
+    assert [p for p in got if p is not None] and got == expected
+    assert any(p is not None and p.accepted and p.camera == "rear" for p in got)
+    assert np.array_equal(ahead.database.codes_of(list(range(len(fronts)))).stage2,
+                          inline.database.codes_of(list(range(len(fronts)))).stage2)  # fmt: skip
+    assert ahead.encoder.backbone.images == inline.encoder.backbone.images
+    other = ahead.encode_ahead(scene(30), 99)
+    with pytest.raises(ValueError, match="keyframe 18: codes encoded ahead for keyframe 99"):
+        ahead.process(scene(30), len(fronts), encoded=other)
+    with pytest.raises(ValueError, match="without its rear image"):
+        ahead.process(scene(30), 99, rear_image=scene(31), encoded=other)
+
+
 # ------------------------------------------------------------------------- calibrated decision
 
 

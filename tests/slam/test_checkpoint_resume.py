@@ -10,8 +10,9 @@ The kill comes once a checkpoint holds 40 keyframes, so loop factors are in the 
 and more come after the resume.
 
 The killed and resumed runs overlap their stages (`pipeline.overlap`: the checkpoints are
-written while the front end runs ahead), the uninterrupted one does not: equal results also
-show the two paths agree.
+written while the front end runs ahead, and the encoder's thread encodes keyframes ahead,
+`pipeline.encode_ahead`), the uninterrupted one does not: equal results also show the two paths
+agree.
 
 Tolerance: the resumed trajectory equals the uninterrupted one to 1e-6 (m, and per element of
 the rotation matrices), which is the 9 decimals of the TUM files compared: the detector's state
@@ -97,7 +98,7 @@ CONFIG = (
   odometry:
     kind: logged
     logged: {pose_source: logged, drift: {enabled: true, yaw_bias_per_m: 0.002, translation_scale_error: 0.02}}
-pipeline: {use_lidar_for_loops: false, overlap: OVERLAP}
+pipeline: {use_lidar_for_loops: false, overlap: OVERLAP, encode_ahead: OVERLAP}
 results: {plots: false, checkpoint_every_keyframes: 5, checkpoint_every_s: null}
 """
 )
@@ -108,7 +109,7 @@ LIDAR_CONFIG = (
     + """\
   odometry: {kind: kiss_icp, kiss_icp: {max_num_threads: 1}}
 backend: {registration: {lidar: {max_num_threads: 1, loop_spacing_keyframes: 3}}}
-pipeline: {overlap: OVERLAP}
+pipeline: {overlap: OVERLAP, encode_ahead: OVERLAP}
 results: {plots: false, checkpoint_every_keyframes: 4, checkpoint_every_s: null}
 """
 )

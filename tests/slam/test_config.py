@@ -401,3 +401,20 @@ def test_every_settings_model_follows_the_one_policy() -> None:
         config.backend.registration.lidar.max_num_threads = -1  # checked when set, as when loaded
     with pytest.raises(ValidationError):
         config.simulation.city.block_size_m = 10.0  # the scene is frozen
+
+
+@pytest.mark.parametrize("cores", [2, 4, 16])
+def test_the_stages_in_flight_resolve_by_the_cores_and_encoding_ahead_needs_overlap(
+    monkeypatch: pytest.MonkeyPatch, cores: int
+) -> None:
+    """`auto` puts the stages side by side where the process has 4 cores or more; the encoder's
+    thread takes the front end's queued keyframes, so it never runs without overlap."""
+    import ssmvpr_slam.config.pipeline as pipeline_config
+
+    monkeypatch.setattr(pipeline_config, "_cores", lambda: cores)
+    auto = load_config().pipeline
+    assert auto.overlapped == auto.registers_in_worker == auto.encodes_ahead == (cores >= 4)
+    forced = load_config(overrides={"pipeline": {"overlap": False, "encode_ahead": True}}).pipeline
+    assert not forced.encodes_ahead
+    on = load_config(overrides={"pipeline": {"overlap": True, "encode_ahead": True}}).pipeline
+    assert on.encodes_ahead

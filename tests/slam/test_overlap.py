@@ -1,7 +1,8 @@
 """The stages overlapped (`pipeline.overlap`): a producer thread runs the source, odometry and
 keyframe selection while this thread runs the backbone, recognition, registration and iSAM2.
 It must not change the result: the same keyframes, loops and trajectory as the sequential
-path. Nor must the stage-I search a GPU runs (torch from a float16 copy). And keyframes keep
+path, also with the backbone encoding the next keyframe in a thread of its own
+(`pipeline.encode_ahead`). Nor must the stage-I search a GPU runs (torch from a float16 copy). And keyframes keep
 bounded images, never the camera's full ones.
 
 Traverse: the block_grid route in a city of 10 m blocks, 5 Hz, 100 frames, camera only
@@ -119,6 +120,32 @@ def test_overlap_gives_the_sequential_keyframes_loops_and_trajectory(sequential:
 
 
 @pytest.fixture(scope="module")
+def encoded_ahead(weights_path: Path, frames: list[Frame], backbone: object) -> Run:
+    return _run(_config(weights_path, overlap=True, encode_ahead=True), frames, backbone)
+
+
+def test_keyframes_encoded_ahead_give_the_sequential_loops_and_trajectory(sequential: Run, encoded_ahead: Run) -> None:
+    """The encoder thread computes the codes the back end would: the same proposals, registrations
+    and graph. It takes over once the PCA warm-up has ended (before, there are no codebooks to
+    encode with) and the back end then runs no backbone of its own."""
+    a, b = sequential.result, encoded_ahead.result
+    assert encoded_ahead.pipeline.config.pipeline.encodes_ahead
+    assert len(a.keyframes) == len(b.keyframes) == FRAMES // 2 and a.rear_keyframes == b.rear_keyframes
+    np.testing.assert_array_equal(a.odometry, b.odometry)
+    assert any(r.in_graph for r in a.loops)
+    assert [(r.proposal, r.factor_handle) for r in a.loops] == [(r.proposal, r.factor_handle) for r in b.loops]
+    np.testing.assert_array_equal(a.optimised, b.optimised)
+    warmup = encoded_ahead.pipeline.config.detector.pca_warmup_keyframes
+    ahead = [row["backbone_ahead"] > 0.0 for row in b.timings]
+    # the encoder passed at most the two keyframes in its hands on before the warm-up ended
+    assert not any(ahead[:warmup]) and all(ahead[warmup + 2 :])
+    assert not any(row["backbone_ahead"] for row in a.timings)  # sequential: the back end's own pass
+    inline = np.median([row["backbone"] for row in a.timings[warmup:]])
+    waited = np.median([row["backbone"] for row in b.timings[warmup:]])
+    assert waited < 0.5 * inline  # the back end only takes the codes (or waits for the rest of them)
+
+
+@pytest.fixture(scope="module")
 def gpu_search(weights_path: Path, frames: list[Frame], backbone: object) -> Run:
     """Stage I as `exact_backend: auto` searches on a GPU: torch products from a float16 copy
     (on the CPU device here, the float16 values widened for the product)."""
@@ -180,28 +207,67 @@ class _FailingOdometry:
         return self.inner.update(frame)  # type: ignore[attr-defined]
 
 
-@pytest.mark.parametrize("overlap", [False, True])
+@pytest.mark.parametrize(("overlap", "encode_ahead"), [(False, False), (True, False), (True, True)])
 def test_a_front_end_failure_ends_the_run_with_the_frames_before_it(
-    weights_path: Path, frames: list[Frame], backbone: object, overlap: bool
+    weights_path: Path, frames: list[Frame], backbone: object, overlap: bool, encode_ahead: bool
 ) -> None:
-    cfg = _config(weights_path, overlap=overlap)
-    odometry = _FailingOdometry(make_odometry(cfg.frontend.odometry), fail_at=21)
+    cfg = _config(weights_path, overlap=overlap, encode_ahead=encode_ahead)
+    odometry = _FailingOdometry(make_odometry(cfg.frontend.odometry), fail_at=41)  # after the PCA warm-up
     pipeline = SlamPipeline.build(cfg, odometry, backbone)  # type: ignore[arg-type]
     state = pipeline.run(iter(frames))
     assert isinstance(pipeline.step_error, RuntimeError) and "odometry broke" in str(pipeline.step_error)
-    assert state.frames_seen == 21 and len(state.keyframes) == 10  # frames 0, 2, ..., 18
+    assert state.frames_seen == 41 and len(state.keyframes) == 20  # frames 0, 2, ..., 38
     assert pipeline.ending.error is not None and pipeline.finish().keyframes == tuple(state.keyframes)
 
 
-def test_a_back_end_failure_stops_the_producer(weights_path: Path, frames: list[Frame], backbone: object) -> None:
-    cfg = _config(weights_path, overlap=True)
+class _BackboneFailingOn:
+    """The backbone, failing on the batch that holds one image (a keyframe the backbone cannot
+    take): whether it is encoded ahead or by the back end."""
+
+    def __init__(self, backbone: object, image: np.ndarray) -> None:
+        self.backbone, self.image, self.failed_in = backbone, image, set[str]()
+
+    def __call__(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if any(np.array_equal(image, self.image) for image in images):
+            self.failed_in.add(threading.current_thread().name)
+            raise RuntimeError("backbone broke")
+        return self.backbone(images)  # type: ignore[operator]
+
+    def __getattr__(self, name: str):  # noqa: ANN204
+        if name == "backbone":
+            raise AttributeError(name)
+        return getattr(self.backbone, name)
+
+
+@pytest.mark.parametrize("encode_ahead", [False, True])
+def test_a_keyframe_the_backbone_fails_on_ends_the_run_in_its_turn(
+    weights_path: Path, frames: list[Frame], backbone: object, encode_ahead: bool
+) -> None:
+    """Encoded ahead, a keyframe the backbone fails on still fails in its turn, after the ones
+    before it were recognised, and the run keeps them, as without the encoder's thread."""
+    cfg = _config(weights_path, overlap=True, encode_ahead=encode_ahead)
+    pipeline = SlamPipeline.build(cfg, make_odometry(cfg.frontend.odometry), backbone)  # type: ignore[arg-type]
+    detector = pipeline.system.detector
+    image = detector.encoder.prepare(frames[50].image)  # keyframe 25, after the PCA warm-up
+    failing = detector.encoder.backbone = _BackboneFailingOn(backbone, image)
+    state = pipeline.run(iter(frames))
+    assert isinstance(pipeline.step_error, RuntimeError) and str(pipeline.step_error) == "backbone broke"
+    assert len(state.keyframes) == 26 and len(pipeline.finish().keyframes) == 26  # 0..25, the last failed
+    assert failing.failed_in == ({"slam-encoder", "MainThread"} if encode_ahead else {"MainThread"})
+
+
+@pytest.mark.parametrize("encode_ahead", [False, True])
+def test_a_back_end_failure_stops_the_producer(
+    weights_path: Path, frames: list[Frame], backbone: object, encode_ahead: bool
+) -> None:
+    cfg = _config(weights_path, overlap=True, encode_ahead=encode_ahead)
     pipeline = SlamPipeline.build(cfg, make_odometry(cfg.frontend.odometry), backbone)  # type: ignore[arg-type]
     back = pipeline.system.back
     read: list[int] = []
 
     def failing_back(item):
         back(item)
-        if item.keyframe.id == 5:  # e.g. the pose graph failing once the keyframe is in
+        if item.keyframe.id == 20:  # e.g. the pose graph failing once the keyframe is in (after the warm-up)
             raise ValueError("back end broke")
 
     def source() -> Iterator[Frame]:
@@ -211,12 +277,15 @@ def test_a_back_end_failure_stops_the_producer(weights_path: Path, frames: list[
 
     pipeline.system.back = failing_back  # type: ignore[method-assign]
     state = pipeline.run(source())
-    assert isinstance(pipeline.step_error, ValueError) and len(state.keyframes) == 6  # 0..5, the last failed
-    assert state.frames_seen == 11  # the counts of the failed keyframe's frame, not the producer's
-    # it stopped reading soon after: two frames a keyframe queued or in the producer's hand, and the
-    # frames the source read ahead (those queued and one in the reader's hand)
+    assert isinstance(pipeline.step_error, ValueError) and len(state.keyframes) == 21  # 0..20, the last failed
+    assert state.frames_seen == 41  # the counts of the failed keyframe's frame, not the producer's
+    # it stopped reading soon after: two frames a keyframe queued or in the producer's hand (and
+    # in the encoder's: one queued, one in its hand), and the frames the source read ahead (those
+    # queued and one in the reader's hand)
     ahead = cfg.pipeline.read_ahead_frames + 1
-    assert len(read) <= 11 + 2 * (cfg.pipeline.overlap_queue_keyframes + 2) + ahead
+    keyframes_ahead = cfg.pipeline.overlap_queue_keyframes + 2 + (2 if encode_ahead else 0)
+    assert len(read) <= 41 + 2 * keyframes_ahead + ahead
+    assert not [t.name for t in threading.enumerate() if t.name.startswith("slam-")]  # every stage's thread ended
 
 
 @pytest.mark.parametrize("read_ahead", [0, 2])

@@ -53,6 +53,7 @@ def test_bench_slam_reports_stages_and_the_pace_per_keyframe(weights_path: Path)
     # the serial schedule in the same process: the same loops, its own figures, their ratio
     serial = out["serial"]
     assert serial["settings"]["overlap"] is False and serial["settings"]["registration_worker"] is False
+    assert serial["settings"]["encode_ahead"] is False
     assert serial["keyframes"] == n and serial["error"] is None
     serial_stages = serial["latency_per_keyframe_s"]  # kiss-icp in this process: the wait is its update
     assert serial_stages["odometry_wait"]["mean_s"] == pytest.approx(serial_stages["odometry"]["mean_s"])
