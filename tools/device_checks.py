@@ -19,7 +19,9 @@ Steps:
   slam      the whole pipeline on that log with the backbone on the GPU (tools/bench_slam.py
             --device cuda --precision auto): by default pipelined against --serial (keyframes
             per second, the stages' latency, speedup and same_loops), then -c fast with
-            --omp-wait-policy PASSIVE.
+            --omp-wait-policy PASSIVE. On its 16 cores `auto` turns on the registration worker
+            and the encoder's thread (pipeline.encode_ahead): the back end's backbone stage is
+            then its wait for the codes, backbone_ahead the encoder's own time.
   odometry  the front end's pace with kiss-icp in its own process (tools/bench_odometry.py
             --own-process, 200 demo frames): on 8 and 16 threads, frames handed over one at a
             time against one ahead (pipeline.odometry_ahead_frames), the default preset; then on 8
