@@ -17,6 +17,10 @@ keyframe a user sees, which the target (median <= 100 ms) is about. `wall_per_ke
 spreads the start (first inference, PCA fit) over the keyframes. `cpu` is the CPU time the run
 used (this process and an odometry child, all threads) per keyframe, and that divided by the
 cores: the floor under which no schedule of the same work can bring `keyframe_interval_s`.
+`threads_per_keyframe_s` gives each thread's (or process's) seconds a keyframe, means: the back
+end (`total`), the front end, and where they run apart the encoder (`backbone_ahead`), the
+odometry's process (`odometry`) and the registration worker (`registration_work`);
+`critical_path` names the slowest, whose time bounds the pace from below on any number of cores.
 
     python tools/bench_slam.py [--frames 200] [--odometry kiss_icp|logged] [--log demo.mcap] [--serial]
         [--overlap | --no-overlap] [--precision fp32|bf16|int8|auto] [--omp-wait-policy PASSIVE|ACTIVE|inherit]
@@ -259,6 +263,7 @@ def _run(config: Any, frames: Any, backbone: Any, args: argparse.Namespace) -> t
         if work
         else None,
         "cpu": cpu,
+        **_critical_path(summary, config, isinstance(pipeline.odometry, OdometryProcess)),
         "error": failure,
         "target": {"median_keyframe_interval_s": 0.1, "pass": bool(pace is not None and pace <= 0.1)},
     }
@@ -278,6 +283,37 @@ def _stage1_search(database: Any) -> dict[str, str | None]:
     index = database.search_index()  # the index the run searched, already up to date
     return {"stage1_index": index.kind, "stage1_torch_device": index.search_device,
             "stage1_torch_storage": index.search_storage}  # fmt: skip
+
+
+def _critical_path(summary: dict[str, Any], config: Any, odometry_process: bool) -> dict[str, Any]:
+    """Each thread's (or process's) seconds a keyframe, means: with the stages in flight the
+    slowest of them bounds the pace whatever the others do (the critical path); one after
+    another, the stages of the one thread add up. Which one it is says where a gain must come from."""
+
+    def mean(stage: str) -> float:
+        return float(summary.get(stage, {}).get("mean_s", 0.0))
+
+    settings = config.pipeline
+    if settings.overlapped:
+        threads = {"back_end": mean("total"), "front_end": mean("front_end")}
+        if settings.encodes_ahead:
+            threads["encoder"] = mean("backbone_ahead")
+        if odometry_process:
+            threads["odometry_process"] = mean("odometry")
+    else:
+        threads = {"front_and_back_end": mean("total") + mean("front_end")}
+    if settings.registers_in_worker:
+        threads["registration_worker"] = mean("registration_work")
+    slowest = max(threads, key=lambda name: threads[name])
+    seconds = threads[slowest]
+    return {
+        "threads_per_keyframe_s": threads,
+        "critical_path": {
+            "thread": slowest,
+            "mean_s": seconds,
+            "keyframes_per_second_bound": 1.0 / seconds if seconds > 0 else None,
+        },  # fmt: skip
+    }
 
 
 def _cpu_use(start: tuple[float, float], end: tuple[float, float], wall: float, n_kf: int, intervals: Any,

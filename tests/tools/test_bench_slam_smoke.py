@@ -19,20 +19,22 @@ SCRIPT = Path(__file__).resolve().parents[2] / "tools" / "bench_slam.py"
 @pytest.mark.slow
 def test_bench_slam_reports_stages_and_the_pace_per_keyframe(weights_path: Path) -> None:
     proc = subprocess.run(
-        [sys.executable, str(SCRIPT), "--frames", "12", "--overlap", "--serial", "--weights", str(weights_path)],
+        [sys.executable, str(SCRIPT), "--frames", "24", "--overlap", "--serial", "--weights", str(weights_path)],
         capture_output=True, text=True, timeout=600, check=False,
         # a warm-up short enough (3 keyframes, 48 stage-I vectors) for the short run to query stage I
-        env={**os.environ, "SSMVPR_DETECTOR__PCA_WARMUP_KEYFRAMES": "3", "SSMVPR_VPR__FILTERING__PCA__DIM": "32"},
+        # and the encoder's thread on, as `auto` puts it on 4 cores or more
+        env={**os.environ, "SSMVPR_DETECTOR__PCA_WARMUP_KEYFRAMES": "3", "SSMVPR_VPR__FILTERING__PCA__DIM": "32",
+             "SSMVPR_PIPELINE__ENCODE_AHEAD": "true"},
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-2000:]
     out = json.loads(proc.stdout)  # stdout is exactly one JSON object
-    assert out["frames"] == 12 and out["settings"]["overlap"] is True and out["error"] is None
+    assert out["frames"] == 24 and out["settings"]["overlap"] is True and out["error"] is None
     # stage I searched exactly: torch on a GPU, faiss without one (exact_backend auto)
     assert out["settings"]["stage1_index"] == "exact"
     expected_device = "cuda" if torch.cuda.is_available() else None
     assert out["settings"]["stage1_torch_device"] == expected_device
     n = out["keyframes"]
-    assert 2 <= n <= 12
+    assert 6 <= n <= 24
     stages = out["latency_per_keyframe_s"]
     assert stages["backbone"]["median_s"] > 0 and stages["front_end"]["median_s"] > 0
     # the front end by part: kiss-icp in its process (handed a frame ahead), the wait for it, keeping
@@ -61,3 +63,17 @@ def test_bench_slam_reports_stages_and_the_pace_per_keyframe(weights_path: Path)
     assert out["speedup"] == pytest.approx(out["keyframes_per_second"] / serial["keyframes_per_second"])
     assert out["keyframe_interval_p99_s"] >= pace["median_s"]
     assert out["stages_sum_per_keyframe_s"]["median_s"] > 0
+    # the critical path: each thread's time a keyframe, the slowest named, and the pace it allows
+    for run in (out, serial):
+        threads, critical = run["threads_per_keyframe_s"], run["critical_path"]
+        assert critical["mean_s"] == max(threads.values()) == threads[critical["thread"]] > 0
+        assert critical["keyframes_per_second_bound"] == pytest.approx(1 / critical["mean_s"])
+    means = {k: v["mean_s"] for k, v in stages.items()}
+    assert out["settings"]["encode_ahead"] is True
+    assert set(out["threads_per_keyframe_s"]) >= {"back_end", "front_end", "odometry_process", "encoder"}
+    assert out["threads_per_keyframe_s"]["encoder"] == pytest.approx(means["backbone_ahead"])
+    assert means["backbone_ahead"] > 0  # the keyframes after the warm-up were encoded there
+    assert out["threads_per_keyframe_s"]["odometry_process"] == pytest.approx(means["odometry"])
+    assert serial["threads_per_keyframe_s"] == {
+        "front_and_back_end": pytest.approx(serial_stages["total"]["mean_s"] + serial_stages["front_end"]["mean_s"])
+    }  # one thread: they add up
