@@ -306,6 +306,8 @@ def _verdict(step: str, result: dict) -> str | None:
                 return f"{size} places: the exact votes differ from numpy's on {check} queries"
         if result.get("selection_equals_topk") is False:
             return "the chunk selection kept other values than torch.topk"
+    if step == "slam" and result.get("same_loops") is False:  # the stages in flight must not change a loop
+        return "the pipelined and the serial schedule accepted different loops"
     return None
 
 

@@ -116,7 +116,7 @@ def test_a_command_past_its_limit_is_killed_and_named(tmp_path: Path, monkeypatc
     assert "run the simulate step first" in steps["slam"]["error"]  # no half-written log was taken for one
 
 
-def test_votes_that_differ_from_numpy_fail_the_step() -> None:
+def test_votes_that_differ_from_numpy_or_schedules_that_differ_in_loops_fail_the_step() -> None:
     sys.path.insert(0, str(SCRIPT.parent))
     import device_checks
 
@@ -126,6 +126,8 @@ def test_votes_that_differ_from_numpy_fail_the_step() -> None:
     assert device_checks._verdict("stage1", {"stage1_index": {"sizes": sizes}}) is None
     assert "chunk selection" in device_checks._verdict("stage1", {"selection_equals_topk": False})
     assert device_checks._verdict("stage1", {"selection_equals_topk": True}) is None
+    assert "different loops" in device_checks._verdict("slam", {"same_loops": False})
+    assert device_checks._verdict("slam", {"same_loops": True}) is None
 
 
 def test_the_kit_and_the_gpu_image_cover_every_dependency() -> None:
