@@ -6,17 +6,17 @@ the loaded libraries on every call, which costs more than the products it guards
 `ThreadpoolController` looks once (docs/benchmarks.md, "Thread settings"). It is looked up again only after an import, which is how
 a new BLAS (OpenCV's, scipy's) would arrive; in a steady stream there is none.
 
-Only the main thread sets the limit; elsewhere the block runs as it is. OpenBLAS's limit is the
-process's, not a thread's, and threadpoolctl supports setting it from the main thread only: a
-keyframe encoded ahead in another thread while the main one recognises would otherwise restore
-the main thread's limit under it, or leave BLAS on one thread for good.
+A thread that runs beside the one recognising (a keyframe encoded ahead) sets no limit at all
+(`blas_limits_left_alone`): OpenBLAS's limit is the process's, not a thread's, and such a thread
+restoring its own would lift the other's under it, or leave BLAS on one thread for good.
 """
 
 from __future__ import annotations
 
 import sys
 import threading
-from contextlib import AbstractContextManager, nullcontext
+from collections.abc import Iterator
+from contextlib import AbstractContextManager, contextmanager, nullcontext
 from typing import Any
 
 from threadpoolctl import ThreadpoolController
@@ -24,10 +24,25 @@ from threadpoolctl import ThreadpoolController
 _found: tuple[int, ThreadpoolController] | None = None  # (len(sys.modules) when looked up, controller)
 
 
+_this_thread = threading.local()
+
+
+@contextmanager
+def blas_limits_left_alone() -> Iterator[None]:
+    """Inside it, `one_blas_thread` in this thread changes no limit (it runs beside another thread
+    that may hold one)."""
+    before = getattr(_this_thread, "left_alone", False)
+    _this_thread.left_alone = True
+    try:
+        yield
+    finally:
+        _this_thread.left_alone = before
+
+
 def one_blas_thread() -> AbstractContextManager[Any]:
     """``with one_blas_thread(): ...`` runs the block with every loaded BLAS library on one thread."""
     global _found
-    if threading.current_thread() is not threading.main_thread():
+    if getattr(_this_thread, "left_alone", False):
         return nullcontext()
     if _found is None or _found[0] != len(sys.modules):
         import scipy.linalg  # noqa: F401  (scipy's own BLAS, which the PCA fit uses, must be loaded to be found)

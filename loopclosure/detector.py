@@ -24,7 +24,7 @@ from typing import Literal
 import numpy as np
 
 from loopclosure.backbone import cube_dims
-from loopclosure.blas import one_blas_thread
+from loopclosure.blas import blas_limits_left_alone, one_blas_thread
 from loopclosure.calibration import CalibratedDecision, PlaceLinks, RunnerUpModel
 from loopclosure.config import DetectorConfig, VPRConfig, feature_side, grid_side
 from loopclosure.database import PlaceDatabase, PlaceInfo
@@ -83,7 +83,8 @@ class DetectorTimings:
     spatial_matching: float = 0.0
     sequence_matching: float = 0.0  # the earlier keyframes' spatial scores and the aggregation
     gate: float = 0.0
-    backbone_ahead: float = 0.0  # the backbone's seconds for codes encoded ahead (`encode_ahead`), off this path
+    # the backbone's seconds for codes encoded ahead (`encode_ahead`), in the thread that ran them
+    backbone_ahead: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -94,7 +95,7 @@ class EncodedKeyframe:
     keyframe_id: int
     codes: PlaceCodes  # the forward image's, then the rear image's where `with_rear`
     with_rear: bool
-    seconds: float  # the backbone pass and the projection, in the thread that ran them
+    seconds: float  # the backbone pass and the projection, in the thread that ran them (no wait for the other's)
 
 
 class LoopDetector:
@@ -358,7 +359,7 @@ class LoopDetector:
             self._warm_up(RawCubes(raw.stage1[:1], raw.stage2[:1]), info)
             return None
         if encoded is None:
-            codes = self._codes(image, keyframe_id, rear_image if use_rear else None)
+            codes, _ = self._codes(image, keyframe_id, rear_image if use_rear else None)
         else:
             codes, self.timings.backbone_ahead = encoded.codes, encoded.seconds
         self.timings.backbone = time.perf_counter() - start
@@ -388,8 +389,9 @@ class LoopDetector:
             return None
         start = time.perf_counter()
         use_rear = self._uses_rear(rear_image)
-        codes = self._codes(image, keyframe_id, rear_image if use_rear else None)
-        return EncodedKeyframe(keyframe_id, codes, use_rear, time.perf_counter() - start)
+        with blas_limits_left_alone():  # the thread recognising may hold them
+            codes, waited = self._codes(image, keyframe_id, rear_image if use_rear else None)
+        return EncodedKeyframe(keyframe_id, codes, use_rear, time.perf_counter() - start - waited)
 
     def _uses_rear(self, rear_image: np.ndarray | None) -> bool:
         """Whether a keyframe's rear image is encoded and matched (it has nothing to match during
@@ -402,11 +404,13 @@ class LoopDetector:
             images.append(self.encoder.prepare(rear_image, f"keyframe {keyframe_id} rear image"))
         return images
 
-    def _codes(self, image: np.ndarray, keyframe_id: int, rear_image: np.ndarray | None) -> PlaceCodes:
-        """Both images' codes in one backbone pass (the rear one's where given)."""
+    def _codes(self, image: np.ndarray, keyframe_id: int, rear_image: np.ndarray | None) -> tuple[PlaceCodes, float]:
+        """Both images' codes in one backbone pass (the rear one's where given), and the seconds
+        spent waiting for the other thread's pass to end first."""
         images = self._prepared(image, keyframe_id, rear_image)
+        asked = time.perf_counter()
         with self._encoding:
-            return self.encoder.codes(images)
+            return self.encoder.codes(images), time.perf_counter() - asked
 
     # ---- state, for checkpoints: the database is saved on its own, the rest as plain arrays --
     def state_arrays(self) -> dict[str, np.ndarray]:

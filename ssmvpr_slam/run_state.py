@@ -79,3 +79,4 @@ class KeyframeInput:
     front_seconds: float
     front_parts: Mapping[str, float] = field(default_factory=dict)  # FRONT_PARTS: where front_seconds went
     encoded: EncodedKeyframe | None = None
+    back_end_wait: float = 0.0  # seconds the back end waited for it (stages overlapped: its idle time)

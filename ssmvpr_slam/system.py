@@ -183,7 +183,8 @@ class SlamSystem:
         self.state.times.rows.append({
             **asdict(self.detector.timings),  # backbone, stage I, stage II, sequences, gate, backbone_ahead
             "registration": t_reg, "registration_work": worked, "isam2_update": t_graph,
-            "total": time.perf_counter() - t0, "front_end": item.front_seconds, **item.front_parts,
+            "total": time.perf_counter() - t0, "back_end_wait": item.back_end_wait, "front_end": item.front_seconds,
+            **item.front_parts,
         })  # fmt: skip
 
     def _apply(self, done: AppliedRegistration) -> float:

@@ -2,8 +2,8 @@
 """Per-keyframe latency of the SLAM pipeline by stage, and its memory per keyframe; prints JSON.
 
 Stages (metrics.json's `latency_per_keyframe`): backbone (CNN + cubes + PCA; with
-`pipeline.encode_ahead`, the back end's wait for the codes the encoder's thread computes, whose
-own time is backbone_ahead), database_query
+`pipeline.encode_ahead` about 0, the codes coming with the keyframe, and backbone_ahead the
+encoder thread's time for them, waits for the precision lock stage I and II take included), database_query
 (stage I), spatial_matching (stage II), sequence_matching, gate, registration (the back end's
 wait for loop registrations due at the keyframe: their whole computation when inline, only what
 the worker had not finished otherwise), registration_work (the computation of the registrations
@@ -17,10 +17,11 @@ keyframe a user sees, which the target (median <= 100 ms) is about. `wall_per_ke
 spreads the start (first inference, PCA fit) over the keyframes. `cpu` is the CPU time the run
 used (this process and an odometry child, all threads) per keyframe, and that divided by the
 cores: the floor under which no schedule of the same work can bring `keyframe_interval_s`.
-`threads_per_keyframe_s` gives each thread's (or process's) seconds a keyframe, means: the back
-end (`total`), the front end, and where they run apart the encoder (`backbone_ahead`), the
-odometry's process (`odometry`) and the registration worker (`registration_work`);
-`critical_path` names the slowest, whose time bounds the pace from below on any number of cores.
+`threads_per_keyframe_s` gives each thread's (or process's) seconds a keyframe, means after the
+PCA warm-up: the back end (`total`), the front end, and where they run apart the encoder
+(`backbone_ahead`), the odometry's process (`odometry`) and the registration worker
+(`registration_work`); `critical_path` names the slowest, whose time bounds the pace from below
+on any number of cores. `back_end_wait` is the back end's wait for its next keyframe (its idle time).
 
     python tools/bench_slam.py [--frames 200] [--odometry kiss_icp|logged] [--log demo.mcap] [--serial]
         [--overlap | --no-overlap] [--precision fp32|bf16|int8|auto] [--omp-wait-policy PASSIVE|ACTIVE|inherit]
@@ -263,7 +264,7 @@ def _run(config: Any, frames: Any, backbone: Any, args: argparse.Namespace) -> t
         if work
         else None,
         "cpu": cpu,
-        **_critical_path(summary, config, isinstance(pipeline.odometry, OdometryProcess)),
+        **_critical_path(state.times.rows, config, isinstance(pipeline.odometry, OdometryProcess)),
         "error": failure,
         "target": {"median_keyframe_interval_s": 0.1, "pass": bool(pace is not None and pace <= 0.1)},
     }
@@ -285,13 +286,16 @@ def _stage1_search(database: Any) -> dict[str, str | None]:
             "stage1_torch_storage": index.search_storage}  # fmt: skip
 
 
-def _critical_path(summary: dict[str, Any], config: Any, odometry_process: bool) -> dict[str, Any]:
-    """Each thread's (or process's) seconds a keyframe, means: with the stages in flight the
-    slowest of them bounds the pace whatever the others do (the critical path); one after
-    another, the stages of the one thread add up. Which one it is says where a gain must come from."""
+def _critical_path(rows: list[dict[str, float]], config: Any, odometry_process: bool) -> dict[str, Any]:
+    """Each thread's (or process's) seconds a keyframe, means over the keyframes after the PCA
+    warm-up (the steady stream): with the stages in flight the slowest of them bounds the pace
+    whatever the others do (the critical path); one after another, the stages of the one thread
+    add up. Which one it is says where a gain must come from. The source's reader thread is not
+    among them (its time is not recorded by keyframe; `bench_odometry.py` times it by frame)."""
+    steady = rows[config.detector.pca_warmup_keyframes :] or rows
 
     def mean(stage: str) -> float:
-        return float(summary.get(stage, {}).get("mean_s", 0.0))
+        return sum(row.get(stage, 0.0) for row in steady) / len(steady) if steady else 0.0
 
     settings = config.pipeline
     if settings.overlapped:

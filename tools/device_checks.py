@@ -20,8 +20,9 @@ Steps:
             --device cuda --precision auto): by default pipelined against --serial (keyframes
             per second, the stages' latency, speedup and same_loops), then -c fast with
             --omp-wait-policy PASSIVE. On its 16 cores `auto` turns on the registration worker
-            and the encoder's thread (pipeline.encode_ahead): the back end's backbone stage is
-            then its wait for the codes, backbone_ahead the encoder's own time.
+            and the encoder's thread (pipeline.encode_ahead): backbone_ahead is then the
+            backbone's time, in the encoder's thread, and critical_path names the thread that
+            sets the pace.
   odometry  the front end's pace with kiss-icp in its own process (tools/bench_odometry.py
             --own-process, 200 demo frames): on 8 and 16 threads, frames handed over one at a
             time against one ahead (pipeline.odometry_ahead_frames), the default preset; then on 8

@@ -19,7 +19,8 @@ while the producer keeps this keyframe. With `pipeline.encode_ahead` the keyfram
 an encoder thread on their way (`_encoded_ahead`), so the backbone encodes the next keyframe while
 this one is recognised. Signals, progress and checkpoints stay
 in the calling thread. On a stop request the producer takes no further frame (those read ahead
-are dropped) and the keyframes already queued are still processed (at most the queue's length),
+are dropped) and the keyframes already queued are still processed (at most the queue's length,
+and the two in the encoder's hand and queue),
 so the result covers exactly the frames taken; the back half sees the same keyframes in the same order as without overlap.
 """
 
@@ -189,8 +190,10 @@ class SlamPipeline:
             if self.config.pipeline.encodes_ahead:
                 encoded = stages.enter_context(ReadAhead(self._encoded_ahead(keyframes), 1, "slam-encoder"))
             while True:
+                asked = time.perf_counter()
                 try:
                     item = next(keyframes if encoded is None else encoded)
+                    item = replace(item, back_end_wait=time.perf_counter() - asked)
                 except StopIteration:
                     break
                 except RuntimeError as exc:  # the producer's thread gone without its end
@@ -237,13 +240,18 @@ class SlamPipeline:
         recognises the ones before (`LoopDetector.encode_ahead`: the same codes it would compute
         itself, so the same results). One that could not be encoded ahead (the PCA warm-up, a
         failure) goes on without codes: the back half encodes it, and fails on it, in order."""
-        detector = self.system.detector
+        detector, told = self.system.detector, False
         for item in keyframes:
-            try:
-                codes = detector.encode_ahead(item.image, item.keyframe.id, item.rear_image)
-            except Exception:  # noqa: BLE001  # raised again by the back half, naming the keyframe
-                log.debug("keyframe %d: not encoded ahead", item.keyframe.id, exc_info=True)
-                codes = None
+            codes = None
+            # in real time a keyframe already too late skips recognition: no backbone for it
+            if self.clock is None or not self.clock.behind(item.keyframe.frame_index):
+                try:
+                    codes = detector.encode_ahead(item.image, item.keyframe.id, item.rear_image)
+                except Exception as exc:  # noqa: BLE001  # raised again by the back half, naming the keyframe
+                    if not told:  # once: the back half then encodes each keyframe that fails here itself
+                        log.warning("keyframe %d could not be encoded ahead (%s: %s); the back end encodes it",
+                                    item.keyframe.id, type(exc).__name__, exc)  # fmt: skip
+                    told = True
             yield item if codes is None else replace(item, encoded=codes)
 
     def _process(self, frame: Frame) -> None:

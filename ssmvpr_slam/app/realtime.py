@@ -13,6 +13,7 @@ The lag of a keyframe is from its frame's due time to the end of its back-end st
 from __future__ import annotations
 
 import math
+import threading
 import time
 from collections.abc import Callable, Iterable, Iterator
 
@@ -40,6 +41,7 @@ class SensorClock:
         self._clock, self._sleep = clock, sleep
         self._origin: tuple[float, float] | None = None  # (first frame's timestamp, the wall time it was due)
         self._due: dict[int, float] = {}  # frame index -> when it was due, until its keyframe is done
+        self._due_lock = threading.Lock()  # the source's thread adds frames while the back end's takes them
         self._last_due = -math.inf
         self._lags: list[float] = []
         self._skipped = 0
@@ -52,7 +54,8 @@ class SensorClock:
             wait = due - self._clock()
             if wait > 0:
                 self._sleep(wait)
-            self._due[frame.index] = due
+            with self._due_lock:
+                self._due[frame.index] = due
             yield frame
 
     def _due_time(self, stamp: float) -> float:
@@ -67,17 +70,19 @@ class SensorClock:
 
     def behind(self, frame_index: int) -> bool:
         """Whether a keyframe of this frame is later than the bound: it skips recognition."""
-        due = self._due.get(frame_index)
+        with self._due_lock:
+            due = self._due.get(frame_index)
         return due is not None and self._clock() - due > self.max_lag_s
 
     def done(self, frame_index: int, skipped: bool) -> None:
         """A keyframe of this frame left the back end (skipped: without recognition)."""
-        due = self._due.pop(frame_index, None)
+        with self._due_lock:
+            due = self._due.pop(frame_index, None)
+            for index in [i for i in self._due if i < frame_index]:  # frames that were no keyframe
+                del self._due[index]
         if due is not None:
             self._lags.append(self._clock() - due)
         self._skipped += skipped
-        for index in [i for i in self._due if i < frame_index]:  # frames that were no keyframe
-            del self._due[index]
 
     def stats(self) -> RealtimeStats:
         lags = np.asarray(self._lags, np.float64)

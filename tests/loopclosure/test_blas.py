@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from threadpoolctl import threadpool_info
 
-from loopclosure.blas import one_blas_thread
+from loopclosure.blas import blas_limits_left_alone, one_blas_thread
 
 
 def _blas() -> dict[str, int]:
@@ -26,10 +26,10 @@ def test_every_blas_library_runs_one_thread_inside_and_is_restored_after() -> No
     assert _blas() == after
 
 
-def test_another_thread_leaves_the_main_threads_limit_alone() -> None:
-    """A keyframe encoded ahead projects its codes in a thread of its own while the main thread
-    recognises another inside the limit: that thread leaving its block must not lift the main
-    thread's limit, and the limits are as they were once the main thread leaves."""
+def test_a_thread_that_leaves_limits_alone_leaves_the_main_threads_limit_on() -> None:
+    """A keyframe encoded ahead projects its codes in a thread of its own (its limits left alone)
+    while the main thread recognises another inside the limit: that thread leaving its block must
+    not lift the main thread's limit, and the limits are as they were once the main thread leaves."""
     import threading
 
     with one_blas_thread():  # every library it limits loaded before `before` is read
@@ -38,7 +38,7 @@ def test_another_thread_leaves_the_main_threads_limit_alone() -> None:
     other_in, main_in, other_out = threading.Event(), threading.Event(), threading.Event()
 
     def other() -> None:
-        with one_blas_thread():
+        with blas_limits_left_alone(), one_blas_thread():
             other_in.set()
             main_in.wait(10)
         other_out.set()

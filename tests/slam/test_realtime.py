@@ -66,6 +66,36 @@ def test_a_late_keyframe_is_behind_and_the_stats_count_it() -> None:
     assert stats.to_dict()["kept_up"] is False
 
 
+def test_the_source_thread_adds_frames_while_the_back_end_takes_them() -> None:
+    """With the stages overlapped the source's thread paces frames while the back end's marks
+    keyframes done: neither may see the other's frames half added (a dict changed while it was
+    walked). Many frames, no waiting, so the two threads interleave at every step."""
+    import threading
+
+    clock = SensorClock(1e9, 1.0, lambda: 0.0, lambda _s: None)
+    count = 50_000
+    stamps = (frame(i, float(i)) for i in range(count))
+    taken = threading.Event()
+    errors: list[BaseException] = []
+
+    def source() -> None:
+        try:
+            for _ in clock.paced(stamps):
+                pass
+        except BaseException as exc:  # noqa: BLE001  # reported below
+            errors.append(exc)
+        taken.set()
+
+    thread = threading.Thread(target=source)
+    thread.start()
+    index = 0
+    while not taken.is_set():
+        clock.done(index, skipped=False)  # every 2nd frame a keyframe: the one before is dropped
+        index = (index + 2) % count
+    thread.join(30)
+    assert not errors
+
+
 @pytest.mark.parametrize("rate, lag", [(0.0, 1.0), (math.inf, 1.0), (1.0, -1.0), (1.0, math.nan)])
 def test_a_rate_or_lag_bound_that_means_nothing_is_refused(rate: float, lag: float) -> None:
     with pytest.raises(ValueError):
@@ -112,6 +142,41 @@ def test_the_pipeline_skips_recognition_while_behind_and_catches_up(cost: float,
         assert stats.lag_max_s <= 0.5 + cost  # the lag stays bounded
     else:
         assert stats.kept_up and stats.lag_max_s == pytest.approx(cost)
+
+
+class StubDetector:
+    """Encodes ahead what it is given, failing on one keyframe."""
+
+    def __init__(self, fail_on: int) -> None:
+        self.fail_on, self.encoded = fail_on, []
+
+    def encode_ahead(self, image: np.ndarray, keyframe_id: int, rear_image: np.ndarray | None) -> str:
+        self.encoded.append(keyframe_id)
+        if keyframe_id in (self.fail_on, self.fail_on + 1):
+            raise RuntimeError(f"no codes for {keyframe_id}")
+        return f"codes {keyframe_id}"
+
+
+def test_the_encoder_leaves_out_keyframes_already_too_late_and_tells_a_failure_once(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """In real time a keyframe already later than the bound when the encoder's thread takes it
+    will skip recognition: no backbone pass is spent on it, or a run that fell behind could not
+    catch up. One that fails to encode goes on without codes (the back end encodes it, and fails
+    there in its turn), said once."""
+    time = FakeTime()
+    system = StubSystem(time, 0.0)
+    system.detector = StubDetector(fail_on=4)  # type: ignore[attr-defined]
+    pipeline = SlamPipeline(system)  # type: ignore[arg-type]
+    clock = pipeline.clock = SensorClock(1.0, 0.5, time.clock, time.sleep)
+    frames = list(clock.paced(frame(i, 0.2 * i) for i in range(7)))  # now: frame 6 due, 1.2 s in
+    items = [system.front(f) for f in frames]
+    with caplog.at_level("WARNING", logger="ssmvpr_slam.app.pipeline"):
+        out = list(pipeline._encoded_ahead(iter(items)))
+    assert system.detector.encoded == [4, 5, 6]  # type: ignore[attr-defined]  # 0-3 were due > 0.5 s ago
+    assert [item.encoded for item in out] == [None] * 6 + ["codes 6"]
+    told = [r.getMessage() for r in caplog.records]
+    assert len(told) == 1 and "keyframe 4 could not be encoded ahead (RuntimeError: no codes for 4)" in told[0]
 
 
 @pytest.fixture(scope="module")
