@@ -410,7 +410,8 @@ class LoopDetector:
         images = self._prepared(image, keyframe_id, rear_image)
         asked = time.perf_counter()
         with self._encoding:
-            return self.encoder.codes(images), time.perf_counter() - asked
+            waited = time.perf_counter() - asked
+            return self.encoder.codes(images), waited
 
     # ---- state, for checkpoints: the database is saved on its own, the rest as plain arrays --
     def state_arrays(self) -> dict[str, np.ndarray]:

@@ -11,6 +11,7 @@ Recognition quality itself is tested with the real weights elsewhere.
 from __future__ import annotations
 
 import hashlib
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -72,6 +73,18 @@ class FakeBackbone:
             maps1.append(rng.standard_normal((512, 14, 14), dtype=np.float32))
             maps2.append(rng.standard_normal((512, 28, 28), dtype=np.float32))
         return np.stack(maps1), np.stack(maps2)
+
+
+class SlowBackbone(FakeBackbone):
+    """A pass that takes `seconds`."""
+
+    def __init__(self, seconds: float) -> None:
+        super().__init__()
+        self.seconds = seconds
+
+    def __call__(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        time.sleep(self.seconds)
+        return super().__call__(images)
 
 
 def scene(i: int) -> np.ndarray:
@@ -587,6 +600,10 @@ def test_codes_encoded_ahead_give_what_process_would_have_computed() -> None:
     assert np.array_equal(ahead.database.codes_of(list(range(len(fronts)))).stage2,
                           inline.database.codes_of(list(range(len(fronts)))).stage2)  # fmt: skip
     assert ahead.encoder.backbone.images == inline.encoder.backbone.images
+    pass_s = 0.05
+    slow = ahead.encoder.backbone = SlowBackbone(pass_s)  # type: ignore[assignment]
+    assert ahead.encode_ahead(scene(40), 40).seconds >= pass_s  # its time is the pass's, not only the wait's
+    assert slow.images == 1
     other = ahead.encode_ahead(scene(30), 99)
     with pytest.raises(ValueError, match="keyframe 18: codes encoded ahead for keyframe 99"):
         ahead.process(scene(30), len(fronts), encoded=other)
