@@ -228,7 +228,9 @@ def test_bench_backbone_prints_one_json(tmp_path):
     assert proc.returncode == 0, proc.stderr[-2000:]
     out = json.loads(proc.stdout)
     assert out["gflop_per_image"] > 0 and out["machine"]["loadavg_start"] is not None
-    assert out["isa_peak_gflops"]["bf16"] > out["isa_peak_gflops"]["fp32"] > 0
+    # each instruction chain's peak, whichever is faster: that is the machine's (a 2-vCPU machine of
+    # this kind ran VDPBF16PS at half the fp32 FMA's GFLOP/s), not the tool's to promise
+    assert min(out["isa_peak_gflops"][kind] for kind in ("fp32", "bf16", "int8")) > 0
     fp32 = out["precisions"]["fp32"]
     assert fp32["agreement_with_fp32"]["stage1"]["cosine_min"] > 0.99999
     assert fp32["batch_2"]["ms_per_image"] > 0 and fp32["physical_limit_ms_per_image"] > 0
