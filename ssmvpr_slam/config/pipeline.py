@@ -75,20 +75,18 @@ class PipelineConfig(SettingsModel):
     @property
     def overlapped(self) -> bool:
         """`overlap`, with auto resolved on this machine."""
-        return self.overlap if isinstance(self.overlap, bool) else _cores() >= _CORES_FOR_STAGES_IN_FLIGHT
+        return _resolved(self.overlap)
 
     @property
     def encodes_ahead(self) -> bool:
         """`encode_ahead`, with auto resolved on this machine; only with overlap (it needs the
         front end's keyframes queued ahead of the back end)."""
-        ahead = self.encode_ahead
-        return self.overlapped and (ahead if isinstance(ahead, bool) else _cores() >= _CORES_FOR_STAGES_IN_FLIGHT)
+        return self.overlapped and _resolved(self.encode_ahead)
 
     @property
     def registers_in_worker(self) -> bool:
         """`registration_worker`, with auto resolved on this machine."""
-        worker = self.registration_worker
-        return worker if isinstance(worker, bool) else _cores() >= _CORES_FOR_STAGES_IN_FLIGHT
+        return _resolved(self.registration_worker)
 
     release_heap_every_keyframes: int = Field(
         default=25,
@@ -100,6 +98,11 @@ class PipelineConfig(SettingsModel):
 
 
 _CORES_FOR_STAGES_IN_FLIGHT = 4
+
+
+def _resolved(setting: Literal["auto"] | bool) -> bool:
+    """A stage-in-flight setting with auto resolved: on where the process may use 4 cores or more."""
+    return setting if isinstance(setting, bool) else _cores() >= _CORES_FOR_STAGES_IN_FLIGHT
 
 
 def _cores() -> int:
